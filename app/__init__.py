@@ -1,0 +1,1 @@
+"""HTTP service: named fuzzy occupancy maps, scan fusion and risk-aware plans."""

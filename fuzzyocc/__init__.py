@@ -1,0 +1,1 @@
+"""Fuzzy occupancy mapping core (Payeur's fuzzy fusion, Bayesian baselines, grids, ray casting)."""

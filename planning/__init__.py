@@ -1,0 +1,1 @@
+"""Risk-aware path planning with OMPL on a risk grid."""
