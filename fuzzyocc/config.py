@@ -1,0 +1,133 @@
+"""Map geometry and sensor uncertainty: the two configs every map is built from.
+
+Conventions (shared with ``planning``): a grid covers the axis-aligned box
+``[origin, origin + size)`` in the ``map`` frame; cell ``(i, j[, k])`` runs along
+x, y[, z] and its centre is ``origin + (index + 0.5) * resolution``. ``origin``
+is the corner of cell 0, as in a Nav2 map YAML. Metres throughout.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+#: Default bound on the number of cells of one map (dense storage, ~12 bytes a cell).
+DEFAULT_MAX_CELLS = 64_000_000
+
+
+def _finite_tuple(name: str, values: object, dims: int | None = None) -> tuple[float, ...]:
+    try:
+        out = tuple(float(v) for v in values)  # type: ignore[union-attr]
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be a sequence of numbers, got {values!r}") from None
+    if dims is not None and len(out) != dims:
+        raise ValueError(f"{name} must have {dims} values, got {len(out)}")
+    if not all(math.isfinite(v) for v in out):
+        raise ValueError(f"{name} must be finite, got {out}")
+    return out
+
+
+@dataclass(frozen=True)
+class GridSpec:
+    """A bounded 2-D or 3-D region cut into square (cubic) cells.
+
+    Parameters
+    ----------
+    origin : sequence of 2 or 3 float
+        Corner of cell 0 in the map frame, metres.
+    size : sequence of 2 or 3 float
+        Extent of the region along x, y[, z], metres; rounded up to whole cells.
+    resolution : float
+        Edge of a cell, metres.
+    max_cells : int
+        Refuse a grid with more cells than this (``ValueError`` naming ``size``).
+    """
+
+    origin: tuple[float, ...]
+    size: tuple[float, ...]
+    resolution: float
+    max_cells: int = field(default=DEFAULT_MAX_CELLS, compare=False)
+
+    def __post_init__(self) -> None:
+        origin = _finite_tuple("origin", self.origin)
+        if len(origin) not in (2, 3):
+            raise ValueError(f"origin must have 2 or 3 values (a 2-D or 3-D map), got {len(origin)}")
+        size = _finite_tuple("size", self.size, len(origin))
+        res = float(self.resolution)
+        if not math.isfinite(res) or res <= 0.0:
+            raise ValueError(f"resolution must be a positive number of metres, got {self.resolution!r}")
+        if any(s <= 0.0 for s in size):
+            raise ValueError(f"size must be positive along every axis, got {size}")
+        object.__setattr__(self, "origin", origin)
+        object.__setattr__(self, "size", size)
+        object.__setattr__(self, "resolution", res)
+        cells = math.prod(self.shape)
+        if cells > self.max_cells:
+            raise ValueError(
+                f"size {size} at resolution {res} m needs {cells} cells, more than the limit of "
+                f"{self.max_cells}; use a coarser resolution or a smaller region"
+            )
+
+    @property
+    def ndim(self) -> int:
+        """2 or 3."""
+        return len(self.origin)
+
+    @property
+    def shape(self) -> tuple[int, ...]:
+        """Cells along x, y[, z]: ``ceil(size / resolution)`` (a hair of tolerance for float noise)."""
+        return tuple(max(1, math.ceil(s / self.resolution - 1e-9)) for s in self.size)
+
+    @property
+    def num_cells(self) -> int:
+        """Total number of cells."""
+        return math.prod(self.shape)
+
+    @property
+    def upper(self) -> tuple[float, ...]:
+        """Far corner of the last cell (``origin + shape * resolution``)."""
+        return tuple(o + n * self.resolution for o, n in zip(self.origin, self.shape))
+
+    def cell_centers(self, axis: int) -> np.ndarray:
+        """Coordinates of the cell centres along one axis, metres."""
+        return self.origin[axis] + (np.arange(self.shape[axis]) + 0.5) * self.resolution
+
+
+@dataclass(frozen=True)
+class SensorModel:
+    """Range uncertainty of a sensor and of the pose it is registered with.
+
+    The effective standard deviation of a beam of range ``r`` is
+    ``sqrt((range_sigma + range_sigma_per_m * r)**2 + registration_sigma**2)``,
+    floored at half a cell by the map (the paper's "uncertainty on measurements
+    and registration").
+
+    Parameters
+    ----------
+    range_sigma : float
+        Standard deviation of a range reading, metres (0.03 is a typical 2-D lidar).
+    registration_sigma : float
+        Standard deviation of the pose estimate along the beam, metres.
+    range_sigma_per_m : float
+        Growth of ``range_sigma`` with range, metres per metre (0 for a constant).
+    """
+
+    range_sigma: float = 0.03
+    registration_sigma: float = 0.0
+    range_sigma_per_m: float = 0.0
+
+    def __post_init__(self) -> None:
+        for name in ("range_sigma", "registration_sigma", "range_sigma_per_m"):
+            value = float(getattr(self, name))
+            if not math.isfinite(value) or value < 0.0:
+                raise ValueError(f"{name} must be a finite number >= 0, got {getattr(self, name)!r}")
+            object.__setattr__(self, name, value)
+
+    def sigma(self, ranges: np.ndarray, extra_registration_sigma: float = 0.0) -> np.ndarray:
+        """Effective sigma (metres) for beams of the given ranges, before the half-cell floor."""
+        ranges = np.asarray(ranges, dtype=np.float64)
+        range_part = self.range_sigma + self.range_sigma_per_m * ranges
+        registration = math.hypot(self.registration_sigma, extra_registration_sigma)
+        return np.sqrt(range_part * range_part + registration * registration)
