@@ -1,1 +1,17 @@
 """Fuzzy occupancy mapping core (Payeur's fuzzy fusion, Bayesian baselines, grids, ray casting)."""
+
+from fuzzyocc.config import GridSpec, SensorModel
+from fuzzyocc.engine import FuzzyEngine
+from fuzzyocc.maps import BayesMap, FuzzyMap, IntegrationStats
+from fuzzyocc.scans import LaserScan, PointCloud
+
+__all__ = [
+    "BayesMap",
+    "FuzzyEngine",
+    "FuzzyMap",
+    "GridSpec",
+    "IntegrationStats",
+    "LaserScan",
+    "PointCloud",
+    "SensorModel",
+]

@@ -177,6 +177,7 @@ class FuzzyEngine:
     normalize: bool | None = None
     _rule_index: np.ndarray = field(init=False, repr=False, compare=False)
     _input_breakpoints: tuple[np.ndarray, np.ndarray, np.ndarray] = field(init=False, repr=False, compare=False)
+    _input_ends: tuple[float, np.ndarray, float, np.ndarray] = field(init=False, repr=False, compare=False)
     _occupied_extent: float = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
@@ -219,7 +220,9 @@ class FuzzyEngine:
         index = np.array([[labels.index(c) for c in row] for row in rules], dtype=np.int64)
         index.flags.writeable = False
         object.__setattr__(self, "_rule_index", index)
-        object.__setattr__(self, "_input_breakpoints", _breakpoint_table([inputs[lab] for lab in labels]))
+        table = _breakpoint_table([inputs[lab] for lab in labels])
+        object.__setattr__(self, "_input_breakpoints", table)
+        object.__setattr__(self, "_input_ends", _constant_rows(*table))
         object.__setattr__(self, "_occupied_extent", extent)
 
     # ---------------------------------------------------------------- construction
@@ -299,19 +302,23 @@ class FuzzyEngine:
         Returns
         -------
         (N, L) uint8 array
-            Columns in ``labels`` order, ``round(255 * membership)``.
+            Columns in ``labels`` order, ``round(255 * membership)``. Below the
+            first breakpoint of every input function (most cells of a beam lie
+            far in front of its surface) and above the last, the row is a
+            constant copied as is.
 
         Raises
         ------
         ValueError
             ``distance_sigmas`` is not 1-D or contains NaN.
         """
-        d = np.asarray(distance_sigmas, dtype=np.float64)
+        d = np.asarray(distance_sigmas)
+        if d.dtype not in (np.float32, np.float64):  # float32 widens exactly in the kernel: no copy needed
+            d = d.astype(np.float64)
         if d.ndim != 1:
             raise ValueError(f"distance_sigmas must be 1-D (N,), got shape {d.shape}")
-        xs, ys, counts = self._input_breakpoints
         out = np.empty((d.shape[0], self.num_labels), dtype=np.uint8)
-        if _fuzzify_kernel(d, xs, ys, counts, out) >= 0:
+        if _fuzzify_kernel(d, *self._input_breakpoints, *self._input_ends, out) >= 0:
             bad = int(np.flatnonzero(np.isnan(d))[0])
             raise ValueError(f"distance_sigmas must not contain NaN (first at index {bad})")
         return out
@@ -343,12 +350,58 @@ class FuzzyEngine:
         if evidence.shape != state.shape:
             raise ValueError(f"evidence must have the shape of state {state.shape}, got {evidence.shape}")
         out = np.empty_like(state)
-        if self.and_op == "min" and self.or_op == "max" and not self.normalize:
+        if self._integer_fusion:
             _fuse_minmax(state, evidence, self._rule_index, out)
         else:
             product, probsum = self.and_op == "product", self.or_op == "probsum"
             _fuse_float(state, evidence, self._rule_index, product, probsum, bool(self.normalize), out)
         return out
+
+    def fuse_at(self, state: np.ndarray, cells: np.ndarray, evidence: np.ndarray) -> None:
+        """In-place :meth:`fuse` of the rows ``cells`` of a whole map's states.
+
+        ``state[cells] = fuse(state[cells], evidence)`` without the gather and
+        scatter copies; the result is the same bit for bit. A cell listed twice
+        is fused twice, in the order given.
+
+        Parameters
+        ----------
+        state : (C, L) uint8 array, C-contiguous and writeable
+            The states of every cell of a map; rows ``cells`` are overwritten.
+        cells : (N,) int array
+            Rows to fuse, each in ``[0, C)``.
+        evidence : (N, L) uint8 array
+            Fuzzified new measurement of each of ``cells``.
+
+        Raises
+        ------
+        ValueError
+            Wrong dtype, shape or layout of an argument, or a row of ``cells``
+            outside ``state``; ``state`` is then left untouched.
+        """
+        if not isinstance(state, np.ndarray) or not state.flags.c_contiguous or not state.flags.writeable:
+            raise ValueError("state must be a C-contiguous, writeable numpy array (it is updated in place)")
+        state = self._check_states("state", state)
+        evidence = self._check_states("evidence", evidence)
+        rows = np.asarray(cells)
+        if rows.ndim != 1 or (rows.size and not np.issubdtype(rows.dtype, np.integer)):
+            raise ValueError(f"cells must be a 1-D array of row indices, got dtype {rows.dtype} shape {rows.shape}")
+        if evidence.shape[0] != rows.shape[0]:
+            raise ValueError(f"evidence must have one row per cell ({rows.shape[0]}), got {evidence.shape[0]}")
+        rows = rows.astype(np.int64, copy=False)
+        bad = _first_out_of_range(rows, state.shape[0])
+        if bad >= 0:
+            raise ValueError(f"cells[{bad}] = {int(rows[bad])} is not a row of state (0 .. {state.shape[0] - 1})")
+        if self._integer_fusion:
+            _fuse_minmax_at(state, rows, evidence, self._rule_index)
+        else:
+            product, probsum = self.and_op == "product", self.or_op == "probsum"
+            _fuse_float_at(state, rows, evidence, self._rule_index, product, probsum, bool(self.normalize))
+
+    @property
+    def _integer_fusion(self) -> bool:
+        # min/max commute with the rounding to 1/255 steps: fusion in uint8 is exact.
+        return self.and_op == "min" and self.or_op == "max" and not self.normalize
 
     def defuzzify(self, state: np.ndarray) -> np.ndarray:
         """Risk of each state: centroid of the aggregated output set.
@@ -557,14 +610,37 @@ def _defuzzify_direct(engine: FuzzyEngine, state: np.ndarray, out: np.ndarray, c
 
 
 # -------------------------------------------------------------------- compiled kernels
-@numba.njit(cache=True)
-def _fuzzify_kernel(d: np.ndarray, xs: np.ndarray, ys: np.ndarray, counts: np.ndarray, out: np.ndarray) -> int:
-    """Piecewise-linear interpolation of every label at every distance; index of a NaN, or -1."""
+# nogil: maps fuse in a service's thread pool, and these loops touch no Python object.
+@numba.njit(cache=True, nogil=True)
+def _fuzzify_kernel(
+    d: np.ndarray,
+    xs: np.ndarray,
+    ys: np.ndarray,
+    counts: np.ndarray,
+    low: float,
+    low_row: np.ndarray,
+    high: float,
+    high_row: np.ndarray,
+    out: np.ndarray,
+) -> int:
+    """Piecewise-linear interpolation of every label at every distance; index of a NaN, or -1.
+
+    ``v < low`` (before every function's first breakpoint) and ``v > high`` (past
+    every last one) take the precomputed rows of :func:`_constant_rows`.
+    """
     n_labels = xs.shape[0]
     for n in range(d.shape[0]):
         v = d[n]
         if v != v:
             return n
+        if v < low:
+            for k in range(n_labels):
+                out[n, k] = low_row[k]
+            continue
+        if v > high:
+            for k in range(n_labels):
+                out[n, k] = high_row[k]
+            continue
         for k in range(n_labels):
             c = counts[k]
             if v <= xs[k, 0]:
@@ -582,31 +658,117 @@ def _fuzzify_kernel(d: np.ndarray, xs: np.ndarray, ys: np.ndarray, counts: np.nd
     return -1
 
 
-@numba.njit(cache=True)
+def _constant_rows(xs: np.ndarray, ys: np.ndarray, counts: np.ndarray) -> tuple[float, np.ndarray, float, np.ndarray]:
+    """``(low, row at -inf, high, row at +inf)`` for the fast paths of :func:`_fuzzify_kernel`.
+
+    Strictly below ``low`` every function is at its first breakpoint's value and
+    strictly above ``high`` at its last one's, so these rows are exactly what the
+    interpolation would give there. They are computed by the kernel itself with
+    the fast paths off (bounds at -inf / +inf), so the rounding is the same.
+    """
+    low = float(xs[:, 0].min())
+    high = float(max(xs[k, c - 1] for k, c in enumerate(counts)))
+    rows = np.empty((2, xs.shape[0]), dtype=np.uint8)
+    unused = np.empty(0, dtype=np.uint8)
+    unused.flags.writeable = False  # the type the real rows have: one compiled specialisation
+    _fuzzify_kernel(np.array([-np.inf, np.inf]), xs, ys, counts, -np.inf, unused, np.inf, unused, rows)
+    rows.flags.writeable = False
+    return low, rows[0], high, rows[1]
+
+
+@numba.njit(cache=True, nogil=True)
+def _first_out_of_range(rows: np.ndarray, n: int) -> int:
+    for q in range(rows.shape[0]):
+        if rows[q] < 0 or rows[q] >= n:
+            return q
+    return -1
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _minmax_row(
+    state: np.ndarray, c: int, evidence: np.ndarray, n: int, rule: np.ndarray, acc: np.ndarray, active: np.ndarray
+) -> None:
+    """``acc`` = fusion of ``state[c]`` with ``evidence[n]`` by min/max in uint8."""
+    n_labels = acc.shape[0]
+    # Evidence and states are sparse (one or two labels): only rules on active pairs can fire.
+    n_active = 0
+    for j in range(n_labels):
+        acc[j] = 0
+        if evidence[n, j] != 0:
+            active[n_active] = j
+            n_active += 1
+    for i in range(n_labels):
+        s = state[c, i]
+        if s == 0:
+            continue
+        for a in range(n_active):
+            j = active[a]
+            v = min(s, evidence[n, j])
+            k = rule[i, j]
+            if v > acc[k]:
+                acc[k] = v
+
+
+@numba.njit(cache=True, nogil=True)
 def _fuse_minmax(state: np.ndarray, evidence: np.ndarray, rule: np.ndarray, out: np.ndarray) -> None:
     n_labels = state.shape[1]
+    acc = np.empty(n_labels, dtype=np.uint8)
     active = np.empty(n_labels, dtype=np.int64)
     for n in range(state.shape[0]):
-        # Evidence and states are sparse (one or two labels): only rules on active pairs can fire.
-        n_active = 0
+        _minmax_row(state, n, evidence, n, rule, acc, active)
+        for k in range(n_labels):
+            out[n, k] = acc[k]
+
+
+@numba.njit(cache=True, nogil=True)
+def _fuse_minmax_at(state: np.ndarray, cells: np.ndarray, evidence: np.ndarray, rule: np.ndarray) -> None:
+    n_labels = state.shape[1]
+    acc = np.empty(n_labels, dtype=np.uint8)
+    active = np.empty(n_labels, dtype=np.int64)
+    for n in range(cells.shape[0]):
+        c = cells[n]
+        _minmax_row(state, c, evidence, n, rule, acc, active)  # reads the row before it is overwritten
+        for k in range(n_labels):
+            state[c, k] = acc[k]
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _float_row(
+    state: np.ndarray,
+    c: int,
+    evidence: np.ndarray,
+    n: int,
+    rule: np.ndarray,
+    product: bool,
+    probsum: bool,
+    normalize: bool,
+    acc: np.ndarray,
+    out_row: np.ndarray,
+) -> None:
+    """``out_row`` = fusion of ``state[c]`` with ``evidence[n]`` in float, rounded once to uint8."""
+    n_labels = acc.shape[0]
+    acc[:] = 0.0
+    for i in range(n_labels):
+        if state[c, i] == 0:
+            continue
+        s = state[c, i] / 255.0
         for j in range(n_labels):
-            out[n, j] = 0
-            if evidence[n, j] != 0:
-                active[n_active] = j
-                n_active += 1
-        for i in range(n_labels):
-            s = state[n, i]
-            if s == 0:
+            if evidence[n, j] == 0:
                 continue
-            for a in range(n_active):
-                j = active[a]
-                v = min(s, evidence[n, j])
-                k = rule[i, j]
-                if v > out[n, k]:
-                    out[n, k] = v
+            e = evidence[n, j] / 255.0
+            v = s * e if product else min(s, e)
+            k = rule[i, j]
+            acc[k] = acc[k] + v - acc[k] * v if probsum else max(acc[k], v)
+    scale = 255.0
+    if normalize:
+        top = acc.max()
+        if top > 0.0:
+            scale = 255.0 / top
+    for k in range(n_labels):
+        out_row[k] = np.uint8(acc[k] * scale + 0.5)
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _fuse_float(
     state: np.ndarray,
     evidence: np.ndarray,
@@ -618,29 +780,34 @@ def _fuse_float(
 ) -> None:
     n_labels = state.shape[1]
     acc = np.zeros(n_labels)
+    row = np.empty(n_labels, dtype=np.uint8)
     for n in range(state.shape[0]):
-        acc[:] = 0.0
-        for i in range(n_labels):
-            if state[n, i] == 0:
-                continue
-            s = state[n, i] / 255.0
-            for j in range(n_labels):
-                if evidence[n, j] == 0:
-                    continue
-                e = evidence[n, j] / 255.0
-                v = s * e if product else min(s, e)
-                k = rule[i, j]
-                acc[k] = acc[k] + v - acc[k] * v if probsum else max(acc[k], v)
-        scale = 255.0
-        if normalize:
-            top = acc.max()
-            if top > 0.0:
-                scale = 255.0 / top
+        _float_row(state, n, evidence, n, rule, product, probsum, normalize, acc, row)
         for k in range(n_labels):
-            out[n, k] = np.uint8(acc[k] * scale + 0.5)
+            out[n, k] = row[k]
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
+def _fuse_float_at(
+    state: np.ndarray,
+    cells: np.ndarray,
+    evidence: np.ndarray,
+    rule: np.ndarray,
+    product: bool,
+    probsum: bool,
+    normalize: bool,
+) -> None:
+    n_labels = state.shape[1]
+    acc = np.zeros(n_labels)
+    row = np.empty(n_labels, dtype=np.uint8)
+    for n in range(cells.shape[0]):
+        c = cells[n]
+        _float_row(state, c, evidence, n, rule, product, probsum, normalize, acc, row)
+        for k in range(n_labels):
+            state[c, k] = row[k]
+
+
+@numba.njit(cache=True, nogil=True)
 def _pair_table(
     mu_i: np.ndarray, mu_j: np.ndarray, x: np.ndarray, product: bool, probsum: bool, out: np.ndarray
 ) -> None:
@@ -661,7 +828,7 @@ def _pair_table(
             out[a, b, 1] = moment
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _defuzzify_lut(state: np.ndarray, first: np.ndarray, second: np.ndarray, lut: np.ndarray, out: np.ndarray) -> None:
     for n in range(state.shape[0]):
         area = 0.0

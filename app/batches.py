@@ -1,0 +1,276 @@
+"""Scan batches: from request bodies (JSON or binary) to validated fuzzyocc scans, and to bytes on disk.
+
+Everything a batch needs is checked here, before anything is stored or applied:
+pydantic checks shapes and finiteness, this module the limits and the map's
+dimension, and constructing ``LaserScan`` / ``PointCloud`` runs fuzzyocc's own checks.
+Errors name the field (``scans[2].pose``) and say what to fix.
+"""
+
+from __future__ import annotations
+
+import io
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from pydantic import ValidationError
+
+from app.errors import Invalid, TooLarge
+from app.schemas import LaserScanIn, PointCloudIn, Pose2D, Pose3D, ScanBatch
+from fuzzyocc import LaserScan, PointCloud
+
+Scan = LaserScan | PointCloud
+
+#: Content types of the binary upload (one scan per request, pose in the query).
+BINARY_TYPES = ("application/octet-stream", "application/x-npy")
+_NPY_MAGIC = b"\x93NUMPY"
+#: The scans/last view draws at most this many beams.
+MAX_VIEW_BEAMS = 4096
+
+
+@dataclass(frozen=True)
+class Limits:
+    max_scans: int
+    max_rays: int
+
+
+def _check_rays(name: str, count: int, limits: Limits) -> None:
+    if count > limits.max_rays:
+        raise TooLarge(
+            f"{name} has {count} beams, more than the limit of {limits.max_rays} per scan "
+            "(FUZZYRISK_MAX_RAYS_PER_SCAN): split it into several scans"
+        )
+
+
+def _planar_to_map(points_sensor: np.ndarray, pose: Pose2D) -> np.ndarray:
+    """(N, 2) sensor-frame points -> map frame under a planar pose."""
+    c, s = math.cos(pose.theta), math.sin(pose.theta)
+    rotation = np.array([[c, -s], [s, c]])
+    return points_sensor @ rotation.T + np.array([pose.x, pose.y])
+
+
+def _finite_rows(points: np.ndarray) -> np.ndarray:
+    # organised clouds (ROS PointCloud2 with is_dense false) mark a no-return with NaN: drop those rows
+    return points[np.isfinite(points).all(axis=1)]
+
+
+def _value_error(name: str, exc: ValueError) -> Invalid:
+    return Invalid(f"{name}: {exc}")
+
+
+def laser_scan(
+    name: str, pose: Pose2D, *, angle_min: float, angle_increment: float, ranges: np.ndarray, range_min: float,
+    range_max: float, registration_sigma: float, dims: int, limits: Limits,
+) -> LaserScan:
+    """A validated ``LaserScan`` for a map of ``dims`` dimensions."""
+    if dims != 2:
+        raise Invalid(f"{name} is a LaserScan (planar) but the map is 3-D: send a point cloud with a 3-D pose")
+    _check_rays(f"{name}.ranges", ranges.size, limits)
+    try:
+        return LaserScan(
+            pose=(pose.x, pose.y, pose.theta), angle_min=angle_min, angle_increment=angle_increment,
+            ranges=ranges, range_min=range_min, range_max=range_max, registration_sigma=registration_sigma,
+            max_rays=limits.max_rays,
+        )
+    except ValueError as exc:
+        raise _value_error(name, exc) from None
+
+
+def point_cloud(
+    name: str, pose: Pose2D | Pose3D, points_sensor: np.ndarray, *, range_max: float, registration_sigma: float,
+    dims: int, limits: Limits,
+) -> PointCloud:
+    """A validated map-frame ``PointCloud`` from sensor-frame points and the sensor pose."""
+    if points_sensor.ndim != 2 or points_sensor.shape[1] != dims:
+        raise Invalid(f"{name}.points must have shape (N, {dims}) for this {dims}-D map, got {points_sensor.shape}")
+    _check_rays(f"{name}.points", points_sensor.shape[0], limits)
+    points_sensor = _finite_rows(points_sensor)
+    try:
+        if dims == 3:
+            if not isinstance(pose, Pose3D):
+                raise Invalid(f"{name}.pose must be {{position: [x, y, z], orientation: [qx, qy, qz, qw]}} on a 3-D map")
+            return PointCloud.from_sensor_frame(
+                points_sensor, pose.position, pose.orientation, range_max, registration_sigma
+            )
+        if not isinstance(pose, Pose2D):
+            raise Invalid(f"{name}.pose must be {{x, y, theta}} on a 2-D map")
+        return PointCloud(
+            points=_planar_to_map(points_sensor, pose), origin=(pose.x, pose.y), range_max=range_max,
+            registration_sigma=registration_sigma, max_rays=limits.max_rays,
+        )
+    except ValueError as exc:
+        raise _value_error(name, exc) from None
+
+
+def _check_batch_size(count: int, limits: Limits) -> None:
+    if count > limits.max_scans:
+        raise TooLarge(
+            f"the batch has {count} scans, more than the limit of {limits.max_scans} "
+            "(FUZZYRISK_MAX_SCANS_PER_BATCH): send several batches"
+        )
+
+
+def from_json(batch: ScanBatch, dims: int, limits: Limits) -> list[Scan]:
+    """The scans of a JSON batch, validated for a map of ``dims`` dimensions."""
+    _check_batch_size(len(batch.scans), limits)
+    scans: list[Scan] = []
+    for i, scan in enumerate(batch.scans):
+        name = f"scans[{i}]"
+        if isinstance(scan, LaserScanIn):
+            # numpy reads null as NaN and the strings "inf", "-inf", "nan" (and Infinity) as floats
+            ranges = np.array(scan.ranges, dtype=np.float64)
+            scans.append(laser_scan(
+                name, scan.pose, angle_min=scan.angle_min, angle_increment=scan.angle_increment, ranges=ranges,
+                range_min=scan.range_min, range_max=scan.range_max, registration_sigma=scan.registration_sigma,
+                dims=dims, limits=limits,
+            ))
+        else:
+            assert isinstance(scan, PointCloudIn)
+            if len({len(row) for row in scan.points}) > 1:
+                raise Invalid(f"{name}.points rows must all have {dims} coordinates")
+            points = np.array(scan.points, dtype=np.float64)
+            scans.append(point_cloud(
+                name, scan.pose, points, range_max=scan.range_max, registration_sigma=scan.registration_sigma,
+                dims=dims, limits=limits,
+            ))
+    return scans
+
+
+# ---------------------------------------------------------------- binary upload
+
+
+def _load_body(body: bytes) -> tuple[np.ndarray, bool]:
+    """(float64 array, came from .npy): a ``.npy`` file, or raw little-endian float32 values (1-D)."""
+    if body.startswith(_NPY_MAGIC):
+        try:
+            array = np.load(io.BytesIO(body), allow_pickle=False)
+        except (ValueError, OSError, EOFError) as exc:
+            raise Invalid(f"body: not a readable .npy file ({exc})") from None
+        if array.dtype.kind != "f" or array.dtype.itemsize not in (4, 8):
+            raise Invalid(f"body: the .npy array must be float32 or float64, got {array.dtype}")
+        return array.astype(np.float64), True
+    if not body:
+        raise Invalid("body is empty: send a .npy array or raw little-endian float32 values")
+    if len(body) % 4:
+        raise Invalid(f"body: {len(body)} bytes is not a whole number of float32 values (4 bytes each)")
+    return np.frombuffer(body, dtype="<f4").astype(np.float64), False
+
+
+def _need(params: Mapping[str, float | None], names: Sequence[str], what: str) -> list[float]:
+    missing = [n for n in names if params.get(n) is None]
+    if missing:
+        raise Invalid(f"{what} needs the query parameters {', '.join(missing)}")
+    return [float(params[n]) for n in names]  # type: ignore[arg-type]
+
+
+def from_binary(body: bytes, params: Mapping[str, float | None], dims: int, limits: Limits) -> list[Scan]:
+    """The one scan of a binary upload (pose and scan parameters in ``params``, from the query).
+
+    3-D map: points (N, 3) in the sensor frame (``.npy``, or raw float32 x, y, z, x, y, z, ...),
+    pose ``x, y, z`` and quaternion ``qx, qy, qz, qw`` (default identity), ``range_max``.
+    2-D map: raw float32 ranges (or a 1-D ``.npy``) of a LaserScan with ``x, y, theta, angle_min,
+    angle_increment, range_min, range_max``; or a ``.npy`` of (N, 2) sensor-frame points with
+    ``x, y, theta, range_max``.
+    """
+    registration_sigma = params.get("registration_sigma") or 0.0
+    array, is_npy = _load_body(body)
+    if dims == 3:
+        x, y, z, range_max = _need(params, ("x", "y", "z", "range_max"), "a point cloud on a 3-D map")
+        given = [params.get(k) for k in ("qx", "qy", "qz", "qw")]
+        quaternion = [d if q is None else q for q, d in zip(given, (0.0, 0.0, 0.0, 1.0))]  # identity by default
+        try:
+            pose: Pose2D | Pose3D = Pose3D(position=[x, y, z], orientation=quaternion)
+        except ValidationError as exc:
+            raise Invalid(f"query: {exc.errors()[0]['msg']}") from None
+        if not is_npy:
+            if array.size % 3:
+                raise Invalid(f"body: {array.size} float32 values is not a whole number of (x, y, z) points")
+            array = array.reshape(-1, 3)
+        return [point_cloud("body", pose, array, range_max=range_max, registration_sigma=registration_sigma,
+                            dims=3, limits=limits)]
+    x, y, theta = _need(params, ("x", "y", "theta"), "a scan on a 2-D map")
+    pose = Pose2D(x=x, y=y, theta=theta)
+    if array.ndim == 2:
+        (range_max,) = _need(params, ("range_max",), "a 2-D point cloud")
+        return [point_cloud("body", pose, array, range_max=range_max, registration_sigma=registration_sigma,
+                            dims=2, limits=limits)]
+    if array.ndim != 1:
+        raise Invalid(f"body: the .npy array must be (N,) ranges or (N, 2) points on a 2-D map, got {array.shape}")
+    angle_min, angle_increment, range_min, range_max = _need(
+        params, ("angle_min", "angle_increment", "range_min", "range_max"), "a LaserScan"
+    )
+    return [laser_scan("body", pose, angle_min=angle_min, angle_increment=angle_increment, ranges=array,
+                       range_min=range_min, range_max=range_max, registration_sigma=registration_sigma,
+                       dims=2, limits=limits)]
+
+
+# ---------------------------------------------------------------- storage codec
+
+_LASER_SCALARS = 8  # x, y, theta, angle_min, angle_increment, range_min, range_max, registration_sigma
+
+
+def _compact(values: np.ndarray) -> np.ndarray:
+    """float32 when that loses nothing (binary uploads, float32 drivers), else float64."""
+    as32 = values.astype(np.float32)
+    return as32 if np.array_equal(as32.astype(np.float64), values, equal_nan=True) else values
+
+
+def encode(scans: Sequence[Scan]) -> bytes:
+    """A validated batch as an ``.npz`` blob that :func:`decode` turns back into equal scans."""
+    arrays: dict[str, np.ndarray] = {"kinds": np.array(["laser" if isinstance(s, LaserScan) else "cloud" for s in scans])}
+    for i, scan in enumerate(scans):
+        if isinstance(scan, LaserScan):
+            arrays[f"s{i}_scalars"] = np.array(
+                [*scan.pose, scan.angle_min, scan.angle_increment, scan.range_min, scan.range_max,
+                 scan.registration_sigma], dtype=np.float64,
+            )
+            arrays[f"s{i}_values"] = _compact(scan.ranges)
+        else:
+            arrays[f"s{i}_scalars"] = np.array([*scan.origin, scan.range_max, scan.registration_sigma], dtype=np.float64)
+            arrays[f"s{i}_values"] = _compact(scan.points)
+    out = io.BytesIO()
+    np.savez(out, allow_pickle=False, **arrays)
+    return out.getvalue()
+
+
+def decode(payload: bytes) -> list[Scan]:
+    """The scans of an :func:`encode` blob (bit-identical arrays, so fusion replays exactly)."""
+    with np.load(io.BytesIO(payload), allow_pickle=False) as archive:
+        kinds = [str(k) for k in archive["kinds"]]
+        scans: list[Scan] = []
+        for i, kind in enumerate(kinds):
+            scalars = archive[f"s{i}_scalars"]
+            values = archive[f"s{i}_values"].astype(np.float64)
+            if kind == "laser":
+                x, y, theta, angle_min, increment, range_min, range_max, reg = scalars.tolist()
+                scans.append(LaserScan(pose=(x, y, theta), angle_min=angle_min, angle_increment=increment,
+                                       ranges=values, range_min=range_min, range_max=range_max,
+                                       registration_sigma=reg, max_rays=max(values.size, 1)))
+            else:
+                *origin, range_max, reg = scalars.tolist()
+                scans.append(PointCloud(points=values, origin=tuple(origin), range_max=range_max,
+                                        registration_sigma=reg, max_rays=max(values.shape[0], 1)))
+    return scans
+
+
+# ---------------------------------------------------------------- the last scan, for the web page
+
+
+@dataclass(frozen=True)
+class ScanView:
+    origin: list[float]
+    endpoints: list[list[float]]
+    hit: list[bool]
+
+
+def scan_view(scan: Scan) -> ScanView:
+    """Beam ends of a scan in the map frame, evenly thinned to at most ``MAX_VIEW_BEAMS``."""
+    rays = scan.to_rays()
+    step = max(1, math.ceil(rays.ranges.size / MAX_VIEW_BEAMS))
+    ends = rays.endpoints[::step]
+    return ScanView(
+        origin=[float(v) for v in rays.origin],
+        endpoints=np.round(ends, 4).tolist(),
+        hit=rays.hit[::step].tolist(),
+    )

@@ -1,0 +1,81 @@
+"""Configuration in one place: every knob is a ``FUZZYRISK_*`` environment variable.
+
+``Settings`` validates itself and refuses unsafe values; ``create_app(settings)`` takes one
+explicitly (tests build their own with a ``tmp_path`` data directory), and ``get_settings()``
+reads the environment once for ``python -m app``.
+"""
+
+from __future__ import annotations
+
+from functools import lru_cache
+from pathlib import Path
+from typing import Literal
+
+from pydantic import Field, SecretStr, field_validator
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+#: Shortest API key accepted: a guessable key is worse than none because it looks like protection.
+MIN_API_KEY_LENGTH = 16
+
+
+class Settings(BaseSettings):
+    """Service configuration (environment variables ``FUZZYRISK_<FIELD>``, case-insensitive)."""
+
+    model_config = SettingsConfigDict(env_prefix="FUZZYRISK_", extra="ignore")
+
+    host: str = Field("127.0.0.1", description="Interface to listen on (0.0.0.0 in a container).")
+    port: int = Field(8000, ge=1, le=65535, description="TCP port.")
+    data_dir: Path = Field(Path("data"), description="Directory of the map database (created if missing).")
+    api_key: SecretStr | None = Field(
+        None,
+        description="Bearer token every API call must carry; unset or empty = no authentication.",
+    )
+    max_body_bytes: int = Field(64 * 2**20, ge=1024, description="Largest request body, bytes (413 beyond).")
+    max_scans_per_batch: int = Field(256, ge=1, description="Most scans in one POST /maps/{name}/scans.")
+    max_rays_per_scan: int = Field(
+        2_000_000, ge=1, description="Most ranges in a LaserScan, or points in a point cloud."
+    )
+    max_map_cells: int = Field(
+        16_000_000, ge=1, description="Most cells in one map (~12 bytes a cell in memory)."
+    )
+    max_query_points: int = Field(100_000, ge=1, description="Most points in one risk query.")
+    max_plan_time_s: float = Field(30.0, gt=0.0, le=3600.0, description="Largest plan time_limit, seconds.")
+    plan_workers: int = Field(2, ge=1, le=64, description="Planner worker processes.")
+    plan_queue: int = Field(8, ge=1, description="Plans waiting for a worker before 503 answers.")
+    plan_warmup: bool = Field(True, description="Start the planner processes at startup, not at the first plan.")
+    fusion_threads: int = Field(2, ge=1, le=64, description="Threads that fuse scans (different maps in parallel).")
+    snapshot_every: int = Field(200, ge=1, description="Snapshot a map after this many batches since the last.")
+    graceful_timeout_s: float = Field(
+        30.0, gt=0.0, description="On SIGTERM, wait this long for requests in flight before stopping."
+    )
+    log_format: Literal["json", "kv"] = Field("json", description="json (one object a line) or kv (key=value).")
+    log_level: Literal["DEBUG", "INFO", "WARNING", "ERROR"] = Field("INFO", description="Logging threshold.")
+
+    @field_validator("api_key", mode="before")
+    @classmethod
+    def _empty_key_is_none(cls, value: object) -> object:
+        # FUZZYRISK_API_KEY= (empty) in a compose file means "no key", not "the empty key"
+        if value is None or (isinstance(value, str) and value == ""):
+            return None
+        return value
+
+    @field_validator("api_key")
+    @classmethod
+    def _key_long_enough(cls, value: SecretStr | None) -> SecretStr | None:
+        if value is not None and len(value.get_secret_value()) < MIN_API_KEY_LENGTH:
+            raise ValueError(
+                f"FUZZYRISK_API_KEY must have at least {MIN_API_KEY_LENGTH} characters "
+                "(e.g. python -c 'import secrets; print(secrets.token_urlsafe(32))')"
+            )
+        return value
+
+    @property
+    def database_path(self) -> Path:
+        """The SQLite file holding every map."""
+        return self.data_dir / "fuzzyrisk.sqlite3"
+
+
+@lru_cache(maxsize=1)
+def get_settings() -> Settings:
+    """Settings from the environment, read once."""
+    return Settings()

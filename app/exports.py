@@ -1,0 +1,211 @@
+"""Risk grids to files people and ROS tools read: PNG, .npy, Nav2 map_server YAML + image, OccupancyGrid.
+
+Pure functions over numpy arrays indexed ``[i, j]`` along x, y (the grid
+convention); nothing here knows about maps or HTTP. Images put the highest y in
+the top row, x to the right, as a Nav2 PGM does.
+"""
+
+from __future__ import annotations
+
+import io
+import zipfile
+from typing import Literal
+
+import numpy as np
+import yaml
+from PIL import Image, PngImagePlugin
+
+#: Nav2 map_saver's defaults, written into every exported YAML unless asked otherwise.
+NAV2_OCCUPIED_THRESH = 0.65
+NAV2_FREE_THRESH = 0.25
+
+#: Never-observed cells in the PNG: a grey-blue that is not on the risk scale, hatched when scale >= 4.
+UNKNOWN_RGB = (138, 154, 181)
+UNKNOWN_HATCH_RGB = (104, 118, 143)
+
+# ColorBrewer YlOrRd-like ramp from white (risk 0) to dark crimson (risk 1): sequential,
+# readable in grey print, and far from the grey-blue of unknown space.
+_RAMP_AT = np.array([0.0, 0.25, 0.5, 0.75, 1.0])
+_RAMP_RGB = np.array(
+    [[255, 255, 255], [254, 230, 150], [253, 141, 60], [222, 35, 32], [110, 0, 30]], dtype=np.float64
+)
+RISK_LUT = np.stack(
+    [np.interp(np.linspace(0.0, 1.0, 256), _RAMP_AT, _RAMP_RGB[:, c]) for c in range(3)], axis=1
+).round().astype(np.uint8)
+
+
+def project_z(
+    risk: np.ndarray,
+    observed: np.ndarray,
+    *,
+    origin_z: float,
+    resolution: float,
+    z_min: float | None = None,
+    z_max: float | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Project a 3-D grid to 2-D over a z band, as octomap_server's projected map does.
+
+    A column's risk is the largest risk among its *observed* cells whose centre lies in
+    ``[z_min, z_max]``; a column with none is unknown (risk 0.5, not observed).
+
+    Parameters
+    ----------
+    risk : (nx, ny, nz) float32
+    observed : (nx, ny, nz) bool
+    origin_z, resolution : float
+        Grid geometry along z, metres.
+    z_min, z_max : float or None
+        Band, metres; None = unbounded.
+
+    Returns
+    -------
+    (nx, ny) float32 risk and (nx, ny) bool observed.
+    """
+    centres = origin_z + (np.arange(risk.shape[2]) + 0.5) * resolution
+    band = np.ones(risk.shape[2], dtype=bool)
+    if z_min is not None:
+        band &= centres >= z_min
+    if z_max is not None:
+        band &= centres <= z_max
+    seen = observed[:, :, band]
+    values = np.where(seen, risk[:, :, band], np.float32(-1.0))
+    projected = values.max(axis=2, initial=np.float32(-1.0))
+    column_seen = seen.any(axis=2)
+    return np.where(column_seen, projected, np.float32(0.5)).astype(np.float32), column_seen
+
+
+def _image_rows(grid: np.ndarray) -> np.ndarray:
+    """[i, j] grid -> image rows (top row = highest y)."""
+    return np.ascontiguousarray(grid.T[::-1])
+
+
+def risk_png(
+    risk: np.ndarray, observed: np.ndarray, *, scale: int = 1, text: dict[str, str] | None = None
+) -> bytes:
+    """A colour PNG of a 2-D risk grid: one ``scale`` x ``scale`` block a cell.
+
+    Risk runs white (0) -> yellow -> orange -> red -> dark crimson (1); never-observed
+    cells are flat grey-blue (hatched from ``scale >= 4``), a colour not on the scale.
+    """
+    levels = np.rint(np.clip(risk, 0.0, 1.0) * 255.0).astype(np.uint8)
+    rgb = RISK_LUT[_image_rows(levels)]
+    unknown = _image_rows(~observed)
+    if scale > 1:
+        rgb = rgb.repeat(scale, axis=0).repeat(scale, axis=1)
+        unknown = unknown.repeat(scale, axis=0).repeat(scale, axis=1)
+    rgb[unknown] = UNKNOWN_RGB
+    if scale >= 4:
+        rows, cols = np.indices(unknown.shape)
+        rgb[unknown & ((rows + cols) % 4 == 0)] = UNKNOWN_HATCH_RGB
+    info = PngImagePlugin.PngInfo()
+    for key, value in (text or {}).items():
+        info.add_text(key, value)
+    out = io.BytesIO()
+    Image.fromarray(rgb, mode="RGB").save(out, format="PNG", pnginfo=info)
+    return out.getvalue()
+
+
+def npy_bytes(array: np.ndarray) -> bytes:
+    """``array`` as a ``.npy`` file (``np.load`` reads it back exactly)."""
+    out = io.BytesIO()
+    np.save(out, array, allow_pickle=False)
+    return out.getvalue()
+
+
+def occupancy_data(
+    risk: np.ndarray,
+    observed: np.ndarray,
+    *,
+    mode: Literal["probability", "trinary"] = "probability",
+    free_thresh: float = NAV2_FREE_THRESH,
+    occupied_thresh: float = NAV2_OCCUPIED_THRESH,
+) -> np.ndarray:
+    """``nav_msgs/OccupancyGrid.data``: int8, ``data[j * width + i]``, -1 for never-observed cells.
+
+    ``probability``: ``round(100 * risk)``; ``trinary``: 100 above ``occupied_thresh``,
+    0 below ``free_thresh``, -1 between (Nav2's trinary reading).
+    """
+    if mode == "probability":
+        values = np.rint(np.clip(risk, 0.0, 1.0) * 100.0).astype(np.int8)
+    else:
+        values = np.full(risk.shape, -1, dtype=np.int8)
+        values[risk > occupied_thresh] = 100
+        values[risk < free_thresh] = 0
+    values[~observed] = -1
+    # row-major from the origin cell: j (y) is the slow axis
+    return np.ascontiguousarray(values.T).reshape(-1)
+
+
+def nav2_pixels(
+    risk: np.ndarray,
+    observed: np.ndarray,
+    *,
+    mode: Literal["trinary", "scale"],
+    free_thresh: float = NAV2_FREE_THRESH,
+    occupied_thresh: float = NAV2_OCCUPIED_THRESH,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Grey levels (uint8, image rows) and an opacity mask that Nav2's map_server reads back as our map.
+
+    Nav2 reads ``occ = (255 - p) / 255`` (negate 0). ``trinary``: occupied (risk above
+    ``occupied_thresh``) is 0, free (below ``free_thresh``) is 254, the rest is the grey whose
+    ``occ`` lies midway between the thresholds, so it reads back as unknown. (map_saver's 205
+    reads back as *free* under its own free_thresh 0.25: 50/255 = 0.196.) ``scale``:
+    ``p = round(255 * (1 - risk))``; never-observed cells are transparent (Nav2's unknown in
+    scale mode) and, where there is no alpha (PGM), risk 0.5.
+    """
+    if mode == "trinary":
+        unknown_grey = round(255.0 * (1.0 - 0.5 * (free_thresh + occupied_thresh)))
+        grey = np.full(risk.shape, unknown_grey, dtype=np.uint8)
+        grey[(risk > occupied_thresh) & observed] = 0
+        grey[(risk < free_thresh) & observed] = 254
+    else:
+        shown = np.where(observed, np.clip(risk, 0.0, 1.0), np.float32(0.5))
+        grey = np.rint(255.0 * (1.0 - shown)).astype(np.uint8)
+    return _image_rows(grey), _image_rows(observed)
+
+
+def pgm_bytes(grey: np.ndarray) -> bytes:
+    """Binary PGM (P5, maxval 255) of image rows."""
+    height, width = grey.shape
+    return f"P5\n# fuzzyrisk\n{width} {height}\n255\n".encode("ascii") + grey.astype(np.uint8).tobytes()
+
+
+def nav2_zip(
+    risk: np.ndarray,
+    observed: np.ndarray,
+    *,
+    resolution: float,
+    origin_xy: tuple[float, float],
+    mode: Literal["trinary", "scale"] = "trinary",
+    image_format: Literal["pgm", "png"] = "pgm",
+    free_thresh: float = NAV2_FREE_THRESH,
+    occupied_thresh: float = NAV2_OCCUPIED_THRESH,
+) -> bytes:
+    """A zip of ``map.yaml`` and ``map.pgm`` (or ``map.png``) that Nav2's map_server loads as is."""
+    grey, opaque = nav2_pixels(risk, observed, mode=mode, free_thresh=free_thresh, occupied_thresh=occupied_thresh)
+    image_name = f"map.{image_format}"
+    if image_format == "pgm":
+        image = pgm_bytes(grey)
+    else:
+        out = io.BytesIO()
+        if mode == "scale":
+            alpha = np.where(opaque, 255, 0).astype(np.uint8)
+            Image.fromarray(np.stack([grey, alpha], axis=2), mode="LA").save(out, format="PNG")
+        else:
+            # trinary PNG without alpha: Nav2 averages alpha into the grey in trinary mode
+            Image.fromarray(grey, mode="L").save(out, format="PNG")
+        image = out.getvalue()
+    meta = {
+        "image": image_name,
+        "mode": mode,
+        "resolution": float(resolution),
+        "origin": [float(origin_xy[0]), float(origin_xy[1]), 0.0],
+        "negate": 0,
+        "occupied_thresh": float(occupied_thresh),
+        "free_thresh": float(free_thresh),
+    }
+    buffer = io.BytesIO()
+    with zipfile.ZipFile(buffer, "w", compression=zipfile.ZIP_DEFLATED) as archive:
+        archive.writestr("map.yaml", yaml.safe_dump(meta, sort_keys=False, default_flow_style=None))
+        archive.writestr(image_name, image)
+    return buffer.getvalue()

@@ -1,0 +1,42 @@
+"""Prometheus metrics of one app instance (its own registry: several apps may live in one process)."""
+
+from __future__ import annotations
+
+from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram
+
+_LATENCY_BUCKETS = (0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0, 30.0, 60.0)
+
+
+class Metrics:
+    """The service's counters and histograms, exposed at ``GET /metrics``."""
+
+    def __init__(self) -> None:
+        self.registry = CollectorRegistry(auto_describe=True)
+        r = self.registry
+        self.requests = Counter(
+            "fuzzyrisk_http_requests", "HTTP requests answered", ["method", "route", "status"], registry=r
+        )
+        self.request_seconds = Histogram(
+            "fuzzyrisk_http_request_duration_seconds", "Time to answer a request", ["method", "route"],
+            buckets=_LATENCY_BUCKETS, registry=r,
+        )
+        self.scans_fused = Counter("fuzzyrisk_scans_fused", "Scans fused into maps", ["model"], registry=r)
+        self.rays = Counter("fuzzyrisk_rays", "Beams (ranges or points) fused", ["model"], registry=r)
+        self.cells_updated = Counter("fuzzyrisk_cells_updated", "Cell updates made by fusion", ["model"], registry=r)
+        self.batches_rejected = Counter(
+            "fuzzyrisk_batches_rejected", "Scan batches refused (4xx)", ["reason"], registry=r
+        )
+        self.fusion_seconds = Histogram(
+            "fuzzyrisk_fusion_duration_seconds", "Time to fuse one batch (excluding the disk commit)", ["model"],
+            buckets=_LATENCY_BUCKETS, registry=r,
+        )
+        self.commit_seconds = Histogram(
+            "fuzzyrisk_batch_commit_duration_seconds", "Time to make one batch durable (fsync)",
+            buckets=_LATENCY_BUCKETS, registry=r,
+        )
+        self.plan_seconds = Histogram(
+            "fuzzyrisk_plan_duration_seconds", "Time to answer a plan, queueing included", ["planner", "outcome"],
+            buckets=_LATENCY_BUCKETS, registry=r,
+        )
+        self.maps = Gauge("fuzzyrisk_maps", "Maps held", registry=r)
+        self.snapshots = Counter("fuzzyrisk_snapshots", "Map snapshots written", registry=r)

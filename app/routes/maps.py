@@ -1,0 +1,37 @@
+"""Map resources: create, list, read, delete."""
+
+from __future__ import annotations
+
+from fastapi import APIRouter, Response
+
+from app.deps import MapNamePath, ServiceDep
+from app.schemas import MapCreate, MapInfo
+
+router = APIRouter(prefix="/maps", tags=["maps"])
+
+_NOT_FOUND = {404: {"description": "no map of that name"}}
+
+
+@router.post("", status_code=201, responses={409: {"description": "the name is taken"}})
+async def create_map(body: MapCreate, service: ServiceDep) -> MapInfo:
+    """Create an empty map (every cell unknown, risk 0.5)."""
+    return await service.create_map(body)
+
+
+@router.get("")
+async def list_maps(service: ServiceDep) -> list[MapInfo]:
+    """Every map, by name."""
+    return service.list_maps()
+
+
+@router.get("/{name}", responses=_NOT_FOUND)
+async def get_map(name: MapNamePath, service: ServiceDep) -> MapInfo:
+    """One map, with ``scans_fused`` and ``version``."""
+    return service.get_map(name)
+
+
+@router.delete("/{name}", status_code=204, response_class=Response, responses=_NOT_FOUND)
+async def delete_map(name: MapNamePath, service: ServiceDep) -> Response:
+    """Delete a map and everything stored about it (after a batch in flight finishes)."""
+    await service.delete_map(name)
+    return Response(status_code=204)

@@ -1,0 +1,44 @@
+"""Plans on a map's risk."""
+
+from __future__ import annotations
+
+from fastapi import APIRouter
+
+from planning import available_planners
+from planning.planners import PLANNERS
+from planning.spaces import STATE_SPACES
+
+from app.deps import MapNamePath, ServiceDep
+from app.schemas import PlannerInfo, Planners, PlanRequest, PlanResult
+
+router = APIRouter(tags=["plans"])
+
+
+@router.get("/planners")
+async def planners() -> Planners:
+    """The planner names and state spaces a plan request accepts (what works in this build)."""
+    return Planners(
+        planners=[PlannerInfo(name=n, optimizing=PLANNERS[n].optimizing) for n in available_planners()],
+        state_spaces=list(STATE_SPACES),
+    )
+
+
+@router.post(
+    "/maps/{name}/plan",
+    responses={
+        404: {"description": "no map of that name"},
+        422: {
+            "description": "invalid parameters; a start or goal that cannot be used answers "
+            '{"detail": {"code": "START_OUTSIDE_MAP" | "GOAL_OUTSIDE_MAP" | "START_OCCUPIED" | '
+            '"GOAL_OCCUPIED", "message": ...}}'
+        },
+        503: {"description": "every planner worker is busy; retry (Retry-After)"},
+    },
+)
+async def plan(name: MapNamePath, body: PlanRequest, service: ServiceDep) -> PlanResult:
+    """A path from ``start`` to ``goal`` whose risk stays at or below ``max_risk`` under the robot.
+
+    Cost = length + ``risk_weight`` * integral of risk along the path. ``allow_unknown: false``
+    forbids never-observed cells whatever ``max_risk`` says. Runs in a worker process.
+    """
+    return await service.plan(name, body)

@@ -1,0 +1,124 @@
+"""The risk grid out: JSON, .npy, PNG, point queries, and ROS exports (Nav2 map files, OccupancyGrid)."""
+
+from __future__ import annotations
+
+from typing import Annotated, Literal
+
+from fastapi import APIRouter, Query, Response
+from pydantic import FiniteFloat
+
+from app.deps import MapNamePath, ServiceDep
+from app.exports import NAV2_FREE_THRESH, NAV2_OCCUPIED_THRESH
+from app.schemas import OccupancyGrid, RiskQuery, RiskValues
+
+router = APIRouter(prefix="/maps", tags=["risk"])
+
+ZBand = Annotated[
+    FiniteFloat | None, Query(description="3-D maps: project the cells whose centre lies in [z_min, z_max], metres")
+]
+Threshold = Annotated[float, Query(ge=0.0, le=1.0, allow_inf_nan=False)]
+_NOT_FOUND = {404: {"description": "no map of that name"}}
+
+
+def _grid_headers(name: str, version: int, resolution: float, origin: tuple[float, ...]) -> dict[str, str]:
+    return {
+        "X-Map-Name": name,
+        "X-Map-Version": str(version),
+        "X-Map-Resolution": repr(resolution),
+        "X-Map-Origin": ",".join(repr(v) for v in origin),
+    }
+
+
+@router.get(
+    "/{name}/risk",
+    response_class=Response,
+    responses={
+        **_NOT_FOUND,
+        200: {
+            "description": "json: RiskGridJSON; npy: float32 array of shape (nx, ny[, nz]), index [i, j(, k)] "
+            "along x, y(, z); png: one pixel a cell (scale x scale), top row = highest y",
+            "content": {
+                "application/json": {"schema": {"$ref": "#/components/schemas/RiskGridJSON"}},
+                "application/x-npy": {"schema": {"type": "string", "format": "binary"}},
+                "image/png": {"schema": {"type": "string", "format": "binary"}},
+            },
+        },
+    },
+)
+async def get_risk(
+    name: MapNamePath,
+    service: ServiceDep,
+    format: Literal["json", "npy", "png"] = "json",
+    scale: Annotated[int, Query(ge=1, le=64, description="png: pixels per cell")] = 1,
+    z_min: ZBand = None,
+    z_max: ZBand = None,
+) -> Response:
+    """The defuzzified risk of every cell (0.5 = unknown) as JSON, ``.npy`` or a PNG a person can read.
+
+    PNG colours: white (risk 0) through yellow, orange and red to dark crimson (risk 1); cells no
+    beam ever reached are grey-blue, hatched at ``scale >= 4``. A 3-D map is drawn as the
+    largest risk of the observed cells of each column within ``[z_min, z_max]``.
+    """
+    if format == "json":
+        return Response(await service.risk_json(name), media_type="application/json")
+    if format == "npy":
+        data, grid = await service.risk_npy(name)
+        headers = _grid_headers(name, grid.version, grid.spec.resolution, grid.spec.origin)
+        headers["Content-Disposition"] = f'attachment; filename="{name}-risk-v{grid.version}.npy"'
+        return Response(data, media_type="application/x-npy", headers=headers)
+    data, grid = await service.risk_png(name, scale=scale, z_min=z_min, z_max=z_max)
+    return Response(data, media_type="image/png",
+                    headers=_grid_headers(name, grid.version, grid.spec.resolution, grid.spec.origin))
+
+
+@router.post("/{name}/risk/query", responses=_NOT_FOUND)
+async def query_risk(name: MapNamePath, body: RiskQuery, service: ServiceDep) -> RiskValues:
+    """Risk of the cells holding the given points (each must lie inside the map)."""
+    return await service.risk_at(name, body.points)
+
+
+@router.get("/{name}/occupancy_grid", responses=_NOT_FOUND)
+async def occupancy_grid(
+    name: MapNamePath,
+    service: ServiceDep,
+    mode: Literal["probability", "trinary"] = "probability",
+    z_min: ZBand = None,
+    z_max: ZBand = None,
+) -> OccupancyGrid:
+    """The map as a ``nav_msgs/OccupancyGrid`` (frame ``map``): ``data[j * width + i]``, -1 unknown.
+
+    ``probability``: ``round(100 * risk)``; ``trinary``: 100 above 0.65, 0 below 0.25, else -1.
+    A 3-D map is projected over ``[z_min, z_max]`` as octomap_server's projected map.
+    """
+    return await service.occupancy_grid(name, mode=mode, z_min=z_min, z_max=z_max)
+
+
+@router.get(
+    "/{name}/export/nav2",
+    response_class=Response,
+    responses={**_NOT_FOUND, 200: {"content": {"application/zip": {"schema": {"type": "string", "format": "binary"}}}}},
+)
+async def export_nav2(
+    name: MapNamePath,
+    service: ServiceDep,
+    mode: Literal["trinary", "scale"] = "trinary",
+    format: Literal["pgm", "png"] = "pgm",
+    free_thresh: Threshold = NAV2_FREE_THRESH,
+    occupied_thresh: Threshold = NAV2_OCCUPIED_THRESH,
+    z_min: ZBand = None,
+    z_max: ZBand = None,
+) -> Response:
+    """A zip of ``map.yaml`` + ``map.pgm`` (or ``.png``) for Nav2's map_server (``yaml_filename``).
+
+    ``trinary``: occupied black, free white, the rest a grey that reads back as unknown.
+    ``scale``: grey = 255 * (1 - risk), so Nav2 keeps the grades between the thresholds; unknown
+    cells are transparent in PNG (PGM has no alpha: they are written as risk 0.5). Nav2's static
+    layer flattens a graded map unless ``trinary_costmap: false``.
+    """
+    data = await service.nav2_zip(
+        name, mode=mode, image_format=format, free_thresh=free_thresh, occupied_thresh=occupied_thresh,
+        z_min=z_min, z_max=z_max,
+    )
+    return Response(data, media_type="application/zip",
+                    headers={"Content-Disposition": f'attachment; filename="{name}-nav2.zip"'})
+

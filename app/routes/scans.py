@@ -1,0 +1,98 @@
+"""Scan batches in (JSON, or one binary scan), and the last scan out (for the web page)."""
+
+from __future__ import annotations
+
+from typing import Annotated, Any
+
+from fastapi import APIRouter, Query, Request
+from pydantic import FiniteFloat
+
+from app.batches import BINARY_TYPES
+from app.deps import MapNamePath, ServiceDep
+from app.schemas import EXAMPLE_CLOUD, EXAMPLE_LASER, BatchResult, LastScan
+
+router = APIRouter(prefix="/maps", tags=["scans"])
+
+_BINARY_DOC = """\
+**JSON** (`application/json`): a `ScanBatch`, applied in order, all or nothing. Ranges follow
+REP 117: `null`, `NaN`, `-inf` and ranges below `range_min` are skipped; `+inf` or a range at or
+above `range_max` is a no-return (free space up to `range_max`). JSON has no infinities: send
+`"inf"`, `"-inf"`, `"nan"` as strings (or Python's `Infinity`/`NaN` tokens).
+
+**Binary** (`application/x-npy` or `application/octet-stream`): one scan per request, the body a
+`.npy` file (float32 or float64, read with `allow_pickle=False`) or raw little-endian float32;
+the pose and scan parameters go in the query:
+
+* 3-D map: points in the sensor frame, `.npy` of shape (N, 3) or raw `x y z x y z ...`;
+  query `x, y, z` (sensor position), `qx, qy, qz, qw` (orientation, default identity), `range_max`.
+* 2-D map, LaserScan: raw float32 ranges (or a 1-D `.npy`); query `x, y, theta, angle_min,
+  angle_increment, range_min, range_max`.
+* 2-D map, points: `.npy` of shape (N, 2) in the sensor frame; query `x, y, theta, range_max`.
+
+`registration_sigma` (metres) is optional in both forms. The answer comes once the batch is on
+disk (fsync) and applied; `version` is the map's new version.
+"""
+
+_BODY: dict[str, Any] = {
+    "requestBody": {
+        "required": True,
+        "content": {
+            "application/json": {
+                "schema": {"$ref": "#/components/schemas/ScanBatch"},
+                "examples": {
+                    "laser": {"summary": "a LaserScan on a 2-D map", "value": {"scans": [EXAMPLE_LASER]}},
+                    "cloud": {"summary": "a point cloud on a 3-D map", "value": {"scans": [EXAMPLE_CLOUD]}},
+                },
+            },
+            **{media: {"schema": {"type": "string", "format": "binary"}} for media in BINARY_TYPES},
+        },
+    }
+}
+
+Coordinate = Annotated[FiniteFloat | None, Query(description="binary uploads only; see the description")]
+
+
+@router.post(
+    "/{name}/scans",
+    openapi_extra=_BODY,
+    description=_BINARY_DOC,
+    responses={
+        404: {"description": "no map of that name"},
+        413: {"description": "body, batch or scan larger than the configured limits"},
+        415: {"description": "a Content-Type other than JSON or the binary types"},
+    },
+)
+async def post_scans(
+    name: MapNamePath,
+    request: Request,
+    service: ServiceDep,
+    x: Coordinate = None,
+    y: Coordinate = None,
+    z: Coordinate = None,
+    theta: Coordinate = None,
+    qx: Coordinate = None,
+    qy: Coordinate = None,
+    qz: Coordinate = None,
+    qw: Coordinate = None,
+    angle_min: Coordinate = None,
+    angle_increment: Coordinate = None,
+    range_min: Coordinate = None,
+    range_max: Coordinate = None,
+    registration_sigma: Coordinate = None,
+) -> BatchResult:
+    """Fuse a batch of scans into the map."""
+    params = {
+        "x": x, "y": y, "z": z, "theta": theta, "qx": qx, "qy": qy, "qz": qz, "qw": qw,
+        "angle_min": angle_min, "angle_increment": angle_increment, "range_min": range_min,
+        "range_max": range_max, "registration_sigma": registration_sigma,
+    }
+    body = await request.body()
+    return await service.add_scans(
+        name, body=body, content_type=request.headers.get("content-type", ""), params=params
+    )
+
+
+@router.get("/{name}/scans/last", responses={404: {"description": "no such map, or no scan yet"}})
+async def last_scan(name: MapNamePath, service: ServiceDep) -> LastScan:
+    """Beam ends of the last scan fused (map frame, at most 4096): the web page draws them."""
+    return service.last_scan(name)

@@ -1,0 +1,387 @@
+"""Request and response bodies of the HTTP contract (DESIGN.md section 7).
+
+Shapes and simple bounds are checked here (finite numbers, lengths, ranges);
+checks that need a map (dimensions, bounds, limits) live in ``services``.
+The OpenAPI examples are real requests: ``tests/app/test_openapi.py`` pastes them.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from datetime import datetime
+from typing import Annotated, Any, Literal
+
+from pydantic import (
+    AfterValidator,
+    BaseModel,
+    ConfigDict,
+    Discriminator,
+    Field,
+    FiniteFloat,
+    Tag,
+    model_validator,
+)
+
+NAME_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$"
+_NAME_RE = re.compile(NAME_PATTERN)
+NAME_RULE = "1 to 64 characters from A-Z a-z 0-9 _ . -, starting with a letter or a digit"
+
+
+def check_map_name(name: str) -> str:
+    """Return ``name`` when it is a valid map name, else raise ``ValueError`` saying the rule."""
+    if not _NAME_RE.fullmatch(name):
+        raise ValueError(f"map name {name!r} is not allowed: use {NAME_RULE}")
+    return name
+
+
+MapName = Annotated[str, AfterValidator(check_map_name)]
+NonNegativeFinite = Annotated[float, Field(ge=0.0, allow_inf_nan=False)]
+PositiveFinite = Annotated[float, Field(gt=0.0, allow_inf_nan=False)]
+Vector = Annotated[list[FiniteFloat], Field(min_length=2, max_length=3)]
+
+# ---------------------------------------------------------------- examples (a session that works)
+
+EXAMPLE_MAP = {
+    "name": "lab",
+    "dimensions": 2,
+    "resolution": 0.05,
+    "origin": [-8.0, -5.0],
+    "size": [16.0, 10.0],
+    "model": "fuzzy",
+    "sensor": {"range_sigma": 0.03, "registration_sigma": 0.0},
+}
+EXAMPLE_MAP_3D = {
+    "name": "hall3d",
+    "dimensions": 3,
+    "resolution": 0.1,
+    "origin": [-5.0, -5.0, 0.0],
+    "size": [10.0, 10.0, 3.0],
+    "model": "bayes",
+    "sensor": {"range_sigma": 0.05, "registration_sigma": 0.01},
+}
+EXAMPLE_LASER = {
+    "pose": {"x": 0.0, "y": 0.0, "theta": 0.0},
+    "angle_min": -0.6,
+    "angle_increment": 0.1,
+    "ranges": [3.1, 3.05, 3.02, 3.0, None, 3.0, 3.0, "inf", 3.02, 3.05, 3.1, 3.16, 3.23],
+    "range_min": 0.1,
+    "range_max": 30.0,
+}
+EXAMPLE_CLOUD = {
+    "pose": {"position": [0.0, 0.0, 1.0], "orientation": [0.0, 0.0, 0.0, 1.0]},
+    "points": [[3.0, -0.5, 0.0], [3.0, 0.0, 0.0], [3.0, 0.5, 0.2], [2.5, 1.0, -0.5]],
+    "range_max": 30.0,
+}
+EXAMPLE_PLAN = {
+    "start": [-1.0, 0.0],
+    "goal": [2.0, 0.0],
+    "state_space": "R2",
+    "planner": "RRTstar",
+    "time_limit": 1.0,
+    "robot_radius": 0.2,
+    "max_risk": 0.6,
+    "risk_weight": 1.0,
+    "allow_unknown": True,
+    "seed": 1,
+}
+
+# ---------------------------------------------------------------- maps
+
+
+class SensorIn(BaseModel):
+    """Range noise of the sensor and of the pose it is registered with (metres)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    range_sigma: NonNegativeFinite = 0.03
+    registration_sigma: NonNegativeFinite = 0.0
+    range_sigma_per_m: NonNegativeFinite = 0.0
+
+
+class MapCreate(BaseModel):
+    """A new map: a box of cells in the ``map`` frame (origin = corner of cell 0, as in a Nav2 YAML)."""
+
+    model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [EXAMPLE_MAP, EXAMPLE_MAP_3D]})
+
+    name: MapName
+    dimensions: Literal[2, 3] | None = Field(None, description="2 or 3; taken from len(origin) when left out")
+    resolution: PositiveFinite = Field(description="cell edge, metres")
+    origin: Vector = Field(description="corner of cell 0 [x, y(, z)], metres")
+    size: Annotated[list[PositiveFinite], Field(min_length=2, max_length=3)] = Field(
+        description="extent [sx, sy(, sz)], metres, rounded up to whole cells"
+    )
+    model: Literal["fuzzy", "bayes"] = "fuzzy"
+    sensor: SensorIn = Field(default_factory=SensorIn)
+
+    @model_validator(mode="after")
+    def _dimensions_agree(self) -> MapCreate:
+        dims = self.dimensions or len(self.origin)
+        if len(self.origin) != dims:
+            raise ValueError(f"origin has {len(self.origin)} values but dimensions is {dims}")
+        if len(self.size) != dims:
+            raise ValueError(f"size has {len(self.size)} values but origin has {dims}")
+        self.dimensions = dims  # type: ignore[assignment]
+        return self
+
+
+class MapInfo(BaseModel):
+    """A map as the service holds it."""
+
+    name: str
+    dimensions: int
+    resolution: float
+    origin: list[float]
+    size: list[float]
+    shape: list[int] = Field(description="cells along x, y(, z)")
+    model: Literal["fuzzy", "bayes"]
+    sensor: SensorIn
+    scans_fused: int
+    version: int = Field(description="number of scan batches applied; grows by one per accepted batch")
+    created: datetime
+    updated: datetime
+
+
+# ---------------------------------------------------------------- scans
+
+#: JSON has no inf or NaN: a range may also be null (skipped, like NaN) or one of these strings.
+RangeToken = Literal["inf", "+inf", "-inf", "nan", "Infinity", "+Infinity", "-Infinity", "NaN"]
+RangeValue = float | None | RangeToken
+
+
+class Pose2D(BaseModel):
+    """Planar pose of the sensor in the map frame: metres and radians, yaw counter-clockwise."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    x: FiniteFloat
+    y: FiniteFloat
+    theta: FiniteFloat
+
+
+class Pose3D(BaseModel):
+    """Sensor pose in the map frame: position [x, y, z] and unit quaternion [qx, qy, qz, qw]."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    position: Annotated[list[FiniteFloat], Field(min_length=3, max_length=3)]
+    orientation: Annotated[list[FiniteFloat], Field(min_length=4, max_length=4)]
+
+    @model_validator(mode="after")
+    def _unit_quaternion(self) -> Pose3D:
+        norm = math.sqrt(sum(q * q for q in self.orientation))
+        if abs(norm - 1.0) > 1e-3:
+            raise ValueError(
+                f"orientation must be a unit quaternion [qx, qy, qz, qw] (ROS order), its norm is {norm:.6g}"
+            )
+        return self
+
+
+class LaserScanIn(BaseModel):
+    """A ``sensor_msgs/LaserScan``: beam i points at ``angle_min + i * angle_increment`` (REP 117 ranges)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    pose: Pose2D
+    angle_min: FiniteFloat
+    angle_increment: FiniteFloat
+    ranges: Annotated[list[RangeValue], Field(min_length=1)] = Field(
+        description="metres; null/NaN/-inf/below range_min are skipped, +inf or >= range_max mean no return"
+    )
+    range_min: NonNegativeFinite
+    range_max: PositiveFinite
+    registration_sigma: NonNegativeFinite = Field(0.0, description="extra pose uncertainty of this scan, metres")
+    # accepted and ignored so that a converted ROS message can be posted as it is
+    angle_max: float | None = None
+    time_increment: float | None = None
+    scan_time: float | None = None
+    intensities: list[float | None] | None = None
+    header: dict[str, Any] | None = None
+
+
+class PointCloudIn(BaseModel):
+    """Points in the sensor frame with the sensor pose (3-D maps: Pose3D; 2-D maps: [x, y] points, Pose2D)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    pose: Pose3D | Pose2D
+    points: Annotated[list[Annotated[list[float | None], Field(min_length=2, max_length=3)]], Field(min_length=1)] = (
+        Field(description="sensor frame, metres; rows holding null/NaN/inf are dropped (no return)")
+    )
+    range_max: PositiveFinite
+    registration_sigma: NonNegativeFinite = 0.0
+    header: dict[str, Any] | None = None
+
+
+def _scan_kind(value: Any) -> str | None:
+    if isinstance(value, dict):
+        return "laser" if "ranges" in value else "cloud" if "points" in value else None
+    return "laser" if isinstance(value, LaserScanIn) else "cloud" if isinstance(value, PointCloudIn) else None
+
+
+ScanIn = Annotated[
+    Annotated[LaserScanIn, Tag("laser")] | Annotated[PointCloudIn, Tag("cloud")],
+    Discriminator(
+        _scan_kind,
+        custom_error_type="scan_kind",
+        custom_error_message="a scan needs either 'ranges' (a LaserScan) or 'points' (a point cloud)",
+    ),
+]
+
+
+class ScanBatch(BaseModel):
+    """Scans applied together, in order, all or nothing."""
+
+    model_config = ConfigDict(
+        extra="forbid",
+        json_schema_extra={"examples": [{"scans": [EXAMPLE_LASER]}, {"scans": [EXAMPLE_CLOUD]}]},
+    )
+
+    scans: Annotated[list[ScanIn], Field(min_length=1)]
+
+
+class BatchResult(BaseModel):
+    """What one accepted batch did; ``version`` is the map's version after it."""
+
+    scans_fused: int
+    rays: int
+    cells_updated: int
+    version: int
+
+
+class LastScan(BaseModel):
+    """Beam ends of the last scan fused (world frame, at most 4096, evenly thinned)."""
+
+    origin: list[float]
+    endpoints: list[list[float]]
+    hit: list[bool] = Field(description="true: the beam hit a surface; false: no return, drawn at range_max")
+    version: int
+
+
+# ---------------------------------------------------------------- risk
+
+
+class RiskQuery(BaseModel):
+    """World points [x, y(, z)] inside the map."""
+
+    model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [{"points": [[1.0, 0.0], [2.99, 0.0]]}]})
+
+    points: Annotated[list[Vector], Field(min_length=1)]
+
+
+class RiskValues(BaseModel):
+    risk: list[float]
+    version: int
+
+
+class RiskGridJSON(BaseModel):
+    """The risk grid, indexed ``risk[i][j](k)`` along x, y(, z); cell centre = origin + (index + 0.5) * resolution."""
+
+    name: str
+    version: int
+    resolution: float
+    origin: list[float]
+    shape: list[int]
+    risk: list[Any] = Field(description="float in [0, 1], rounded to 1e-6 (format=npy for exact float32)")
+    observed: list[Any] = Field(description="false where no beam ever reached the cell (unknown)")
+
+
+# ---------------------------------------------------------------- plans
+
+
+class PlanRequest(BaseModel):
+    """A path query on the map's risk; the planner's validity is ``risk <= max_risk`` under the robot."""
+
+    model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [EXAMPLE_PLAN]})
+
+    start: Vector = Field(description="[x, y] in R2, [x, y, theta] in SE2/Dubins/ReedsShepp, [x, y, z] in R3")
+    goal: Vector
+    state_space: str | None = Field(None, description="R2 (default on 2-D maps), SE2, Dubins, ReedsShepp, R3 (3-D)")
+    planner: str = "RRTstar"
+    time_limit: PositiveFinite = Field(1.0, description="seconds; at most FUZZYRISK_MAX_PLAN_TIME_S")
+    robot_radius: NonNegativeFinite = 0.2
+    max_risk: Annotated[float, Field(ge=0.0, le=1.0, allow_inf_nan=False)] = 0.6
+    risk_weight: NonNegativeFinite = 1.0
+    allow_unknown: bool = True
+    seed: Annotated[int, Field(ge=0, lt=2**32)] | None = None
+    turning_radius: PositiveFinite | None = Field(None, description="metres; required by Dubins and ReedsShepp")
+    goal_tolerance: PositiveFinite | None = Field(None, description="reach the goal within this; default one cell")
+
+
+class PlanResult(BaseModel):
+    status: Literal["exact", "approximate", "none"]
+    path: list[list[float]]
+    length: float | None
+    max_risk: float | None
+    mean_risk: float | None
+    cost: float | None
+    planner: str
+    state_space: str
+    planning_time: float
+    message: str = Field("", description="empty, or why the status is not exact")
+    version: int = Field(description="the map version planned on")
+
+
+# ---------------------------------------------------------------- nav_msgs/OccupancyGrid
+
+
+class Point(BaseModel):
+    x: float
+    y: float
+    z: float
+
+
+class Quaternion(BaseModel):
+    x: float
+    y: float
+    z: float
+    w: float
+
+
+class PoseMsg(BaseModel):
+    position: Point
+    orientation: Quaternion
+
+
+class Time(BaseModel):
+    sec: int
+    nanosec: int
+
+
+class Header(BaseModel):
+    stamp: Time
+    frame_id: str
+
+
+class MapMetaData(BaseModel):
+    map_load_time: Time
+    resolution: float
+    width: int
+    height: int
+    origin: PoseMsg
+
+
+class OccupancyGrid(BaseModel):
+    """``nav_msgs/OccupancyGrid``: ``data[j * width + i]`` for cell (i, j) from the origin, -1 unknown."""
+
+    header: Header
+    info: MapMetaData
+    data: list[int]
+
+
+class Health(BaseModel):
+    status: Literal["ok"]
+
+
+class PlannerInfo(BaseModel):
+    """One planner a plan request may name."""
+
+    name: str
+    optimizing: bool = Field(description="anytime optimizer: uses the whole time limit to lower the cost")
+
+
+class Planners(BaseModel):
+    """What ``POST /maps/{name}/plan`` accepts in ``planner`` and ``state_space``."""
+
+    planners: list[PlannerInfo]
+    state_spaces: list[str]

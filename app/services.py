@@ -1,0 +1,495 @@
+"""The service's domain functions: the only bridge from HTTP to ``fuzzyocc`` and ``planning``.
+
+Concurrency: each map has an ``asyncio.Lock``; every use of a map object (a batch,
+a risk read, a snapshot) holds it, so batches to one map are applied one at a
+time in arrival order (the lock is FIFO) and a read never sees a half-applied
+batch. The CPU work runs off the event loop: parsing, validation and fusion in
+a thread pool (numpy and numba release the GIL), plans in worker processes.
+Different maps proceed in parallel.
+
+Durability: a batch is parsed and validated completely, then committed (fsync)
+with the version it brings the map to, then applied, then acknowledged.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import io
+import logging
+import time
+from collections.abc import Callable, Mapping
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+from datetime import UTC, datetime
+from typing import Any, Literal, TypeVar
+
+import numpy as np
+from fastapi.exceptions import RequestValidationError
+from pydantic import ValidationError
+
+from app import batches, exports
+from app.config import Settings
+from app.errors import Conflict, Invalid, NotFound, PlanRejected, TooLarge, UnsupportedMediaType
+from app.metrics import Metrics
+from app.planworker import PlanPool, run_plan
+from app.schemas import (
+    BatchResult,
+    LastScan,
+    MapCreate,
+    MapInfo,
+    OccupancyGrid,
+    PlanRequest,
+    PlanResult,
+    RiskGridJSON,
+    RiskValues,
+    ScanBatch,
+    SensorIn,
+)
+from app.storage import NameTaken, Storage, StoredMap
+from fuzzyocc import BayesMap, FuzzyMap, GridSpec, SensorModel
+from planning.planners import planner_spec
+
+LOG = logging.getLogger("fuzzyrisk.maps")
+T = TypeVar("T")
+
+OccupancyMap = FuzzyMap | BayesMap
+#: Above this many cells the JSON risk grid is refused (use format=npy or png).
+MAX_JSON_CELLS = 4_000_000
+#: Most pixels of one PNG.
+MAX_PNG_PIXELS = 64_000_000
+#: Grace added to a plan's time limit before its worker is presumed stuck: setup, dilation, dense check.
+PLAN_GRACE_S = 20.0
+
+
+def _now() -> str:
+    return datetime.now(UTC).isoformat(timespec="milliseconds")
+
+
+def _npz(arrays: Mapping[str, np.ndarray]) -> bytes:
+    out = io.BytesIO()
+    # snapshots are mostly unknown cells: deflate shrinks them many times over
+    np.savez_compressed(out, allow_pickle=False, **arrays)
+    return out.getvalue()
+
+
+def _unnpz(payload: bytes) -> dict[str, np.ndarray]:
+    with np.load(io.BytesIO(payload), allow_pickle=False) as archive:
+        return {key: archive[key] for key in archive.files}
+
+
+@dataclass
+class MapEntry:
+    """A map held in memory, with what the service knows about it."""
+
+    meta: dict[str, Any]
+    map: OccupancyMap
+    version: int
+    snapshot_version: int
+    scans_fused: int
+    updated: str
+    lock: asyncio.Lock = field(default_factory=asyncio.Lock)
+    last_scan: batches.ScanView | None = None
+    deleted: bool = False
+
+    @property
+    def name(self) -> str:
+        return str(self.meta["name"])
+
+    @property
+    def spec(self) -> GridSpec:
+        return self.map.spec
+
+    def info(self) -> MapInfo:
+        spec = self.spec
+        return MapInfo(
+            name=self.name,
+            dimensions=spec.ndim,
+            resolution=spec.resolution,
+            origin=list(spec.origin),
+            size=list(spec.size),
+            shape=list(spec.shape),
+            model=self.meta["model"],
+            sensor=SensorIn(**self.meta["sensor"]),
+            scans_fused=self.scans_fused,
+            version=self.version,
+            created=self.meta["created"],
+            updated=self.updated,
+        )
+
+
+@dataclass(frozen=True)
+class GridSnapshot:
+    """Copies of a map's risk and observed arrays at one version."""
+
+    spec: GridSpec
+    version: int
+    risk: np.ndarray
+    observed: np.ndarray
+
+    def planar(self, z_min: float | None, z_max: float | None) -> tuple[np.ndarray, np.ndarray]:
+        """2-D risk and observed: the map itself, or a 3-D map projected over ``[z_min, z_max]``."""
+        if self.spec.ndim == 2:
+            return self.risk, self.observed
+        return exports.project_z(
+            self.risk, self.observed, origin_z=self.spec.origin[2], resolution=self.spec.resolution,
+            z_min=z_min, z_max=z_max,
+        )
+
+
+def _build_map(meta: Mapping[str, Any], *, max_cells: int) -> OccupancyMap:
+    spec = GridSpec(origin=meta["origin"], size=meta["size"], resolution=meta["resolution"], max_cells=max_cells)
+    sensor = SensorModel(**meta["sensor"])
+    return FuzzyMap(spec, sensor) if meta["model"] == "fuzzy" else BayesMap(spec, sensor)
+
+
+def _restore(stored: StoredMap) -> MapEntry:
+    """A map from its snapshot and the batches after it (replayed in order: bit-identical risk)."""
+    unlimited = 2**62  # a limit lowered since the map was made must not lose the map
+    built = _build_map(stored.meta, max_cells=unlimited)
+    if stored.snapshot is not None:
+        arrays = _unnpz(stored.snapshot)
+        cls = FuzzyMap if stored.meta["model"] == "fuzzy" else BayesMap
+        built = cls.from_arrays(built.spec, built.sensor, arrays)
+    entry = MapEntry(
+        dict(stored.meta), built, stored.snapshot_version, stored.snapshot_version, built.scans_fused, stored.updated
+    )
+    for version, payload in stored.batches:
+        scans = batches.decode(payload)
+        try:
+            built.integrate_batch(scans)
+        except ValueError:
+            # cannot happen for a batch that was acknowledged (it was applied before the 200)
+            LOG.exception("map %s: batch %d cannot be replayed; skipped", entry.name, version)
+            continue
+        entry.version = version
+        entry.last_scan = batches.scan_view(scans[-1])
+    entry.scans_fused = built.scans_fused
+    return entry
+
+
+class MapService:
+    """Named maps in memory, backed by ``Storage``; fusion in threads, plans in processes."""
+
+    def __init__(self, settings: Settings, storage: Storage, metrics: Metrics) -> None:
+        self.settings = settings
+        self.storage = storage
+        self.metrics = metrics
+        self._maps: dict[str, MapEntry] = {}
+        self._create_lock = asyncio.Lock()
+        self._threads = ThreadPoolExecutor(settings.fusion_threads, thread_name_prefix="fusion")
+        self._plans = PlanPool(workers=settings.plan_workers, queue=settings.plan_queue)
+        self._limits = batches.Limits(max_scans=settings.max_scans_per_batch, max_rays=settings.max_rays_per_scan)
+
+    async def _run(self, fn: Callable[..., T], *args: Any) -> T:
+        return await asyncio.get_running_loop().run_in_executor(self._threads, fn, *args)
+
+    # ---------------------------------------------------------------- lifecycle
+
+    async def start(self) -> None:
+        """Load every stored map (snapshot + replay) and, if configured, start the planner workers."""
+        started = time.perf_counter()
+        stored = await self._run(self.storage.load_all)
+        for item in stored:
+            entry = await self._run(_restore, item)
+            self._maps[entry.name] = entry
+        self.metrics.maps.set(len(self._maps))
+        LOG.info(
+            "maps loaded",
+            extra={"fields": {"maps": len(self._maps), "replayed_batches": sum(len(s.batches) for s in stored),
+                              "seconds": round(time.perf_counter() - started, 3)}},
+        )
+        if self.settings.plan_warmup:
+            self._plans.start()
+
+    async def stop(self) -> None:
+        """Wait for batches in flight, snapshot every map with unsnapshotted batches, release everything."""
+        for entry in list(self._maps.values()):
+            async with entry.lock:
+                if not entry.deleted and entry.version > entry.snapshot_version:
+                    await self._run(self._snapshot, entry)
+        self._plans.shutdown()
+        self._threads.shutdown(wait=True)
+        self.storage.close()
+
+    def _snapshot(self, entry: MapEntry) -> None:
+        """Store the map's arrays and drop the batches they cover (caller holds the map's lock)."""
+        self.storage.write_snapshot(entry.name, entry.version, _npz(entry.map.to_arrays()))
+        entry.snapshot_version = entry.version
+        self.metrics.snapshots.inc()
+
+    # ---------------------------------------------------------------- maps
+
+    def _entry(self, name: str) -> MapEntry:
+        entry = self._maps.get(name)
+        if entry is None or entry.deleted:
+            raise NotFound(f"no map named {name!r}; GET /maps lists them")
+        return entry
+
+    def list_maps(self) -> list[MapInfo]:
+        return [entry.info() for _, entry in sorted(self._maps.items())]
+
+    def get_map(self, name: str) -> MapInfo:
+        return self._entry(name).info()
+
+    async def create_map(self, request: MapCreate) -> MapInfo:
+        """Create an empty map; ``Conflict`` if the name is taken, ``Invalid`` if the grid is unusable."""
+        async with self._create_lock:
+            if request.name in self._maps:
+                raise Conflict(f"a map named {request.name!r} exists; choose another name or DELETE it first")
+            now = _now()
+            meta = {
+                "name": request.name,
+                "origin": list(request.origin),
+                "size": list(request.size),
+                "resolution": request.resolution,
+                "model": request.model,
+                "sensor": request.sensor.model_dump(),
+                "created": now,
+            }
+            try:
+                built = await self._run(lambda: _build_map(meta, max_cells=self.settings.max_map_cells))
+            except ValueError as exc:
+                hint = " (FUZZYRISK_MAX_MAP_CELLS)" if "limit" in str(exc) else ""
+                raise Invalid(f"{exc}{hint}") from None
+            try:
+                await self._run(self.storage.create_map, request.name, meta, now)
+            except NameTaken:
+                raise Conflict(f"a map named {request.name!r} exists") from None
+            entry = MapEntry(meta, built, 0, 0, 0, now)
+            self._maps[request.name] = entry
+            self.metrics.maps.set(len(self._maps))
+            return entry.info()
+
+    async def delete_map(self, name: str) -> None:
+        """Remove a map and its stored rows (after the batch in flight, if any)."""
+        entry = self._entry(name)
+        async with entry.lock:
+            if entry.deleted:
+                raise NotFound(f"no map named {name!r}")
+            await self._run(self.storage.delete_map, name)
+            entry.deleted = True
+            del self._maps[name]
+        self.metrics.maps.set(len(self._maps))
+
+    # ---------------------------------------------------------------- scans
+
+    def _parse(self, body: bytes, content_type: str, params: Mapping[str, float | None], dims: int) -> list[batches.Scan]:
+        media = content_type.split(";")[0].strip().lower()
+        if media in batches.BINARY_TYPES:
+            return batches.from_binary(body, params, dims, self._limits)
+        if media not in ("application/json", ""):
+            raise UnsupportedMediaType(
+                f"Content-Type {media!r} is not accepted: send application/json, or a binary scan as "
+                f"{' or '.join(batches.BINARY_TYPES)}"
+            )
+        try:
+            batch = ScanBatch.model_validate_json(body)
+        except ValidationError as exc:
+            errors = [{**e, "loc": ("body", *e["loc"])} for e in exc.errors(include_url=False)]
+            raise RequestValidationError(errors) from None
+        return batches.from_json(batch, dims, self._limits)
+
+    def _ingest(
+        self, entry: MapEntry, body: bytes, content_type: str, params: Mapping[str, float | None]
+    ) -> tuple[BatchResult, batches.ScanView, str]:
+        """Parse, validate, commit, apply (in a fusion thread; the caller holds the map's lock)."""
+        scans = self._parse(body, content_type, params, entry.spec.ndim)
+        version = entry.version + 1
+        payload = batches.encode(scans)
+        started = time.perf_counter()
+        updated = _now()
+        self.storage.append_batch(entry.name, version, payload, updated)
+        committed = time.perf_counter()
+        self.metrics.commit_seconds.observe(committed - started)
+        try:
+            stats = entry.map.integrate_batch(scans)
+        except BaseException:
+            # never acknowledged: it must not come back at the next start
+            self.storage.discard_batch(entry.name, version)
+            raise
+        model = entry.meta["model"]
+        self.metrics.fusion_seconds.labels(model).observe(time.perf_counter() - committed)
+        self.metrics.scans_fused.labels(model).inc(stats.scans)
+        self.metrics.rays.labels(model).inc(stats.rays)
+        self.metrics.cells_updated.labels(model).inc(stats.cells_updated)
+        result = BatchResult(scans_fused=stats.scans, rays=stats.rays, cells_updated=stats.cells_updated, version=version)
+        return result, batches.scan_view(scans[-1]), updated
+
+    async def add_scans(
+        self, name: str, *, body: bytes, content_type: str, params: Mapping[str, float | None]
+    ) -> BatchResult:
+        """Fuse one batch (JSON ``ScanBatch`` or one binary scan) into a map, durably, all or nothing."""
+        entry = self._entry(name)
+        async with entry.lock:
+            if entry.deleted:
+                raise NotFound(f"no map named {name!r}")
+            try:
+                result, view, updated = await self._run(self._ingest, entry, body, content_type, params)
+            except (Invalid, TooLarge, RequestValidationError, UnsupportedMediaType) as exc:
+                self.metrics.batches_rejected.labels(type(exc).__name__).inc()
+                raise
+            # assigned here, on the event loop, so that MapInfo never mixes two versions
+            entry.version, entry.scans_fused, entry.updated, entry.last_scan = (
+                result.version, entry.map.scans_fused, updated, view
+            )
+            if entry.version - entry.snapshot_version >= self.settings.snapshot_every:
+                await self._run(self._snapshot, entry)
+            return result
+
+    def last_scan(self, name: str) -> LastScan:
+        entry = self._entry(name)
+        view = entry.last_scan
+        if view is None:
+            raise NotFound(f"map {name!r} has fused no scan since the service started")
+        return LastScan(origin=view.origin, endpoints=view.endpoints, hit=view.hit, version=entry.version)
+
+    # ---------------------------------------------------------------- risk
+
+    async def read_grid(self, name: str) -> GridSnapshot:
+        """Copies of the map's risk and observed arrays, consistent with one version."""
+        entry = self._entry(name)
+        async with entry.lock:
+            risk, observed = await self._run(lambda: (entry.map.risk().copy(), entry.map.observed().copy()))
+            return GridSnapshot(entry.spec, entry.version, risk, observed)
+
+    async def risk_at(self, name: str, points: list[list[float]]) -> RiskValues:
+        if len(points) > self.settings.max_query_points:
+            raise TooLarge(
+                f"{len(points)} points, more than the limit of {self.settings.max_query_points} "
+                "(FUZZYRISK_MAX_QUERY_POINTS): split the query"
+            )
+        entry = self._entry(name)
+        dims = entry.spec.ndim
+        if any(len(p) != dims for p in points):
+            bad = next(i for i, p in enumerate(points) if len(p) != dims)
+            raise Invalid(f"points[{bad}] has {len(points[bad])} coordinates; this map is {dims}-D")
+        async with entry.lock:
+            try:
+                values = await self._run(entry.map.risk_at, np.asarray(points, dtype=np.float64))
+            except ValueError as exc:
+                raise Invalid(str(exc)) from None
+            return RiskValues(risk=[float(v) for v in values], version=entry.version)
+
+    async def risk_json(self, name: str) -> bytes:
+        """The grid as ``RiskGridJSON``, serialised (off the event loop: big maps make big documents)."""
+        grid = await self.read_grid(name)
+        if grid.spec.num_cells > MAX_JSON_CELLS:
+            raise Invalid(
+                f"the map has {grid.spec.num_cells} cells, too many for JSON (at most {MAX_JSON_CELLS}); "
+                "ask for format=npy or format=png"
+            )
+
+        def encode() -> bytes:
+            return RiskGridJSON(
+                name=name, version=grid.version, resolution=grid.spec.resolution, origin=list(grid.spec.origin),
+                shape=list(grid.spec.shape), risk=np.round(grid.risk.astype(np.float64), 6).tolist(),
+                observed=grid.observed.tolist(),
+            ).model_dump_json().encode()
+
+        return await self._run(encode)
+
+    async def risk_npy(self, name: str) -> tuple[bytes, GridSnapshot]:
+        grid = await self.read_grid(name)
+        return await self._run(exports.npy_bytes, grid.risk), grid
+
+    async def risk_png(self, name: str, *, scale: int, z_min: float | None, z_max: float | None) -> tuple[bytes, GridSnapshot]:
+        _check_band(z_min, z_max)
+        grid = await self.read_grid(name)
+        nx, ny = grid.spec.shape[:2]
+        if nx * ny * scale * scale > MAX_PNG_PIXELS:
+            raise Invalid(f"scale {scale} would make a {nx * scale} x {ny * scale} image; use a smaller scale")
+        text = {
+            "map": name, "version": str(grid.version), "resolution": repr(grid.spec.resolution),
+            "origin": repr(list(grid.spec.origin)),
+        }
+
+        def render() -> bytes:
+            risk, observed = grid.planar(z_min, z_max)
+            return exports.risk_png(risk, observed, scale=scale, text=text)
+
+        return await self._run(render), grid
+
+    async def nav2_zip(
+        self, name: str, *, mode: Literal["trinary", "scale"], image_format: Literal["pgm", "png"],
+        free_thresh: float, occupied_thresh: float, z_min: float | None, z_max: float | None,
+    ) -> bytes:
+        _check_band(z_min, z_max)
+        if not 0.0 <= free_thresh < occupied_thresh <= 1.0:
+            raise Invalid(f"need 0 <= free_thresh < occupied_thresh <= 1, got {free_thresh} and {occupied_thresh}")
+        grid = await self.read_grid(name)
+
+        def render() -> bytes:
+            risk, observed = grid.planar(z_min, z_max)
+            return exports.nav2_zip(
+                risk, observed, resolution=grid.spec.resolution, origin_xy=grid.spec.origin[:2], mode=mode,
+                image_format=image_format, free_thresh=free_thresh, occupied_thresh=occupied_thresh,
+            )
+
+        return await self._run(render)
+
+    async def occupancy_grid(
+        self, name: str, *, mode: Literal["probability", "trinary"], z_min: float | None, z_max: float | None
+    ) -> OccupancyGrid:
+        _check_band(z_min, z_max)
+        grid = await self.read_grid(name)
+
+        def render() -> OccupancyGrid:
+            risk, observed = grid.planar(z_min, z_max)
+            data = exports.occupancy_data(risk, observed, mode=mode)
+            now = time.time()
+            stamp = {"sec": int(now), "nanosec": int((now % 1.0) * 1e9)}
+            return OccupancyGrid.model_validate({
+                "header": {"stamp": stamp, "frame_id": "map"},
+                "info": {
+                    "map_load_time": stamp, "resolution": grid.spec.resolution,
+                    "width": int(risk.shape[0]), "height": int(risk.shape[1]),
+                    "origin": {"position": {"x": grid.spec.origin[0], "y": grid.spec.origin[1], "z": 0.0},
+                               "orientation": {"x": 0.0, "y": 0.0, "z": 0.0, "w": 1.0}},
+                },
+                "data": data.tolist(),
+            })
+
+        return await self._run(render)
+
+    # ---------------------------------------------------------------- plans
+
+    async def plan(self, name: str, request: PlanRequest) -> PlanResult:
+        """Plan on the map's current risk in a worker process (``planning.plan`` checks the parameters)."""
+        self._check_plan(request)
+        grid = await self.read_grid(name)
+        params = request.model_dump(exclude_none=True)
+        started = time.perf_counter()
+        outcome = "error"
+        try:
+            answer = await self._plans.run(
+                run_plan, request.time_limit + PLAN_GRACE_S, grid.risk, grid.observed, grid.spec.resolution,
+                grid.spec.origin, params,
+            )
+            if "error" in answer:
+                outcome = "rejected"
+                raise PlanRejected(answer["error"]["code"], answer["error"]["message"])
+            if "invalid" in answer:
+                outcome = "invalid"
+                raise Invalid(answer["invalid"])
+            result = answer["result"]
+            outcome = result["status"]
+            return PlanResult(**result, version=grid.version)
+        finally:
+            self.metrics.plan_seconds.labels(request.planner, outcome).observe(time.perf_counter() - started)
+
+    def _check_plan(self, request: PlanRequest) -> None:
+        """What can be refused without a worker: the service's time limit, and an unknown planner."""
+        if request.time_limit > self.settings.max_plan_time_s:
+            raise Invalid(
+                f"time_limit {request.time_limit} s is above the limit of {self.settings.max_plan_time_s} s "
+                "(FUZZYRISK_MAX_PLAN_TIME_S)"
+            )
+        try:
+            planner_spec(request.planner)  # lists the planners that work
+        except ValueError as exc:
+            raise Invalid(str(exc)) from None
+
+
+def _check_band(z_min: float | None, z_max: float | None) -> None:
+    if z_min is not None and z_max is not None and z_min > z_max:
+        raise Invalid(f"z_min ({z_min}) must not exceed z_max ({z_max})")

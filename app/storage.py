@@ -1,0 +1,160 @@
+"""Durable map storage: a small interface, and an embedded SQLite implementation.
+
+A map on disk is its metadata, at most one snapshot (the map's arrays at some
+version) and the scan batches acknowledged since that snapshot, in order. The
+service commits a batch before it applies it and answers, so a batch that got a
+200 survives ``kill -9``; a restart loads the snapshot and replays the batches
+after it (fusion is deterministic, so the risk is bit for bit the same).
+
+Payloads are opaque bytes here: storage knows nothing of scans or maps.
+"""
+
+from __future__ import annotations
+
+import json
+import sqlite3
+import threading
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Protocol
+
+
+class NameTaken(Exception):
+    """A map with this name is already stored."""
+
+
+@dataclass
+class StoredMap:
+    """Everything stored about one map."""
+
+    name: str
+    meta: dict[str, Any]
+    updated: str
+    snapshot_version: int = 0
+    snapshot: bytes | None = None
+    batches: list[tuple[int, bytes]] = field(default_factory=list)  # (version, payload), ascending
+
+
+class Storage(Protocol):
+    """What the service needs from a store; another backend (a shared database) can replace SQLite."""
+
+    def load_all(self) -> list[StoredMap]:
+        """Every map with its latest snapshot and the batches after it."""
+
+    def create_map(self, name: str, meta: dict[str, Any], updated: str) -> None:
+        """Store a new, empty map; ``NameTaken`` if the name is used."""
+
+    def delete_map(self, name: str) -> None:
+        """Remove a map with its snapshot and batches (no error when absent)."""
+
+    def append_batch(self, name: str, version: int, payload: bytes, updated: str) -> None:
+        """Durably store the batch that brings ``name`` to ``version`` before returning."""
+
+    def discard_batch(self, name: str, version: int) -> None:
+        """Forget a batch that could not be applied (it was never acknowledged)."""
+
+    def write_snapshot(self, name: str, version: int, payload: bytes) -> None:
+        """Store the map state at ``version`` and drop the batches it covers, atomically."""
+
+    def close(self) -> None:
+        """Flush and release the store."""
+
+
+_SCHEMA = """
+CREATE TABLE IF NOT EXISTS maps (
+    name TEXT PRIMARY KEY,
+    meta TEXT NOT NULL,
+    updated TEXT NOT NULL
+);
+CREATE TABLE IF NOT EXISTS batches (
+    map TEXT NOT NULL REFERENCES maps(name) ON DELETE CASCADE,
+    seq INTEGER NOT NULL,
+    payload BLOB NOT NULL,
+    PRIMARY KEY (map, seq)
+);
+CREATE TABLE IF NOT EXISTS snapshots (
+    map TEXT PRIMARY KEY REFERENCES maps(name) ON DELETE CASCADE,
+    version INTEGER NOT NULL,
+    payload BLOB NOT NULL
+);
+"""
+
+
+class SqliteStorage:
+    """``Storage`` in one SQLite file: WAL journal, ``synchronous=FULL`` (fsync at every commit).
+
+    One connection shared by the service's threads behind a lock: SQLite has one
+    writer at a time anyway, and the commits are short next to fusion.
+    """
+
+    def __init__(self, path: Path) -> None:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        # isolation_level=None: transactions are opened explicitly, so each method is one commit
+        self._db = sqlite3.connect(path, isolation_level=None, check_same_thread=False)
+        self._lock = threading.Lock()
+        with self._lock:
+            self._db.execute("PRAGMA journal_mode=WAL")
+            self._db.execute("PRAGMA synchronous=FULL")
+            self._db.execute("PRAGMA foreign_keys=ON")
+            self._db.executescript(_SCHEMA)
+
+    def _write(self, statements: list[tuple[str, tuple[Any, ...]]]) -> None:
+        """Run statements in one immediate transaction: all of them are on disk when this returns."""
+        with self._lock:
+            self._db.execute("BEGIN IMMEDIATE")
+            try:
+                for sql, args in statements:
+                    self._db.execute(sql, args)
+            except BaseException:
+                self._db.execute("ROLLBACK")
+                raise
+            self._db.execute("COMMIT")
+
+    def load_all(self) -> list[StoredMap]:
+        with self._lock:
+            rows = self._db.execute("SELECT name, meta, updated FROM maps ORDER BY name").fetchall()
+            maps = {name: StoredMap(name, json.loads(meta), updated) for name, meta, updated in rows}
+            for name, version, payload in self._db.execute("SELECT map, version, payload FROM snapshots"):
+                maps[name].snapshot_version, maps[name].snapshot = version, bytes(payload)
+            for name, seq, payload in self._db.execute("SELECT map, seq, payload FROM batches ORDER BY map, seq"):
+                maps[name].batches.append((seq, bytes(payload)))
+        return list(maps.values())
+
+    def create_map(self, name: str, meta: dict[str, Any], updated: str) -> None:
+        try:
+            self._write([("INSERT INTO maps (name, meta, updated) VALUES (?, ?, ?)", (name, json.dumps(meta), updated))])
+        except sqlite3.IntegrityError:
+            raise NameTaken(name) from None
+
+    def delete_map(self, name: str) -> None:
+        # the foreign keys cascade to the map's batches and snapshot
+        self._write([("DELETE FROM maps WHERE name = ?", (name,))])
+
+    def append_batch(self, name: str, version: int, payload: bytes, updated: str) -> None:
+        self._write(
+            [
+                ("INSERT INTO batches (map, seq, payload) VALUES (?, ?, ?)", (name, version, payload)),
+                ("UPDATE maps SET updated = ? WHERE name = ?", (updated, name)),
+            ]
+        )
+
+    def discard_batch(self, name: str, version: int) -> None:
+        self._write([("DELETE FROM batches WHERE map = ? AND seq = ?", (name, version))])
+
+    def write_snapshot(self, name: str, version: int, payload: bytes) -> None:
+        self._write(
+            [
+                (
+                    "INSERT INTO snapshots (map, version, payload) VALUES (?, ?, ?) "
+                    "ON CONFLICT(map) DO UPDATE SET version = excluded.version, payload = excluded.payload",
+                    (name, version, payload),
+                ),
+                ("DELETE FROM batches WHERE map = ? AND seq <= ?", (name, version)),
+            ]
+        )
+
+    def close(self) -> None:
+        with self._lock:
+            # fold the WAL back into the main file so a copied data dir is one self-contained file
+            self._db.execute("PRAGMA wal_checkpoint(TRUNCATE)")
+            self._db.close()

@@ -1,0 +1,172 @@
+"""Dense cell storage: per-cell state, observed bits, and a lazily refreshed fixed-point risk cache.
+
+Storage only: it knows nothing of sensors or of what a state means. The map that owns a
+grid writes states of whole cells and gives the function that turns states into risk.
+Cells are addressed by flat id (C order over ``spec.shape``, see :mod:`fuzzyocc.keys`).
+
+Bytes per cell: the state's (7 for the paper's fuzzy engine, 4 for float32 log-odds) is the
+map itself; besides it the grid keeps 1 bit (observed) and 2 bytes (risk cache, whose
+all-ones value also marks a cell whose risk is stale, so no dirty mask is needed).
+
+Risk is cached as uint16 fixed point, ``risk = q / 2**16``: every cached risk is a multiple
+of :data:`RISK_STEP` (2**-16), the nearest one to the model's value (ties to even), and
+reading it back as float32 is exact. 0 and 0.5 (unknown) are represented exactly. The
+largest value is ``65534 / 65536`` (1 - 3e-5); no model here gives a risk above it (the
+fuzzy centroid stays 1/36 from 1, Bayes is clamped at 0.971).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+from numba import njit
+
+from fuzzyocc.config import GridSpec
+
+RiskFn = Callable[[np.ndarray], np.ndarray]
+
+#: Resolution of the cached risk: risk is read back as a multiple of this (2**-16).
+RISK_STEP = 2.0**-16
+_STALE = 0xFFFF  # a risk code no risk quantizes to: "recompute this cell"
+_LARGEST_CODE = _STALE - 1
+
+
+def quantize_risk(risk: np.ndarray) -> np.ndarray:
+    """Risk in [0, 1] -> uint16 codes ``round(risk / RISK_STEP)`` (ties to even), at most 65534."""
+    scaled = np.rint(np.asarray(risk, dtype=np.float64) * (1.0 / RISK_STEP))
+    return np.clip(scaled, 0.0, _LARGEST_CODE).astype(np.uint16)
+
+
+def dequantize_risk(codes: np.ndarray) -> np.ndarray:
+    """uint16 codes -> float32 risk ``code * RISK_STEP`` (exact: codes fit float32's mantissa)."""
+    out = np.asarray(codes).astype(np.float32)
+    out *= np.float32(RISK_STEP)
+    return out
+
+
+class CellGrid:
+    """State of every cell of a bounded 2-D or 3-D grid.
+
+    Parameters
+    ----------
+    spec : GridSpec
+        The grid.
+    state : (num_cells, ...) ndarray
+        Initial state of every cell (taken over, not copied).
+    observed : (num_cells,) ndarray of bool
+        Cells some beam reached (packed into bits).
+    risk_fn : callable
+        ``(n, ...) states -> (n,) risk``; applied to the cells that changed when risk is read.
+        A cell's cached risk depends on its state alone (quantized as in :func:`quantize_risk`),
+        never on when it was refreshed.
+    """
+
+    def __init__(self, spec: GridSpec, state: np.ndarray, observed: np.ndarray, risk_fn: RiskFn) -> None:
+        n = spec.num_cells
+        if state.shape[:1] != (n,) or observed.shape != (n,) or observed.dtype != np.bool_:
+            raise ValueError(f"state and observed must have {n} rows (one per cell)")
+        self.spec = spec
+        self.state = state
+        self._observed = np.packbits(observed, bitorder="little")
+        self._risk_fn = risk_fn
+        self._risk = np.full(n, _STALE, dtype=np.uint16)
+        self._any_stale = n > 0
+        if n and self._uniform(state):
+            # A fresh map: one evaluation instead of num_cells.
+            self._risk[:] = quantize_risk(risk_fn(state[:1]))[0]
+            self._any_stale = False
+
+    @staticmethod
+    def _uniform(state: np.ndarray) -> bool:
+        return bool(np.all(state == state[:1]))
+
+    # -- states ---------------------------------------------------------------------------
+    def read(self, cells: np.ndarray) -> np.ndarray:
+        """States of ``cells`` (flat ids), a copy of shape ``(len(cells), ...)``."""
+        if self.state.ndim == 2:
+            return _gather_rows(self.state, cells)
+        return self.state[cells]
+
+    def write(self, cells: np.ndarray, new_state: np.ndarray) -> None:
+        """Set the state of ``cells`` (flat ids, unique) and mark their risk stale."""
+        if self.state.ndim == 2:
+            _scatter_rows(self.state, cells, np.ascontiguousarray(new_state, dtype=self.state.dtype))
+        else:
+            self.state[cells] = new_state
+        self.mark_changed(cells)
+
+    def mark_changed(self, cells: np.ndarray) -> None:
+        """Mark the risk of ``cells`` stale after their rows of :attr:`state` were changed in place."""
+        _mark_stale(self._risk, cells)
+        self._any_stale = self._any_stale or cells.size > 0
+
+    # -- observed -------------------------------------------------------------------------
+    def mark_observed(self, cells: np.ndarray) -> None:
+        """Record that beams reached ``cells`` (flat ids)."""
+        _set_bits(self._observed, cells)
+
+    def observed(self) -> np.ndarray:
+        """(num_cells,) bool: cells some beam reached (a new array)."""
+        bits = np.unpackbits(self._observed, count=self.spec.num_cells, bitorder="little")
+        return bits.view(np.bool_)
+
+    # -- risk -----------------------------------------------------------------------------
+    def _refresh(self) -> None:
+        if self._any_stale:
+            stale = np.flatnonzero(self._risk == _STALE)
+            if stale.size:
+                self._risk[stale] = quantize_risk(self._risk_fn(self.read(stale)))
+            self._any_stale = False
+
+    def risk(self) -> np.ndarray:
+        """(num_cells,) float32 risk, a new array; the cache is refreshed first where cells changed."""
+        self._refresh()
+        return dequantize_risk(self._risk)
+
+    def risk_of(self, cells: np.ndarray) -> np.ndarray:
+        """(len(cells),) float32 risk of ``cells`` (flat ids), as :meth:`risk` gives it."""
+        self._refresh()
+        return dequantize_risk(self._risk[cells])
+
+    # -- memory ---------------------------------------------------------------------------
+    def persistent_nbytes(self) -> int:
+        """Bytes of what the map is: cell states and observed bits (what ``to_arrays`` saves, packed)."""
+        return int(self.state.nbytes + self._observed.nbytes)
+
+    def resident_nbytes(self) -> int:
+        """Bytes the grid holds between calls: :meth:`persistent_nbytes` plus the risk cache."""
+        return self.persistent_nbytes() + int(self._risk.nbytes)
+
+
+# numpy's fancy indexing of short rows (7 bytes a cell) costs far more than the copy itself.
+@njit(cache=True, nogil=True)
+def _gather_rows(state, cells):  # pragma: no cover - compiled
+    out = np.empty((cells.shape[0], state.shape[1]), state.dtype)
+    for n in range(cells.shape[0]):
+        c = cells[n]
+        for k in range(state.shape[1]):
+            out[n, k] = state[c, k]
+    return out
+
+
+@njit(cache=True, nogil=True)
+def _scatter_rows(state, cells, rows):  # pragma: no cover - compiled
+    for n in range(cells.shape[0]):
+        c = cells[n]
+        for k in range(state.shape[1]):
+            state[c, k] = rows[n, k]
+
+
+@njit(cache=True, nogil=True)
+def _mark_stale(codes, cells):  # pragma: no cover - compiled
+    for n in range(cells.shape[0]):
+        codes[cells[n]] = _STALE
+
+
+@njit(cache=True, nogil=True)
+def _set_bits(bits, cells):  # pragma: no cover - compiled
+    # Little bit order (np.packbits(..., bitorder="little")): cell c is bit c % 8 of byte c // 8.
+    for n in range(cells.shape[0]):
+        c = cells[n]
+        bits[c >> 3] |= np.uint8(1 << (c & 7))

@@ -1,0 +1,378 @@
+"""Occupancy maps: scans in, fused cell states, defuzzified risk out.
+
+:class:`FuzzyMap` (Payeur's fuzzy fusion) and :class:`BayesMap` (closed-form OPDF merged by
+Bayes in log-odds, clamped like OctoMap) share the orchestration in :class:`OccupancyMap`:
+
+1. validate every scan of a batch (nothing is touched if one is bad);
+2. cast all beams of the batch (:func:`fuzzyocc.raycast.cast_rays`): per scan, each cell
+   reached once, with the evidence of its most occupied-ward beam, so grazing beams do not
+   erase thin obstacles (OctoMap's "occupied before free");
+3. scan by scan, in order: mark the reached cells observed and update the cells whose
+   evidence is not pure UNK (that column of Table 1 is the identity) -- the only step
+   where the two models differ.
+
+Beam geometry: a hit at range ``r`` updates the cells from the sensor to
+``r + occupied_extent * sigma`` (the end of the occupied region behind the surface); a
+no-return updates the cells up to ``range_max`` as free space. ``sigma`` of a beam is
+``sensor.sigma(r, scan.registration_sigma)`` floored at half a cell.
+
+Maps are not thread-safe: serialise calls on one map.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from fuzzyocc import bayes
+from fuzzyocc.config import GridSpec, SensorModel
+from fuzzyocc.engine import FuzzyEngine
+from fuzzyocc.grid import CellGrid
+from fuzzyocc.keys import coords_to_keys, keys_to_flat
+from fuzzyocc.raycast import CastResult, cast_rays
+from fuzzyocc.scans import LaserScan, PointCloud, Rays
+
+Scan = LaserScan | PointCloud
+
+
+def _check_spec(spec: object) -> None:
+    if not isinstance(spec, GridSpec):
+        raise ValueError(f"spec must be a GridSpec, got {type(spec).__name__}")
+
+
+@dataclass(frozen=True)
+class IntegrationStats:
+    """What one integrate call did.
+
+    Attributes
+    ----------
+    scans : int
+        Scans fused.
+    rays : int
+        Beams cast (hits and no-returns).
+    cells_updated : int
+        Cells given evidence (reached closer than ``occupied_extent`` sigmas behind a surface),
+        summed over scans: a cell two scans reach counts twice.
+    cells_traversed : int
+        Cell visits of the ray casting, before the per-scan dedupe.
+    rays_skipped : int
+        Beams dropped as invalid (REP 117 ``-inf``/NaN/below ``range_min``, points at the origin).
+    """
+
+    scans: int
+    rays: int
+    cells_updated: int
+    cells_traversed: int = 0
+    rays_skipped: int = 0
+
+
+class OccupancyMap:
+    """Orchestration shared by the map models; subclasses give the per-cell update and risk."""
+
+    model: str = ""
+
+    def __init__(self, spec: GridSpec, sensor: SensorModel | None = None) -> None:
+        _check_spec(spec)
+        sensor = SensorModel() if sensor is None else sensor
+        if not isinstance(sensor, SensorModel):
+            raise ValueError(f"sensor must be a SensorModel, got {type(sensor).__name__}")
+        self.spec = spec
+        self.sensor = sensor
+        self._grid = CellGrid(spec, self._initial_state(), np.zeros(spec.num_cells, dtype=np.bool_), self._risk_of)
+        self._scans_fused = 0
+
+    def _restore(self, state: np.ndarray, observed: np.ndarray, scans_fused: int) -> None:
+        self._grid = CellGrid(self.spec, state, observed, self._risk_of)
+        self._scans_fused = scans_fused
+
+    # -- what a model defines ------------------------------------------------------------
+    def _initial_state(self) -> np.ndarray:
+        """(num_cells, ...) state of a new map (all unknown)."""
+        raise NotImplementedError
+
+    @property
+    def occupied_extent(self) -> float:
+        """Sigmas behind the surface past which a beam's evidence is pure UNK; its rays stop there."""
+        raise NotImplementedError
+
+    def _update(self, cells: np.ndarray, distance_sigmas: np.ndarray) -> int:
+        """Fuse one scan's evidence (finite float32 distances, sigmas) into ``cells``; returns how many."""
+        raise NotImplementedError
+
+    def _risk_of(self, state: np.ndarray) -> np.ndarray:
+        """(n, ...) states -> (n,) float32 risk."""
+        raise NotImplementedError
+
+    # -- integration ---------------------------------------------------------------------
+    @property
+    def scans_fused(self) -> int:
+        """Scans fused since the map was created."""
+        return self._scans_fused
+
+    def integrate_scan(self, *, pose: Sequence[float], angle_min: float, angle_increment: float,
+                       ranges: object, range_min: float, range_max: float,
+                       registration_sigma: float = 0.0) -> IntegrationStats:
+        """Fuse one planar scan (2-D maps only); see :class:`fuzzyocc.scans.LaserScan`."""
+        scan = LaserScan(pose=pose, angle_min=angle_min, angle_increment=angle_increment,  # type: ignore[arg-type]
+                         ranges=ranges, range_min=range_min, range_max=range_max,  # type: ignore[arg-type]
+                         registration_sigma=registration_sigma)
+        return self.integrate_batch([scan])
+
+    def integrate_points(self, points: object, *, origin: Sequence[float], range_max: float,
+                         registration_sigma: float = 0.0) -> IntegrationStats:
+        """Fuse one point cloud given in the map frame; see :class:`fuzzyocc.scans.PointCloud`."""
+        cloud = PointCloud(points=points, origin=tuple(origin), range_max=range_max,  # type: ignore[arg-type]
+                           registration_sigma=registration_sigma)
+        return self.integrate_batch([cloud])
+
+    def integrate_batch(self, scans: Sequence[Scan]) -> IntegrationStats:
+        """Fuse scans in order, all or none.
+
+        Every scan is checked against the map first; if one is unusable, ``ValueError``
+        (naming ``scans[i]``) is raised and the map is left exactly as it was.
+        """
+        scans = list(scans)
+        for i, scan in enumerate(scans):
+            self._check_scan(scan, f"scans[{i}]")
+        if not scans:
+            return IntegrationStats(scans=0, rays=0, cells_updated=0)
+        rays = [scan.to_rays() for scan in scans]
+        cast = self._cast(scans, rays)
+        updated = 0
+        for s in range(len(scans)):
+            lo, hi = cast.scan_offsets[s], cast.scan_offsets[s + 1]
+            cells = cast.cells[lo:hi]
+            dist = cast.distance_sigmas[lo:hi]
+            self._grid.mark_observed(cells)
+            evidence = np.isfinite(dist)  # -inf: reached only past the occupied region
+            updated += self._update(cells[evidence], dist[evidence])
+        self._scans_fused += len(scans)
+        return IntegrationStats(
+            scans=len(scans),
+            rays=int(sum(r.ranges.size for r in rays)),
+            cells_updated=int(updated),
+            cells_traversed=int(cast.cells_traversed.sum()),
+            rays_skipped=int(sum(r.skipped for r in rays)),
+        )
+
+    def _check_scan(self, scan: object, name: str) -> None:
+        if isinstance(scan, LaserScan):
+            if self.spec.ndim != 2:
+                raise ValueError(f"{name} is a LaserScan, which is planar, and this map is 3-D; "
+                                 "send its beams as a 3-D PointCloud (PointCloud.from_sensor_frame)")
+        elif isinstance(scan, PointCloud):
+            if scan.ndim != self.spec.ndim:
+                raise ValueError(f"{name}.points must have shape (N, {self.spec.ndim}) for this "
+                                 f"{self.spec.ndim}-D map, got {scan.points.shape}")
+        else:
+            raise ValueError(f"{name} must be a LaserScan or a PointCloud, got {type(scan).__name__}")
+
+    def _cast(self, scans: list[Scan], rays: list[Rays]) -> CastResult:
+        half_cell = 0.5 * self.spec.resolution
+        counts = [r.ranges.size for r in rays]
+        origins = np.repeat(np.stack([r.origin for r in rays]), counts, axis=0)
+        directions = np.concatenate([r.directions for r in rays])
+        ranges = np.concatenate([r.ranges for r in rays])
+        hit = np.concatenate([r.hit for r in rays])
+        sigma = np.concatenate([self.sensor.sigma(r.ranges, s.registration_sigma) for s, r in zip(scans, rays)])
+        sigma = np.maximum(sigma, half_cell)
+        return cast_rays(
+            self.spec,
+            origins,
+            directions,
+            t_end=np.where(hit, ranges + self.occupied_extent * sigma, ranges),
+            measured=np.where(hit, ranges, np.nan),
+            sigma=sigma,
+            ray_offsets=np.concatenate([[0], np.cumsum(counts)]),
+            unknown_from=self.occupied_extent,
+        )
+
+    # -- reading -------------------------------------------------------------------------
+    def risk(self) -> np.ndarray:
+        """Risk of every cell, float32 of ``spec.shape`` in [0, 1], 0.5 = unknown.
+
+        A new array each call (a snapshot: later integrations do not change it), marked
+        read-only. The map caches risk as 16-bit fixed point, refreshed only where cells
+        changed since the last read, so every value is a multiple of 2**-16
+        (:data:`fuzzyocc.grid.RISK_STEP`): the model's risk to within 2**-17, 0.5
+        exactly for unknown. It depends on the cell's state alone, so two maps with the
+        same history, or a map and its :meth:`from_arrays` restoration, agree bit for bit.
+        """
+        out = self._grid.risk().reshape(self.spec.shape)
+        out.flags.writeable = False
+        return out
+
+    def risk_at(self, points: object) -> np.ndarray:
+        """Risk of the cells containing ``points`` ((M, D) map frame) -> (M,) float32 (a copy).
+
+        Raises ``ValueError`` naming ``points`` if one is not finite or lies outside the map.
+        """
+        pts = np.asarray(points, dtype=np.float64)
+        if pts.ndim != 2 or pts.shape[1] != self.spec.ndim:
+            raise ValueError(f"points must have shape (M, {self.spec.ndim}), got {pts.shape}")
+        keys, valid = coords_to_keys(self.spec, pts)
+        if not np.all(valid):
+            bad = int(np.flatnonzero(~valid)[0])
+            raise ValueError(f"points[{bad}] = {pts[bad].tolist()} is outside the map "
+                             f"[{list(self.spec.origin)}, {list(self.spec.upper)})")
+        return self._grid.risk_of(keys_to_flat(self.spec, keys))
+
+    def observed(self) -> np.ndarray:
+        """Cells some beam reached, bool of ``spec.shape`` (a new read-only array, like ``risk()``)."""
+        out = self._grid.observed().reshape(self.spec.shape)
+        out.flags.writeable = False
+        return out
+
+    def state_nbytes(self) -> int:
+        """Bytes of the map's persistent state: cell states and observed mask (1 bit a cell).
+
+        What the map is, and what :meth:`to_arrays` must save (its observed array is
+        unpacked to one byte a cell). See :meth:`resident_nbytes` for the caches too.
+        """
+        return self._grid.persistent_nbytes()
+
+    def resident_nbytes(self) -> int:
+        """Bytes the map holds between calls: :meth:`state_nbytes` plus the risk cache (2 a cell).
+
+        Not counted: arrays an integrate call allocates and frees (the ray caster's
+        per-cell scratch, the batch's cells and evidence), and the engine's
+        defuzzification tables, which are built once per engine and shared by every map
+        using it.
+        """
+        return self._grid.resident_nbytes()
+
+    # -- persistence ---------------------------------------------------------------------
+    def _common_arrays(self) -> dict[str, np.ndarray]:
+        return {
+            "model": np.array(self.model),
+            "observed": self._grid.observed().reshape(self.spec.shape),
+            "scans_fused": np.array(self._scans_fused, dtype=np.int64),
+        }
+
+    @staticmethod
+    def _take(arrays: dict[str, np.ndarray], key: str, shape: tuple[int, ...], dtype: type) -> np.ndarray:
+        if key not in arrays:
+            raise ValueError(f"arrays lacks {key!r}")
+        arr = np.asarray(arrays[key])
+        if arr.shape != shape or arr.dtype != dtype:
+            raise ValueError(f"arrays[{key!r}] must be {np.dtype(dtype).name} of shape {shape}, "
+                             f"got {arr.dtype.name} of shape {arr.shape}")
+        return arr
+
+    @classmethod
+    def _common_from_arrays(cls, spec: GridSpec, arrays: dict[str, np.ndarray]) -> tuple[np.ndarray, int]:
+        _check_spec(spec)
+        model = str(arrays.get("model", cls.model))
+        if model != cls.model:
+            raise ValueError(f"arrays hold a {model!r} map, not a {cls.model!r} one")
+        observed = cls._take(arrays, "observed", spec.shape, np.bool_)
+        scans = cls._take(arrays, "scans_fused", (), np.int64)
+        if scans < 0:
+            raise ValueError(f"arrays['scans_fused'] must be >= 0, got {int(scans)}")
+        return observed.reshape(-1).copy(), int(scans)
+
+
+class FuzzyMap(OccupancyMap):
+    """Payeur's fuzzy occupancy map: L uint8 label activations per cell (7 bytes for the paper's).
+
+    Parameters
+    ----------
+    spec : GridSpec
+        Region and resolution.
+    sensor : SensorModel, optional
+        Range and registration uncertainty (default ``SensorModel()``).
+    engine : FuzzyEngine, optional
+        Labels, membership functions, rule table, operators (default ``FuzzyEngine.paper()``).
+    """
+
+    model = "fuzzy"
+
+    def __init__(self, spec: GridSpec, sensor: SensorModel | None = None, engine: FuzzyEngine | None = None) -> None:
+        self.engine = FuzzyEngine.paper() if engine is None else engine
+        super().__init__(spec, sensor)
+
+    def _initial_state(self) -> np.ndarray:
+        unknown = np.asarray(self.engine.unknown_state(), dtype=np.uint8)
+        state = np.empty((self.spec.num_cells, unknown.size), dtype=np.uint8)
+        state[:] = unknown
+        return state
+
+    @property
+    def occupied_extent(self) -> float:
+        """The engine's: sigmas behind the surface past which its input is pure UNK."""
+        return float(self.engine.occupied_extent)
+
+    def _update(self, cells: np.ndarray, distance_sigmas: np.ndarray) -> int:
+        evidence = self.engine.fuzzify(distance_sigmas)
+        self.engine.fuse_at(self._grid.state, cells, evidence)
+        self._grid.mark_changed(cells)
+        return int(cells.size)
+
+    def _risk_of(self, state: np.ndarray) -> np.ndarray:
+        return np.asarray(self.engine.defuzzify(state), dtype=np.float32)
+
+    def to_arrays(self) -> dict[str, np.ndarray]:
+        """Everything needed to restore the map bit for bit (copies)."""
+        arrays = self._common_arrays()
+        arrays["state"] = self._grid.state.reshape(*self.spec.shape, -1).copy()
+        arrays["labels"] = np.array(self.engine.labels)
+        return arrays
+
+    @classmethod
+    def from_arrays(cls, spec: GridSpec, sensor: SensorModel | None, arrays: dict[str, np.ndarray],
+                    engine: FuzzyEngine | None = None) -> FuzzyMap:
+        """A map restored from :meth:`to_arrays`; ``ValueError`` naming ``arrays`` if they do not fit."""
+        engine = FuzzyEngine.paper() if engine is None else engine
+        observed, scans = cls._common_from_arrays(spec, arrays)
+        labels = tuple(str(x) for x in np.asarray(arrays.get("labels", np.array(engine.labels))).ravel())
+        if labels != tuple(engine.labels):
+            raise ValueError(f"arrays hold labels {labels}, the engine has {tuple(engine.labels)}")
+        state = cls._take(arrays, "state", (*spec.shape, engine.num_labels), np.uint8)
+        restored = cls(spec, sensor, engine)
+        restored._restore(state.reshape(spec.num_cells, -1).copy(), observed, scans)
+        return restored
+
+
+class BayesMap(OccupancyMap):
+    """The paper's closed-form OPDF (eq. 4) merged by Bayes (eq. 3) as a sum of float32 log-odds.
+
+    Log-odds 0 is unknown; each update is clamped to ``[bayes.CLAMP_MIN, bayes.CLAMP_MAX]``
+    as OctoMap does, so a cell can change its mind. Risk is the probability.
+    """
+
+    model = "bayes"
+
+    def _initial_state(self) -> np.ndarray:
+        return np.zeros(self.spec.num_cells, dtype=np.float32)
+
+    @property
+    def occupied_extent(self) -> float:
+        """``bayes.BAYES_OCCUPIED_EXTENT``: past it the OPDF is 0.5 to within 1e-3."""
+        return float(bayes.BAYES_OCCUPIED_EXTENT)
+
+    def _update(self, cells: np.ndarray, distance_sigmas: np.ndarray) -> int:
+        evidence = bayes.logodds(bayes.opdf(distance_sigmas, 1.0))
+        self._grid.write(cells, bayes.update_logodds(self._grid.read(cells), evidence))
+        return int(cells.size)
+
+    def _risk_of(self, state: np.ndarray) -> np.ndarray:
+        return np.asarray(bayes.probability(state), dtype=np.float32)
+
+    def to_arrays(self) -> dict[str, np.ndarray]:
+        """Everything needed to restore the map bit for bit (copies)."""
+        arrays = self._common_arrays()
+        arrays["logodds"] = self._grid.state.reshape(self.spec.shape).copy()
+        return arrays
+
+    @classmethod
+    def from_arrays(cls, spec: GridSpec, sensor: SensorModel | None, arrays: dict[str, np.ndarray]) -> BayesMap:
+        """A map restored from :meth:`to_arrays`; ``ValueError`` naming ``arrays`` if they do not fit."""
+        observed, scans = cls._common_from_arrays(spec, arrays)
+        logodds = cls._take(arrays, "logodds", spec.shape, np.float32)
+        if not np.all(np.isfinite(logodds)):
+            raise ValueError("arrays['logodds'] must be finite")
+        restored = cls(spec, sensor)
+        restored._restore(logodds.reshape(-1).copy(), observed, scans)
+        return restored

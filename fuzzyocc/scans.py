@@ -1,0 +1,254 @@
+"""Range scans as validated, immutable values, and their beams as rays.
+
+Two kinds, both frozen dataclasses that check themselves on construction (``ValueError``
+naming the field) and hold read-only float64 arrays:
+
+- :class:`LaserScan`, a planar ``sensor_msgs/LaserScan`` with REP 117 semantics: beam ``i``
+  points at ``theta + angle_min + i * angle_increment``; ``+inf`` or a range at or above
+  ``range_max`` (older drivers send ``range_max`` or ``range_max + 1``) is a no-return that
+  clears free space up to ``range_max`` and marks nothing occupied; ``-inf``, NaN (also JSON
+  ``null``) and ranges below ``range_min`` are skipped.
+- :class:`PointCloud`, beam end points in the map frame with the sensor origin; a point
+  farther than ``range_max`` is cut at ``range_max`` and counts as a no-return (OctoMap's
+  ``insertPointCloud(..., maxrange)``); a point at the origin is skipped.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from fuzzyocc.config import _finite_tuple
+
+#: Default cap on the beams of a LaserScan or the points of a PointCloud (per scan);
+#: override per scan with ``max_rays=``.
+DEFAULT_MAX_RAYS = 4_000_000
+
+
+@dataclass(frozen=True)
+class Rays:
+    """The usable beams of one scan.
+
+    Attributes
+    ----------
+    origin : (D,) ndarray of float64
+        Sensor position, map frame, metres.
+    directions : (N, D) ndarray of float64
+        Unit beam directions.
+    ranges : (N,) ndarray of float64
+        Measured range of a hit, or ``range_max`` for a no-return, metres.
+    hit : (N,) ndarray of bool
+        True where the beam returned from a surface.
+    skipped : int
+        Beams of the scan that were dropped (REP 117 invalid readings, points at the origin).
+    """
+
+    origin: np.ndarray
+    directions: np.ndarray
+    ranges: np.ndarray
+    hit: np.ndarray
+    skipped: int
+
+    @property
+    def endpoints(self) -> np.ndarray:
+        """(N, D) beam ends, map frame: the hit, or the ``range_max`` point of a no-return."""
+        return self.origin + self.directions * self.ranges[:, None]
+
+
+def _readonly(arr: np.ndarray) -> np.ndarray:
+    arr.setflags(write=False)
+    return arr
+
+
+def _finite_scalar(name: str, value: object, *, minimum: float | None = None) -> float:
+    try:
+        out = float(value)  # type: ignore[arg-type]
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be a number, got {value!r}") from None
+    if not math.isfinite(out):
+        raise ValueError(f"{name} must be finite, got {out}")
+    if minimum is not None and out < minimum:
+        raise ValueError(f"{name} must be >= {minimum}, got {out}")
+    return out
+
+
+def _float_array(name: str, value: object) -> np.ndarray:
+    try:
+        return np.array(value, dtype=np.float64)  # a copy: the caller's array may change later
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be an array of numbers") from None
+
+
+def _check_count(name: str, count: int, max_rays: int) -> None:
+    if count > max_rays:
+        raise ValueError(f"{name} has {count} beams, more than the limit of {max_rays} per scan; split the scan")
+
+
+@dataclass(frozen=True, eq=False)
+class LaserScan:
+    """A planar scan (``sensor_msgs/LaserScan``) taken from a 2-D pose.
+
+    Parameters
+    ----------
+    pose : (x, y, theta)
+        Sensor pose in the map frame, metres and radians (yaw counter-clockwise, REP 103).
+    angle_min : float
+        Angle of beam 0 in the sensor frame, radians.
+    angle_increment : float
+        Angle between consecutive beams, radians, non-zero (negative for a clockwise scan).
+    ranges : (N,) array_like of float
+        Readings, metres; may hold +inf, -inf and NaN (REP 117, see the module doc).
+    range_min, range_max : float
+        Valid reading interval, metres, ``0 <= range_min < range_max``.
+    registration_sigma : float
+        Extra pose uncertainty of this scan along its beams, metres, >= 0.
+    max_rays : int
+        Refuse a scan with more beams than this.
+    """
+
+    pose: tuple[float, float, float]
+    angle_min: float
+    angle_increment: float
+    ranges: np.ndarray
+    range_min: float
+    range_max: float
+    registration_sigma: float = 0.0
+    max_rays: int = field(default=DEFAULT_MAX_RAYS, repr=False)
+
+    ndim = 2
+
+    def __post_init__(self) -> None:
+        set_ = object.__setattr__
+        set_(self, "pose", _finite_tuple("pose", self.pose, 3))
+        set_(self, "angle_min", _finite_scalar("angle_min", self.angle_min))
+        inc = _finite_scalar("angle_increment", self.angle_increment)
+        if inc == 0.0:
+            raise ValueError("angle_increment must be non-zero")
+        set_(self, "angle_increment", inc)
+        ranges = _float_array("ranges", self.ranges)
+        if ranges.ndim != 1:
+            raise ValueError(f"ranges must be a 1-D array, got shape {ranges.shape}")
+        _check_count("ranges", ranges.size, self.max_rays)
+        set_(self, "ranges", _readonly(ranges))
+        rmin = _finite_scalar("range_min", self.range_min, minimum=0.0)
+        rmax = _finite_scalar("range_max", self.range_max, minimum=0.0)
+        if rmax <= rmin:
+            raise ValueError(f"range_max must be greater than range_min, got range_min={rmin}, range_max={rmax}")
+        set_(self, "range_min", rmin)
+        set_(self, "range_max", rmax)
+        set_(self, "registration_sigma", _finite_scalar("registration_sigma", self.registration_sigma, minimum=0.0))
+
+    def to_rays(self) -> Rays:
+        """The beams that carry information (hits and no-returns), in the map frame."""
+        r = self.ranges
+        keep = r >= self.range_min  # False for NaN and -inf as well
+        no_return = r >= self.range_max  # +inf and the legacy range_max / range_max + 1
+        x, y, theta = self.pose
+        beam = np.flatnonzero(keep)
+        angles = theta + self.angle_min + beam * self.angle_increment
+        return Rays(
+            origin=np.array([x, y]),
+            directions=np.stack([np.cos(angles), np.sin(angles)], axis=1),
+            ranges=np.where(no_return[beam], self.range_max, r[beam]),
+            hit=~no_return[beam],
+            skipped=int(r.size - beam.size),
+        )
+
+
+@dataclass(frozen=True, eq=False)
+class PointCloud:
+    """Beam end points of one sensor sweep, in the map frame, with the sensor origin.
+
+    Parameters
+    ----------
+    points : (N, D) array_like of float
+        End points, map frame, metres, finite; D = 2 or 3 (the map's dimension).
+    origin : (D,) array_like of float
+        Sensor position, map frame, metres.
+    range_max : float
+        Points farther than this from the origin are cut there and count as no-returns.
+    registration_sigma : float
+        Extra pose uncertainty of this sweep along its beams, metres, >= 0.
+    max_rays : int
+        Refuse a cloud with more points than this.
+    """
+
+    points: np.ndarray
+    origin: tuple[float, ...]
+    range_max: float
+    registration_sigma: float = 0.0
+    max_rays: int = field(default=DEFAULT_MAX_RAYS, repr=False)
+
+    def __post_init__(self) -> None:
+        set_ = object.__setattr__
+        points = _float_array("points", self.points)
+        if points.ndim != 2 or points.shape[1] not in (2, 3):
+            raise ValueError(f"points must have shape (N, 2) or (N, 3), got {points.shape}")
+        _check_count("points", points.shape[0], self.max_rays)
+        if not np.all(np.isfinite(points)):
+            bad = int(np.flatnonzero(~np.all(np.isfinite(points), axis=1))[0])
+            raise ValueError(f"points must be finite; row {bad} is {points[bad].tolist()}")
+        set_(self, "points", _readonly(points))
+        set_(self, "origin", _finite_tuple("origin", self.origin, points.shape[1]))
+        rmax = _finite_scalar("range_max", self.range_max)
+        if rmax <= 0.0:
+            raise ValueError(f"range_max must be positive, got {rmax}")
+        set_(self, "range_max", rmax)
+        set_(self, "registration_sigma", _finite_scalar("registration_sigma", self.registration_sigma, minimum=0.0))
+
+    @property
+    def ndim(self) -> int:
+        """2 or 3."""
+        return self.points.shape[1]
+
+    @classmethod
+    def from_sensor_frame(
+        cls,
+        points_sensor: object,
+        position: object,
+        quaternion_xyzw: object,
+        range_max: float,
+        registration_sigma: float = 0.0,
+    ) -> PointCloud:
+        """A cloud from sensor-frame points and the sensor pose ``T_map_sensor``.
+
+        Parameters
+        ----------
+        points_sensor : (N, 3) array_like of float
+            End points in the sensor frame, metres.
+        position : (3,) array_like of float
+            Sensor position in the map frame, metres.
+        quaternion_xyzw : (4,) array_like of float
+            Sensor orientation in the map frame, ``[x, y, z, w]``; normalised here.
+        range_max, registration_sigma : float
+            As in the constructor.
+        """
+        pts = _float_array("points", points_sensor)
+        if pts.ndim != 2 or pts.shape[1] != 3:
+            raise ValueError(f"points must have shape (N, 3) in the sensor frame, got {pts.shape}")
+        position_map = np.array(_finite_tuple("position", position, 3))
+        quat = np.array(_finite_tuple("quaternion_xyzw", quaternion_xyzw, 4))
+        if np.linalg.norm(quat) < 1e-9:
+            raise ValueError("quaternion_xyzw must have a non-zero norm")
+        rotation = Rotation.from_quat(quat / np.linalg.norm(quat))
+        points_map = rotation.apply(pts) + position_map if pts.size else pts
+        return cls(points=points_map, origin=tuple(position_map), range_max=range_max,
+                   registration_sigma=registration_sigma)
+
+    def to_rays(self) -> Rays:
+        """The beams from the origin to each point (cut at ``range_max``), in the map frame."""
+        origin = np.asarray(self.origin)
+        offsets = self.points - origin
+        dist = np.linalg.norm(offsets, axis=1)
+        beam = np.flatnonzero(dist > 0.0)
+        dist = dist[beam]
+        return Rays(
+            origin=origin,
+            directions=offsets[beam] / dist[:, None],
+            ranges=np.minimum(dist, self.range_max),
+            hit=dist <= self.range_max,
+            skipped=int(self.points.shape[0] - beam.size),
+        )

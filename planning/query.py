@@ -1,0 +1,508 @@
+"""``plan``: one query, and the only caller of OMPL's ``solve()``.
+
+One query, step by step: check the arguments; pack the field dilated by the robot for the
+kernels; refuse an unusable start or goal with Nav2's codes; build the state space, the
+validity checks and the risk objective; solve; simplify without raising the cost;
+interpolate at the map resolution; verify every crossed cell; measure.
+
+Reproducibility: OMPL's seed is process-global (``ou.RNG.setSeed``), and every RNG a
+planner or simplifier makes draws its own seed from it when constructed. So every plan
+constructs, sets up, solves and simplifies under one process-wide lock (``solve()`` holds
+the GIL anyway: threads would gain nothing), and a seeded plan seeds first, then bounds the
+solve by a count of termination checks (about planner iterations) instead of wall time:
+``max_iterations``, by default ``time_limit`` times the planner's calibrated rate (and the
+state space's factor). The same inputs and seed then give the same path in any process, at
+any load, on the same software stack. A wall-clock guard of
+``3 * time_limit + 1`` s still stops a seeded run that would take far longer; such a result
+says so in its message, being no longer reproducible.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+from ompl import base as ob
+from ompl import geometric as og
+from ompl import util as ou
+
+from planning.field import RiskField
+from planning.grid_search import grid_path
+from planning.packed import PackedGrid
+from planning.planners import GRID, PlannerSpec, planner_spec
+from planning.result import (
+    GOAL_OCCUPIED,
+    GOAL_OUTSIDE_MAP,
+    START_OCCUPIED,
+    START_OUTSIDE_MAP,
+    PlanError,
+    PlanResult,
+)
+from planning.spaces import STATE_SPACES, OmplSpace, SpaceSpec
+
+ou.setLogLevel(ou.LOG_WARN)  # OMPL logs Info to stdout otherwise
+
+_SOLVE_LOCK = threading.Lock()
+SIMPLIFY_SHARE = 0.15  # of time_limit, kept for simplification after an optimizing solve
+SEEDED_SIMPLIFY_CHECKS = 20_000  # termination checks a seeded simplification may use
+
+
+# ---------------------------------------------------------------- argument checks
+
+
+def _number(name: str, value: Any, *, low: float, low_open: bool = False, high: float = math.inf) -> float:
+    try:
+        x = float(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name}: must be a number, got {value!r}") from None
+    if not math.isfinite(x) or x < low or (low_open and x == low) or x > high:
+        bound = f"> {low}" if low_open else f">= {low}"
+        if high < math.inf:
+            bound += f" and <= {high}"
+        raise ValueError(f"{name}: must be a finite number {bound}, got {value!r}")
+    return x
+
+
+def _point(name: str, value: Any, size: int, space: str) -> tuple[float, ...]:
+    try:
+        pts = tuple(float(v) for v in value)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name}: must be a sequence of {size} numbers, got {value!r}") from None
+    if len(pts) != size:
+        layout = {"R2": "(x, y)", "R3": "(x, y, z)"}.get(space, "(x, y, theta)")
+        raise ValueError(f"{name}: {space} needs {layout}, got {len(pts)} numbers")
+    if not all(math.isfinite(v) for v in pts):
+        raise ValueError(f"{name}: must be finite, got {value!r}")
+    return pts
+
+
+def _space_spec(state_space: str | None, field: RiskField) -> SpaceSpec:
+    name = state_space if state_space is not None else ("R3" if field.ndim == 3 else "R2")
+    spec = STATE_SPACES.get(name) if isinstance(name, str) else None
+    if spec is None:
+        raise ValueError(f"state_space: unknown {name!r}; choose one of: {', '.join(STATE_SPACES)}")
+    if spec.field_ndim != field.ndim:
+        fitting = [s for s, v in STATE_SPACES.items() if v.field_ndim == field.ndim]
+        raise ValueError(f"state_space: {name} needs a {spec.field_ndim}-D field, this one is "
+                         f"{field.ndim}-D; choose one of: {', '.join(fitting)}")
+    return spec
+
+
+# ---------------------------------------------------------------- start and goal
+
+
+def _check_endpoint(grid: PackedGrid, point: tuple[float, ...], which: str, max_risk: float) -> None:
+    """Raise PlanError when a start or goal position is outside the map or not valid."""
+    position = point[: grid.ndim]
+    index = grid.cell_index(position)
+    if index is None:
+        lo = ", ".join(f"{v:g}" for v in grid.origin)
+        hi = ", ".join(f"{o + n * grid.resolution:g}" for o, n in zip(grid.origin, grid.shape, strict=True))
+        raise PlanError(
+            START_OUTSIDE_MAP if which == "start" else GOAL_OUTSIDE_MAP,
+            f"{which} {position} is outside the map [{lo}] .. [{hi}]",
+        )
+    if grid.valid.reshape(-1)[index]:
+        return
+    code = START_OCCUPIED if which == "start" else GOAL_OCCUPIED
+    risk = float(grid.risk.reshape(-1)[index])
+    if risk > max_risk:
+        raise PlanError(code, f"{which} {position}: risk under the robot's footprint {risk:.3f} > max_risk {max_risk:g}")
+    assert grid.unknown is not None  # only unknown space is left to make the cell invalid
+    raise PlanError(
+        code,
+        f"{which} {position}: the robot's footprint overlaps unknown (never observed) space and "
+        f"allow_unknown is false",
+    )
+
+
+# ---------------------------------------------------------------- OMPL runs
+
+
+def _seed(seed: int) -> None:
+    # OMPL refuses seed 0 (it uses 1 instead) and logs an error when reseeding: shift the
+    # seed by one so every non-negative seed is distinct, and silence the reseed complaint
+    level = ou.getLogLevel()
+    ou.setLogLevel(ou.LOG_NONE)
+    try:
+        ou.RNG.setSeed(int(seed) + 1)
+    finally:
+        ou.setLogLevel(level)
+
+
+class _Budget:
+    """A termination condition counting its own checks, with a wall-clock guard.
+
+    It also notes when an optimizing planner first holds a solution (its best cost turns
+    finite): OMPL's intermediate-solution callback is not bindable in the 2.0.1 wheel.
+    """
+
+    def __init__(self, checks: int | None, seconds: float, t0: float) -> None:
+        self.checks = checks
+        self.count = 0
+        self.t0 = t0
+        self.deadline = time.perf_counter() + seconds
+        self.timed_out = False
+        self.watch: Any = None  # a planner with bestCost()
+        self.first_solution: float | None = None
+
+    def __call__(self) -> bool:
+        self.count += 1
+        if self.first_solution is None and self.watch is not None and math.isfinite(self.watch.bestCost().value()):
+            self.first_solution = time.perf_counter() - self.t0
+        if self.checks is not None and self.count > self.checks:
+            return True
+        if time.perf_counter() > self.deadline:
+            self.timed_out = True
+            return True
+        return False
+
+
+def _states(space: OmplSpace, path: og.PathGeometric) -> np.ndarray:
+    return np.array([space.values(s) for s in path.getStates()], dtype=np.float64)
+
+
+def _interpolate_ompl(space: OmplSpace, path: og.PathGeometric, step: float) -> np.ndarray:
+    """States along the path's own motions (curves for Dubins / Reeds-Shepp), <= step apart."""
+    si = space.si
+    ss = si.getStateSpace()
+    states = path.getStates()
+    tmp = si.allocState()  # owned by its Python wrapper: freeing it here would free it twice
+    out = [space.values(states[0])]
+    for a, b in zip(states[:-1], states[1:], strict=True):
+        n = max(1, math.ceil(ss.distance(a, b) / step))
+        for k in range(1, n):
+            ss.interpolate(a, b, k / n, tmp)
+            out.append(space.values(tmp))
+        out.append(space.values(b))
+    return np.array(out, dtype=np.float64)
+
+
+def _interpolate_straight(points: np.ndarray, step: float) -> np.ndarray:
+    """Points along a polyline no more than ``step`` apart, keeping every vertex (vectorized)."""
+    if len(points) < 2:
+        return points.copy()
+    seg = np.diff(points, axis=0)
+    pieces = np.maximum(1, np.ceil(np.linalg.norm(seg, axis=1) / step).astype(np.int64))
+    owner = np.repeat(np.arange(len(seg)), pieces)
+    starts = np.cumsum(pieces) - pieces
+    frac = (np.arange(owner.size) - starts[owner]) / pieces[owner]
+    out = points[owner] + frac[:, None] * seg[owner]
+    return np.vstack([out, points[-1:]])
+
+
+def _drop_collinear(points: np.ndarray) -> np.ndarray:
+    """Remove interior points where a polyline goes straight on (exact: same segments)."""
+    if len(points) < 3:
+        return points
+    d = np.diff(points, axis=0)
+    norms = np.linalg.norm(d, axis=1)
+    keep_seg = norms > 0
+    points = np.vstack([points[:1], points[1:][keep_seg]])
+    if len(points) < 3:
+        return points
+    d = np.diff(points, axis=0)
+    d /= np.linalg.norm(d, axis=1)[:, None]
+    turn = np.linalg.norm(d[1:] - d[:-1], axis=1) > 1e-9
+    return np.vstack([points[:1], points[1:-1][turn], points[-1:]])
+
+
+# ---------------------------------------------------------------- the entry point
+
+
+def plan(
+    field: RiskField,
+    start: Sequence[float],
+    goal: Sequence[float],
+    planner: str = "RRTstar",
+    state_space: str | None = None,
+    time_limit: float = 1.0,
+    robot_radius: float = 0.2,
+    max_risk: float = 0.6,
+    risk_weight: float = 1.0,
+    allow_unknown: bool = True,
+    seed: int | None = None,
+    goal_tolerance: float | None = None,
+    turning_radius: float | None = None,
+    max_iterations: int | None = None,
+) -> PlanResult:
+    """Plan a low-risk path on a risk field.
+
+    Parameters
+    ----------
+    field : RiskField
+        The risk grid; the robot sees it dilated by ``robot_radius`` (see ``field.py``).
+    start, goal : sequence of float
+        (x, y) in R2, (x, y, theta) in SE2 / Dubins / ReedsShepp, (x, y, z) in R3.
+    planner : str
+        A name of :func:`available_planners` ("grid" plans in R2 and R3 only).
+    state_space : {"R2", "SE2", "Dubins", "ReedsShepp", "R3"} or None
+        None: R2 on a 2-D field, R3 on a 3-D one.
+    time_limit : float
+        Seconds for solving plus simplifying (> 0). The grid planner is not time-bounded.
+    robot_radius : float
+        Metres, >= 0.
+    max_risk : float
+        In [0, 1]: a position is valid when the dilated risk there is at most this.
+    risk_weight : float
+        >= 0: cost is ``length + risk_weight * integral of dilated risk`` (metres x risk).
+    allow_unknown : bool
+        False forbids positions whose footprint overlaps never-observed cells, whatever
+        ``max_risk`` says.
+    seed : int or None
+        In [0, 2**32): seeds OMPL and bounds the solve by iterations (see the module
+        docstring) so the same seed gives the same path.
+    goal_tolerance : float or None
+        Distance (in the state space's metric) within which the goal counts as reached;
+        default one cell.
+    turning_radius : float or None
+        Metres, > 0; required by Dubins and ReedsShepp, ignored otherwise.
+    max_iterations : int or None
+        Bound the solve by this many termination checks (about planner iterations) as well
+        as by time; with a seed, replaces the default budget.
+
+    Returns
+    -------
+    PlanResult
+
+    Raises
+    ------
+    ValueError
+        An argument out of range, naming it (an unknown planner lists those that work).
+    PlanError
+        START_OUTSIDE_MAP, GOAL_OUTSIDE_MAP, START_OCCUPIED, GOAL_OCCUPIED, before any
+        planner runs.
+    """
+    t0 = time.perf_counter()
+    if not isinstance(field, RiskField):
+        raise ValueError(f"field: must be a RiskField, got {type(field).__name__}")
+    pspec = planner_spec(planner)
+    sspec = _space_spec(state_space, field)
+    if pspec.make is None and sspec.name not in ("R2", "R3"):
+        raise ValueError(f"planner: {GRID!r} plans in R2 and R3 only, not in {sspec.name}")
+    time_limit = _number("time_limit", time_limit, low=0.0, low_open=True)
+    robot_radius = _number("robot_radius", robot_radius, low=0.0)
+    max_risk = _number("max_risk", max_risk, low=0.0, high=1.0)
+    risk_weight = _number("risk_weight", risk_weight, low=0.0)
+    tolerance = (
+        field.resolution if goal_tolerance is None else _number("goal_tolerance", goal_tolerance, low=0.0, low_open=True)
+    )
+    if sspec.curved:
+        if turning_radius is None:
+            raise ValueError(f"turning_radius: required by {sspec.name}")
+        turning_radius = _number("turning_radius", turning_radius, low=0.0, low_open=True)
+    if seed is not None and (isinstance(seed, bool) or not isinstance(seed, int | np.integer) or not 0 <= seed < 2**32):
+        raise ValueError(f"seed: must be an integer in [0, 2**32), got {seed!r}")
+    if max_iterations is not None and (
+        isinstance(max_iterations, bool) or not isinstance(max_iterations, int | np.integer) or max_iterations < 1
+    ):
+        raise ValueError(f"max_iterations: must be a positive integer, got {max_iterations!r}")
+    if not isinstance(allow_unknown, bool | np.bool_):
+        raise ValueError(f"allow_unknown: must be a bool, got {allow_unknown!r}")
+    start_pt = _point("start", start, sspec.state_dim, sspec.name)
+    goal_pt = _point("goal", goal, sspec.state_dim, sspec.name)
+
+    grid = PackedGrid(field, robot_radius, max_risk, bool(allow_unknown), risk_weight, turning_radius)
+    _check_endpoint(grid, start_pt, "start", max_risk)
+    _check_endpoint(grid, goal_pt, "goal", max_risk)
+    grid.endpoint_cells = tuple(grid.cell_index(p[: field.ndim]) for p in (start_pt, goal_pt))  # type: ignore[misc]
+
+    if pspec.make is None:
+        return _plan_grid(grid, sspec, start_pt, goal_pt, t0)
+    with _SOLVE_LOCK:
+        return _plan_ompl(
+            grid, pspec, sspec, start_pt, goal_pt, t0, time_limit, tolerance, turning_radius, seed, max_iterations
+        )
+
+
+def _result(
+    grid: PackedGrid,
+    sspec: SpaceSpec,
+    planner: str,
+    status: str,
+    path: np.ndarray | None,
+    measure_points: np.ndarray | None,
+    t0: float,
+    message: str = "",
+    iterations: int = 0,
+    first_solution_time: float | None = None,
+) -> PlanResult:
+    if status == "none" or path is None or measure_points is None:
+        nan = math.nan
+        empty = np.zeros((0, sspec.state_dim))
+        return PlanResult("none", empty, nan, nan, nan, nan, planner, sspec.name,
+                          time.perf_counter() - t0, message, iterations, nan)  # fmt: skip
+    m = grid.evaluate(measure_points[:, : grid.ndim])
+    if m.length > 0:
+        mean = m.integral / m.length
+    else:
+        mean = m.peak
+    return PlanResult(
+        status,  # type: ignore[arg-type]
+        path,
+        m.length,
+        m.peak,
+        mean,
+        m.length + grid.risk_weight * m.integral,
+        planner,
+        sspec.name,
+        time.perf_counter() - t0,
+        message,
+        iterations,
+        first_solution_time if first_solution_time is not None else time.perf_counter() - t0,
+    )
+
+
+def _plan_grid(
+    grid: PackedGrid, sspec: SpaceSpec, start: tuple[float, ...], goal: tuple[float, ...], t0: float
+) -> PlanResult:
+    found = grid_path(grid, start, goal)
+    points = _drop_collinear(found.positions)
+    keep = grid.shortcut(points)
+    short = points[keep]
+    if grid.cost(short) > grid.cost(points) or not grid.evaluate(short).valid:  # never worse, never invalid
+        short = points
+    path = _interpolate_straight(short, grid.resolution)
+    if not grid.evaluate(path).valid:  # cannot happen: every cell of every segment was checked
+        return _result(grid, sspec, GRID, "none", None, None, t0, "grid path failed verification")
+    status = "exact" if found.reached else "approximate"
+    message = "" if found.reached else "goal unreachable: path to the reachable cell nearest the goal"
+    return _result(grid, sspec, GRID, status, path, path, t0, message)
+
+
+def _plan_ompl(
+    grid: PackedGrid,
+    pspec: PlannerSpec,
+    sspec: SpaceSpec,
+    start: tuple[float, ...],
+    goal: tuple[float, ...],
+    t0: float,
+    time_limit: float,
+    tolerance: float,
+    turning_radius: float | None,
+    seed: int | None,
+    max_iterations: int | None,
+) -> PlanResult:
+    assert pspec.make is not None
+    notes: list[str] = []
+    # the seed comes before anything that constructs an RNG (spaces, samplers, planners)
+    if seed is not None:
+        _seed(seed)
+    solve_seconds = (1.0 - SIMPLIFY_SHARE) * time_limit
+    guard = 3.0 * time_limit + 1.0
+    if seed is not None:
+        checks = max_iterations if max_iterations is not None else max(1, round(solve_seconds * pspec.rate * sspec.rate_factor))
+        budget = _Budget(checks, guard, t0)
+    else:
+        budget = _Budget(max_iterations, solve_seconds, t0)
+
+    # space, state validity, motion validity, risk objective
+    space = sspec.build(grid, turning_radius)
+    si = space.si
+    # problem: start, goal region, objective (set before the planner's setup, or it is ignored)
+    pdef = ob.ProblemDefinition(si)
+    pdef.setStartAndGoalStates(space.to_state(start), space.to_state(goal), tolerance)
+    objective = space.objective
+    pdef.setOptimizationObjective(objective)
+    # planner, then solve
+    planner = pspec.make(si)
+    planner.setProblemDefinition(pdef)
+    planner.setup()
+    if pspec.optimizing and hasattr(planner, "bestCost"):
+        budget.watch = planner
+    status = planner.solve(ob.PlannerTerminationCondition(budget))
+    solved_at = time.perf_counter() - t0
+    iterations = int(planner.numIterations()) if hasattr(planner, "numIterations") else 0
+    if seed is not None and budget.timed_out:
+        notes.append(f"seeded run stopped by the {guard:g} s wall-clock guard: not reproducible")
+    kind = status.getStatus()
+    if kind == ob.PlannerStatus.EXACT_SOLUTION and pdef.hasExactSolution():
+        label = "exact"
+    elif kind in (ob.PlannerStatus.EXACT_SOLUTION, ob.PlannerStatus.APPROXIMATE_SOLUTION) and pdef.hasSolution():
+        label = "approximate"
+        notes.append(f"goal not reached: the path ends {pdef.getSolutionDifference():.3g} from the goal region")
+    else:
+        notes.append(f"no path found ({status.asString()})")
+        return _result(grid, sspec, pspec.name, "none", None, None, t0, "; ".join(notes), iterations)
+    first = budget.first_solution if budget.first_solution is not None else solved_at
+
+    # simplify with the risk objective; keep whichever candidate is cheapest and verifies
+    raw = og.PathGeometric(pdef.getSolutionPath())  # a copy: the simplifier edits in place
+    simplified = og.PathGeometric(raw)
+    if seed is not None:
+        simp_budget = _Budget(SEEDED_SIMPLIFY_CHECKS, guard, t0)
+    else:
+        simp_budget = _Budget(None, max(SIMPLIFY_SHARE * time_limit, t0 + time_limit - time.perf_counter()), t0)
+    og.PathSimplifier(si, pdef.getGoal(), objective).simplify(simplified, ob.PlannerTerminationCondition(simp_budget))
+    best = _pick(grid, space, sspec, [simplified, raw], pdef if label == "exact" else None, goal)
+    if best is None:
+        notes.append("every candidate path crossed an invalid cell between the planner's checks")
+        return _result(grid, sspec, pspec.name, "none", None, None, t0, "; ".join(notes), iterations)
+    path, fine = best
+    return _result(grid, sspec, pspec.name, label, path, fine, t0, "; ".join(notes), iterations, first)
+
+
+def _pick(
+    grid: PackedGrid,
+    space: OmplSpace,
+    sspec: SpaceSpec,
+    candidates: list[og.PathGeometric],
+    exact_pdef: ob.ProblemDefinition | None,
+    goal: tuple[float, ...],
+) -> tuple[np.ndarray, np.ndarray] | None:
+    """The cheapest candidate that verifies, as (path at the resolution, verified polyline).
+
+    Straight-motion spaces also try the deterministic shortcut of each candidate, and an
+    exact path that stops inside the goal tolerance is extended to the goal itself when that
+    last straight piece is valid. Curved motions are verified as chords a quarter cell long
+    (each strays from its arc by at most res^2 / (128 r)); the path returned is the same
+    curve sampled every cell.
+    """
+    res = grid.resolution
+    options: list[tuple[float, np.ndarray, np.ndarray]] = []
+    for path in candidates:
+        if exact_pdef is not None and not exact_pdef.getGoal().isSatisfied(path.getState(path.getStateCount() - 1)):
+            continue  # an approximate path never passes as exact
+        if sspec.curved:
+            fine = _interpolate_ompl(space, path, 0.25 * res)
+            coarse = _interpolate_ompl(space, path, res)
+            # the curve is verified as quarter-cell chords; the path handed out samples it
+            # every cell, unless its own chords clip a cell the curve does not
+            versions = [(coarse if grid.evaluate(coarse[:, :2]).valid else fine, fine)]
+        else:
+            vertices = _states(space, path)
+            positions = vertices[:, : grid.ndim]
+            if exact_pdef is not None:
+                target = np.asarray(goal[: grid.ndim])
+                if np.any(positions[-1] != target) and grid.evaluate(np.vstack([positions[-1], target])).valid:
+                    positions = np.vstack([positions, target])
+            versions = []
+            for pts in (positions[grid.shortcut(positions)], positions):
+                dense = _interpolate_straight(pts, res)
+                if sspec.name == "SE2":
+                    # heading is free in plain SE2 (position-only cost, footprint a disk): turn
+                    # steadily from the start's heading to the goal's (or the last state's)
+                    end_yaw = goal[2] if exact_pdef is not None else vertices[-1, 2]
+                    dense = np.column_stack([dense, _steady_heading(dense, vertices[0, 2], end_yaw)])
+                versions.append((dense, dense))
+        for coarse, fine in versions:
+            m = grid.evaluate(fine[:, : grid.ndim])
+            if m.valid:
+                options.append((m.length + grid.risk_weight * m.integral, coarse, fine))
+    if not options:
+        return None
+    options.sort(key=lambda o: o[0])
+    return options[0][1], options[0][2]
+
+
+def _steady_heading(points: np.ndarray, yaw0: float, yaw1: float) -> np.ndarray:
+    """Headings turning at a constant rate per metre from yaw0 to yaw1 (the shorter way)."""
+    step = np.linalg.norm(np.diff(points[:, :2], axis=0), axis=1)
+    s = np.concatenate([[0.0], np.cumsum(step)])
+    frac = s / s[-1] if s[-1] > 0 else np.linspace(0.0, 1.0, len(points))
+    turn = math.remainder(yaw1 - yaw0, 2.0 * math.pi)
+    return np.remainder(yaw0 + turn * frac + math.pi, 2.0 * math.pi) - math.pi

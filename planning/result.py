@@ -1,0 +1,90 @@
+"""What a plan returns, and how an unusable start or goal is refused."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+
+Status = Literal["exact", "approximate", "none"]
+
+# Nav2's ComputePathToPose error names (nav2_msgs/action/ComputePathToPose.action)
+START_OUTSIDE_MAP = "START_OUTSIDE_MAP"
+GOAL_OUTSIDE_MAP = "GOAL_OUTSIDE_MAP"
+START_OCCUPIED = "START_OCCUPIED"
+GOAL_OCCUPIED = "GOAL_OCCUPIED"
+PLAN_ERROR_CODES = (START_OUTSIDE_MAP, GOAL_OUTSIDE_MAP, START_OCCUPIED, GOAL_OCCUPIED)
+
+
+class PlanError(Exception):
+    """A start or goal the planner cannot use, raised before any planner runs.
+
+    Parameters
+    ----------
+    code : str
+        One of Nav2's names: START_OUTSIDE_MAP, GOAL_OUTSIDE_MAP, START_OCCUPIED,
+        GOAL_OCCUPIED. A start or goal in never-observed space while ``allow_unknown`` is
+        false is reported as *_OCCUPIED (Nav2 has no separate code), with a message that
+        says the space is unknown.
+    message : str
+        What is wrong, with the numbers; ``str(error)`` is this message.
+    """
+
+    def __init__(self, code: str, message: str) -> None:
+        super().__init__(code, message)  # both in args, so the error pickles across processes
+        self.code = code
+        self.message = message
+
+    def __str__(self) -> str:
+        return self.message
+
+
+@dataclass(frozen=True)
+class PlanResult:
+    """A planned path and its measures, all against the field dilated by the robot radius.
+
+    Attributes
+    ----------
+    status : "exact" | "approximate" | "none"
+        "exact": the path ends within ``goal_tolerance`` of the goal. "approximate": the
+        planner got only part of the way; the path ends at the state nearest the goal it
+        reached. "none": no path (``message`` says why); ``path`` is empty and the measures
+        are NaN.
+    path : (K, 2) | (K, 3) float64 array
+        x, y (R2); x, y, theta (SE2, Dubins, ReedsShepp); x, y, z (R3). Interpolated at
+        the map resolution (no two consecutive states further apart than one cell).
+    length : float
+        Length of the path's position trace, metres.
+    max_risk : float
+        Largest dilated risk along the path (the quantity bounded by ``max_risk``).
+    mean_risk : float
+        Risk integral divided by the length (the dilated risk at the start for a
+        zero-length path).
+    cost : float
+        ``length + risk_weight * integral of dilated risk along the path`` (metres x risk).
+    planner, state_space : str
+        What planned.
+    planning_time : float
+        Wall time of the whole ``plan`` call, seconds.
+    message : str
+        Empty, or why the status is not "exact".
+    iterations : int
+        Planner iterations where the planner counts them (RRT family, BIT*), else 0.
+    first_solution_time : float
+        Seconds from the start of ``plan`` until the planner first held a path to the goal
+        region (or its approximation); NaN when status is "none".
+    """
+
+    status: Status
+    path: np.ndarray
+    length: float
+    max_risk: float
+    mean_risk: float
+    cost: float
+    planner: str
+    state_space: str
+    planning_time: float
+    message: str = ""
+    iterations: int = 0
+    first_solution_time: float = float("nan")

@@ -1,0 +1,96 @@
+"""Guards: the API key, the body limit enforced while reading, and answers that do not echo huge inputs."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from typing import Any
+
+import pytest
+from fastapi.testclient import TestClient
+from pydantic import ValidationError
+
+from app.config import Settings
+
+KEY = "s3cret-key-for-tests-0123456789"
+
+
+@pytest.fixture
+def locked(make_client: Any, kit: Any) -> TestClient:
+    client = make_client(api_key=KEY)
+    assert client.post("/maps", json=kit.MAP_2D, headers={"Authorization": f"Bearer {KEY}"}).status_code == 201
+    return client
+
+
+@pytest.mark.parametrize(
+    ("method", "path"),
+    [("GET", "/maps"), ("GET", "/maps/lab"), ("POST", "/maps"), ("DELETE", "/maps/lab"), ("POST", "/maps/lab/scans"),
+     ("GET", "/maps/lab/risk"), ("POST", "/maps/lab/risk/query"), ("POST", "/maps/lab/plan"),
+     ("GET", "/maps/lab/export/nav2"), ("GET", "/maps/lab/occupancy_grid"), ("GET", "/maps/lab/scans/last")],
+)
+def test_every_api_call_needs_the_key(locked: TestClient, method: str, path: str) -> None:
+    missing = locked.request(method, path)
+    assert missing.status_code == 401
+    assert missing.headers["WWW-Authenticate"].startswith("Bearer")
+    assert "Authorization: Bearer" in missing.json()["detail"]
+    wrong = locked.request(method, path, headers={"Authorization": f"Bearer {KEY}x"})
+    assert wrong.status_code == 401 and 'error="invalid_token"' in wrong.headers["WWW-Authenticate"]
+    basic = locked.request(method, path, headers={"Authorization": f"Basic {KEY}"})
+    assert basic.status_code == 401
+    assert locked.get("/maps/lab", headers={"Authorization": f"Bearer {KEY}"}).status_code == 200
+
+
+def test_the_right_key_works_and_probes_stay_open(locked: TestClient, kit: Any) -> None:
+    auth = {"Authorization": f"Bearer {KEY}"}
+    assert locked.post("/maps/lab/scans", json={"scans": [kit.laser()]}, headers=auth).json()["version"] == 1
+    assert locked.get("/health").status_code == 200
+    assert locked.get("/metrics").status_code == 200
+    assert locked.get("/ui/", follow_redirects=False).status_code == 200  # the page asks for the key itself
+
+
+def test_no_key_configured_means_no_check(lab: TestClient) -> None:
+    assert lab.get("/maps/lab").status_code == 200
+
+
+@pytest.mark.parametrize("key", ["short", "x" * 15])
+def test_a_short_key_is_refused_at_startup(key: str, tmp_path: Any) -> None:
+    with pytest.raises(ValidationError, match="FUZZYRISK_API_KEY"):
+        Settings(api_key=key, data_dir=tmp_path)
+
+
+def test_an_empty_key_variable_means_no_key(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("FUZZYRISK_API_KEY", "")
+    assert Settings().api_key is None
+
+
+def test_a_declared_body_over_the_limit_answers_413_before_reading(make_client: Any, kit: Any) -> None:
+    client = make_client(max_body_bytes=4096)
+    client.post("/maps", json=kit.MAP_2D)
+    response = client.post("/maps/lab/scans", json={"scans": [kit.laser(beams=2000)]})
+    assert response.status_code == 413
+    assert "FUZZYRISK_MAX_BODY_BYTES" in response.json()["detail"]
+    assert kit.version(client, "lab") == 0
+
+
+def test_a_streamed_body_over_the_limit_answers_413_while_reading(make_client: Any, kit: Any) -> None:
+    client = make_client(max_body_bytes=4096)
+    client.post("/maps", json=kit.MAP_2D)
+    sent: list[int] = []
+
+    def chunks() -> Iterator[bytes]:  # no Content-Length: chunked transfer
+        for _ in range(100):
+            sent.append(1)
+            yield b" " * 1024
+
+    for path in ("/maps/lab/scans", "/maps"):
+        response = client.post(path, content=chunks(), headers={"Content-Type": "application/json"})
+        assert response.status_code == 413, response.text
+        assert "FUZZYRISK_MAX_BODY_BYTES" in response.json()["detail"]
+    assert kit.version(client, "lab") == 0
+
+
+def test_validation_errors_do_not_echo_a_huge_input(lab: TestClient, kit: Any) -> None:
+    scan = kit.laser(beams=20_000)
+    del scan["pose"]["theta"]
+    response = lab.post("/maps/lab/scans", json={"scans": [scan]})
+    assert response.status_code == 422
+    assert len(response.content) < 2000

@@ -1,0 +1,100 @@
+"""Concurrency against a real server: batches to one map all land, one at a time in arrival order;
+/health answers in milliseconds while plans (worker processes) and fusion (threads) run."""
+
+from __future__ import annotations
+
+import io
+import statistics
+import threading
+import time
+from concurrent.futures import ThreadPoolExecutor
+from typing import Any
+
+import numpy as np
+import pytest
+
+from fuzzyocc import FuzzyMap, GridSpec, LaserScan, SensorModel
+
+pytestmark = pytest.mark.slow
+
+
+def test_concurrent_batches_to_one_map_all_land_one_at_a_time(start_server: Any, world: Any) -> None:
+    server = start_server()
+    poses = [(x + 0.1 * k, y, th) for k, (x, y, th) in enumerate(world.POSES)][:24]
+    bodies = [{"scans": [world.laser_json(p, beams=360)]} for p in poses]
+    with server.client() as http:
+        assert http.post("/maps", json=world.MAP).status_code == 201
+
+    def post(body: dict[str, Any]) -> int:
+        with server.client() as http:
+            response = http.post("/maps/hall/scans", json=body)
+            assert response.status_code == 200, response.text
+            return int(response.json()["version"])
+
+    with ThreadPoolExecutor(6) as pool:
+        versions = list(pool.map(post, bodies))
+    assert sorted(versions) == list(range(1, len(bodies) + 1))
+    with server.client() as http:
+        info = http.get("/maps/hall").json()
+        held = np.load(io.BytesIO(http.get("/maps/hall/risk", params={"format": "npy"}).content))
+    assert info["version"] == len(bodies) and info["scans_fused"] == len(bodies)
+
+    # applied whole and in version order: a fusion of the batches in that order gives the same bytes
+    spec = world.MAP
+    fresh = FuzzyMap(GridSpec(origin=spec["origin"], size=spec["size"], resolution=spec["resolution"]),
+                     SensorModel(**spec["sensor"]))
+    for _, body in sorted(zip(versions, bodies), key=lambda vb: vb[0]):
+        (s,) = body["scans"]
+        ranges = np.array([np.inf if r == "inf" else r for r in s["ranges"]], dtype=np.float64)
+        fresh.integrate_batch([LaserScan(pose=(s["pose"]["x"], s["pose"]["y"], s["pose"]["theta"]),
+                                         angle_min=s["angle_min"], angle_increment=s["angle_increment"],
+                                         ranges=ranges, range_min=s["range_min"], range_max=s["range_max"])])
+    assert held.tobytes() == np.ascontiguousarray(fresh.risk()).tobytes()
+
+
+def test_health_answers_in_milliseconds_while_plans_and_fusion_run(start_server: Any, world: Any) -> None:
+    server = start_server(FUZZYRISK_PLAN_WARMUP="true")
+    with server.client() as http:
+        assert http.post("/maps", json=world.MAP).status_code == 201
+        assert http.post("/maps", json={**world.MAP, "name": "busy"}).status_code == 201
+        assert http.post("/maps/hall/scans", json={"scans": [world.laser_json(p) for p in world.POSES]}).status_code == 200
+        # a first plan, so that the worker is up and the measured window is solving, not starting
+        warm = {"start": [2.0, 1.5], "goal": [8.0, 4.5], "planner": "RRTConnect", "time_limit": 1.0}
+        assert http.post("/maps/hall/plan", json=warm).status_code == 200
+
+    stop = threading.Event()
+    busy: dict[str, int] = {"plans": 0, "batches": 0}
+
+    def plans() -> None:
+        long_plan = {"start": [2.0, 1.5], "goal": [8.0, 4.5], "planner": "RRTstar", "time_limit": 2.0}
+        with server.client() as http:
+            while not stop.is_set():
+                assert http.post("/maps/hall/plan", json=long_plan).status_code == 200
+                busy["plans"] += 1
+
+    def fusion() -> None:
+        batch = {"scans": [world.laser_json(p, beams=1440) for p in world.POSES]}
+        with server.client() as http:
+            while not stop.is_set():
+                assert http.post("/maps/busy/scans", json=batch).status_code == 200
+                busy["batches"] += 1
+
+    workers = [threading.Thread(target=plans), threading.Thread(target=fusion)]
+    for worker in workers:
+        worker.start()
+    time.sleep(0.3)
+    latencies = []
+    with server.client() as http:
+        deadline = time.monotonic() + 3.0
+        while time.monotonic() < deadline:
+            started = time.perf_counter()
+            assert http.get("/health").status_code == 200
+            latencies.append(time.perf_counter() - started)
+            time.sleep(0.02)
+    stop.set()
+    for worker in workers:
+        worker.join(timeout=30)
+    assert busy["batches"] >= 1 and busy["plans"] >= 1  # the window really was busy
+    # a plan holds the GIL for its whole solve (seconds): on the event loop it would show here
+    assert statistics.median(latencies) < 0.05, latencies
+    assert max(latencies) < 0.5, latencies

@@ -1,0 +1,101 @@
+"""kill -9 during a stream of batches: every acknowledged batch is there, and the map is exactly a
+fresh in-process fusion of the batches it holds. SIGTERM: a batch in flight is finished and kept."""
+
+from __future__ import annotations
+
+import io
+import math
+import random
+import threading
+import time
+from typing import Any
+
+import numpy as np
+import pytest
+
+from fuzzyocc import FuzzyMap, GridSpec, LaserScan, SensorModel
+
+pytestmark = pytest.mark.slow
+
+
+def _bodies(world: Any, count: int) -> list[dict[str, Any]]:
+    rng = random.Random(5)
+    poses = [(x + rng.uniform(-0.3, 0.3), y + rng.uniform(-0.3, 0.3), th + rng.uniform(-1, 1))
+             for x, y, th in (world.POSES * (count // len(world.POSES) + 1))[:count]]
+    return [{"scans": [world.laser_json(pose, beams=360)]} for pose in poses]
+
+
+def _replay(world: Any, bodies: list[dict[str, Any]]) -> bytes:
+    """The map the service must hold after exactly these batches, fused here in-process."""
+    spec = world.MAP
+    fresh = FuzzyMap(GridSpec(origin=spec["origin"], size=spec["size"], resolution=spec["resolution"]),
+                     SensorModel(**spec["sensor"]))
+    for body in bodies:
+        (s,) = body["scans"]
+        ranges = np.array([math.inf if r == "inf" else r for r in s["ranges"]], dtype=np.float64)
+        fresh.integrate_batch([LaserScan(pose=(s["pose"]["x"], s["pose"]["y"], s["pose"]["theta"]),
+                                         angle_min=s["angle_min"], angle_increment=s["angle_increment"],
+                                         ranges=ranges, range_min=s["range_min"], range_max=s["range_max"])])
+    return np.ascontiguousarray(fresh.risk()).tobytes()
+
+
+def test_kill_9_mid_stream_loses_no_acknowledged_batch(start_server: Any, world: Any) -> None:
+    server = start_server(FUZZYRISK_SNAPSHOT_EVERY="4")  # snapshots mid-stream too
+    bodies = _bodies(world, 80)
+    with server.client() as http:
+        assert http.post("/maps", json=world.MAP).status_code == 201
+    acked: list[int] = []
+
+    def stream() -> None:
+        with server.client(timeout_s=30) as http:
+            for body in bodies:
+                try:
+                    response = http.post("/maps/hall/scans", json=body)
+                except Exception:  # the server died under us
+                    return
+                if response.status_code != 200:
+                    return
+                acked.append(response.json()["version"])
+
+    sender = threading.Thread(target=stream)
+    sender.start()
+    deadline = time.monotonic() + 60
+    while len(acked) < 10 and time.monotonic() < deadline:
+        time.sleep(0.01)
+    time.sleep(random.Random(11).uniform(0.0, 0.05))  # somewhere inside a request
+    server.kill()
+    sender.join(timeout=30)
+    assert 10 <= len(acked) < len(bodies), "the kill must land mid-stream"
+    assert acked == list(range(1, len(acked) + 1))
+
+    server = start_server()
+    with server.client() as http:
+        version = http.get("/maps/hall").json()["version"]
+        assert acked[-1] <= version <= acked[-1] + 1  # the unanswered batch: wholly there or not at all
+        held = http.get("/maps/hall/risk", params={"format": "npy"}).content
+    risk = np.load(io.BytesIO(held))
+    assert risk.tobytes() == _replay(world, bodies[:version])
+
+
+def test_sigterm_finishes_the_batch_in_flight(start_server: Any, world: Any) -> None:
+    server = start_server()
+    with server.client() as http:
+        assert http.post("/maps", json=world.MAP).status_code == 201
+    big = {"scans": [world.laser_json(p, beams=1440) for p in world.POSES * 2]}
+    answers: list[Any] = []
+
+    def send() -> None:
+        with server.client() as http:
+            answers.append(http.post("/maps/hall/scans", json=big))
+
+    sender = threading.Thread(target=send)
+    sender.start()
+    time.sleep(0.3)  # the body is sent; fusion is under way
+    server.terminate()
+    sender.join(timeout=60)
+    assert answers and answers[0].status_code == 200 and answers[0].json()["version"] == 1
+    assert "Application shutdown complete" in server.log()
+
+    server = start_server()
+    with server.client() as http:
+        assert http.get("/maps/hall").json()["scans_fused"] == len(big["scans"])

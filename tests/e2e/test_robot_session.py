@@ -1,0 +1,80 @@
+"""A robot's session against a real server process: map a hall with a door, plan through the door,
+restart (gracefully and with kill -9) and get the same risk back, byte for byte."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import httpx
+import numpy as np
+import pytest
+
+pytestmark = pytest.mark.slow
+
+ROBOT_RADIUS = 0.25
+
+
+def _risk_bytes(http: httpx.Client) -> bytes:
+    response = http.get("/maps/hall/risk", params={"format": "npy"})
+    assert response.status_code == 200
+    return response.content
+
+
+def _dense(path: np.ndarray, step: float = 0.01) -> np.ndarray:
+    """The path resampled every ``step`` metres along each segment."""
+    pieces = [np.linspace(a, b, max(2, int(np.ceil(np.linalg.norm(b - a) / step)) + 1)) for a, b in zip(path, path[1:])]
+    return np.concatenate(pieces)
+
+
+def _map_the_hall(http: httpx.Client, world: Any) -> None:
+    assert http.post("/maps", json=world.MAP).status_code == 201
+    poses = world.POSES
+    for first in range(0, len(poses), 9):
+        batch = {"scans": [world.laser_json(p) for p in poses[first:first + 9]]}
+        assert http.post("/maps/hall/scans", json=batch).status_code == 200
+
+
+def test_a_robot_maps_the_hall_and_plans_through_the_door(start_server: Any, world: Any) -> None:
+    server = start_server(FUZZYRISK_PLAN_WARMUP="true")  # as in production: workers start with the server
+    with server.client() as http:
+        _map_the_hall(http, world)
+        request = {"start": [2.0, 1.5], "goal": [8.0, 4.5], "planner": "RRTstar", "time_limit": 1.0,
+                   "robot_radius": ROBOT_RADIUS, "max_risk": 0.5, "risk_weight": 1.0, "allow_unknown": False,
+                   "seed": 1}
+        response = http.post("/maps/hall/plan", json=request)
+        assert response.status_code == 200, response.text
+        result = response.json()
+        assert result["status"] == "exact" and result["max_risk"] <= 0.5
+
+    path = np.asarray(result["path"])
+    assert np.allclose(path[0], [2.0, 1.5]) and np.linalg.norm(path[-1] - [8.0, 4.5]) < 0.1
+    dense = _dense(path)
+    # against the world's TRUE walls: the robot's disc never touches one (less a cell of discretisation)
+    clearance = world.distance_to_walls(dense).min()
+    assert clearance >= ROBOT_RADIUS - 0.05, clearance
+    crossing = dense[np.abs(dense[:, 0] - 5.0) < 0.1]
+    assert len(crossing) and (crossing[:, 1] > world.DOOR[0]).all() and (crossing[:, 1] < world.DOOR[1]).all()
+
+
+def test_restarts_serve_the_same_risk_bytes(start_server: Any, world: Any) -> None:
+    server = start_server(FUZZYRISK_SNAPSHOT_EVERY="2")
+    with server.client() as http:
+        _map_the_hall(http, world)  # 3 batches: a snapshot at 2, one batch after it
+        before = _risk_bytes(http)
+        info = http.get("/maps/hall").json()
+    server.terminate()  # graceful: snapshot at shutdown
+
+    server = start_server(FUZZYRISK_SNAPSHOT_EVERY="2")
+    with server.client() as http:
+        assert http.get("/maps/hall").json() == info
+        assert _risk_bytes(http) == before
+        more = {"scans": [world.laser_json((3.0, 2.0, 0.7)), world.laser_json((7.0, 4.0, -0.7))]}
+        assert http.post("/maps/hall/scans", json=more).json()["version"] == info["version"] + 1
+        after = _risk_bytes(http)
+        assert after != before
+    server.kill()  # no shutdown at all: the last batch comes back by replay
+
+    server = start_server()
+    with server.client() as http:
+        assert http.get("/maps/hall").json()["version"] == info["version"] + 1
+        assert _risk_bytes(http) == after

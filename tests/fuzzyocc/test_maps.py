@@ -1,0 +1,345 @@
+import math
+
+import numpy as np
+import pytest
+
+from fuzzyocc import BayesMap, FuzzyEngine, FuzzyMap, GridSpec, LaserScan, PointCloud, SensorModel
+from fuzzyocc import bayes
+from fuzzyocc.grid import RISK_STEP
+from fuzzyocc.raycast import cast_rays
+
+SPEC_2D = GridSpec(origin=(0.0, 0.0), size=(4.0, 2.0), resolution=0.1)  # 40 x 20 cells
+SENSOR = SensorModel(range_sigma=0.03)  # floored at half a cell: sigma = 0.05 m here
+POSE = (0.25, 1.05, 0.0)  # centre of cell (2, 10); beam 0 runs along row 10
+ROW = 10
+
+
+def _beam(ranges: list[float], range_max: float = 3.5, **kw: object) -> LaserScan:
+    return LaserScan(pose=kw.pop("pose", POSE), angle_min=kw.pop("angle_min", 0.0),  # type: ignore[arg-type]
+                     angle_increment=kw.pop("angle_increment", 0.01), ranges=ranges,  # type: ignore[arg-type]
+                     range_min=0.1, range_max=range_max, **kw)  # type: ignore[arg-type]
+
+
+def _same_arrays(a: dict[str, np.ndarray], b: dict[str, np.ndarray]) -> bool:
+    return a.keys() == b.keys() and all(a[k].dtype == b[k].dtype and np.array_equal(a[k], b[k]) for k in a)
+
+
+def _unknown_cells(m: FuzzyMap) -> np.ndarray:
+    state = m.to_arrays()["state"]
+    return np.all(state == m.engine.unknown_state(), axis=-1)
+
+
+@pytest.mark.parametrize("factory", [FuzzyMap, BayesMap])
+def test_a_hit_clears_the_cells_before_it_marks_its_cell_and_stops_past_the_occupied_region(factory) -> None:
+    m = factory(SPEC_2D, SENSOR)
+    m.integrate_batch([_beam([2.0])])  # surface at x = 2.25: the middle of cell 22
+    risk, observed = m.risk(), m.observed()
+    # Cell 23 (midpoint 2.35 m) is 2 sigmas past the surface, beyond the occupied region, which
+    # ends 1.5 (fuzzy) or a few (Bayes) sigmas behind it: observed either way, updated by neither.
+    last = 22 + math.floor(m.occupied_extent * 0.05 / 0.1 + 0.5)
+    expected = np.zeros(SPEC_2D.shape, dtype=bool)
+    expected[2 : last + 1, ROW] = True
+    np.testing.assert_array_equal(observed, expected)
+    assert risk[22, ROW] > 0.5
+    assert np.all(risk[2:20, ROW] < 0.5)
+    assert np.all(risk[~observed] == risk[0, 0])
+    assert risk[0, 0] == pytest.approx(0.5, abs=1e-3)
+
+
+def test_no_return_clears_free_space_up_to_range_max_and_marks_nothing_occupied() -> None:
+    maps = {}
+    for label, reading in [("inf", np.inf), ("range_max", 1.5), ("range_max+1", 2.5)]:
+        m = FuzzyMap(SPEC_2D, SENSOR)
+        m.integrate_batch([_beam([reading], range_max=1.5)])
+        maps[label] = m
+    m = maps["inf"]
+    assert np.all(m.risk() <= 0.5)
+    expected = np.zeros(SPEC_2D.shape, dtype=bool)
+    expected[2:18, ROW] = True  # x from 0.25 to 1.75
+    np.testing.assert_array_equal(m.observed(), expected)
+    assert np.all(m.risk()[2:18, ROW] < 0.5)
+    # Legacy drivers' no-return readings mean exactly the same thing.
+    assert _same_arrays(maps["range_max"].to_arrays(), m.to_arrays())
+    assert _same_arrays(maps["range_max+1"].to_arrays(), m.to_arrays())
+
+
+def test_invalid_readings_are_skipped_and_counted() -> None:
+    m = FuzzyMap(SPEC_2D, SENSOR)
+    before = m.to_arrays()
+    stats = m.integrate_scan(pose=POSE, angle_min=0.0, angle_increment=0.3, ranges=[-np.inf, np.nan, 0.05],
+                             range_min=0.1, range_max=3.5)
+    assert (stats.scans, stats.rays, stats.rays_skipped, stats.cells_updated) == (1, 0, 3, 0)
+    after = m.to_arrays()
+    assert after.pop("scans_fused") == 1
+    before.pop("scans_fused")
+    assert _same_arrays(before, after)
+
+
+def test_stats_count_rays_updates_and_traversal() -> None:
+    m = FuzzyMap(SPEC_2D, SENSOR)
+    stats = m.integrate_batch([_beam([1.0, np.nan, -np.inf, 0.01, np.inf], angle_increment=0.4)])
+    assert (stats.scans, stats.rays, stats.rays_skipped) == (1, 2, 3)
+    # On a fresh map every cell given evidence leaves the unknown state.
+    assert stats.cells_updated == int((~_unknown_cells(m)).sum())
+    assert stats.cells_traversed >= int(m.observed().sum()) > stats.cells_updated > 0
+    batch = m.integrate_batch([_beam([1.0]), _beam([2.0])])
+    assert (batch.scans, batch.rays, m.scans_fused) == (2, 2, 3)
+
+
+def _grazing_scan() -> list[LaserScan]:
+    # Beam A ends in the middle of the wall cell C = (20, 10); beam B, 0.0222 rad below,
+    # crosses C near its lower face and returns from 3.5 m: it says C is free.
+    graze = -math.atan2(0.04, 1.8)
+    return [_beam([3.5, 1.8], angle_min=graze, angle_increment=-graze)]
+
+
+def test_a_thin_wall_survives_grazing_beams_of_the_same_scan() -> None:
+    together = FuzzyMap(SPEC_2D, SENSOR)
+    together.integrate_batch(_grazing_scan())
+    alone = FuzzyMap(SPEC_2D, SENSOR)
+    alone.integrate_batch([_beam([1.8])])
+    assert together.risk()[20, ROW] > 0.5
+    assert together.risk()[20, ROW] == alone.risk()[20, ROW]
+    # The same two beams as two scans: the free one erodes the wall.
+    apart = FuzzyMap(SPEC_2D, SENSOR)
+    scan = _grazing_scan()[0]
+    apart.integrate_batch([_beam([1.8]), _beam([3.5], angle_min=scan.angle_min)])
+    assert apart.risk()[20, ROW] < alone.risk()[20, ROW]
+
+
+@pytest.mark.parametrize("factory", [FuzzyMap, BayesMap])
+def test_a_rejected_batch_leaves_the_map_bit_for_bit_unchanged(factory) -> None:
+    m = factory(SPEC_2D, SENSOR)
+    m.integrate_batch([_beam([2.0])])
+    before = m.to_arrays()
+    risk_before = m.risk().copy()
+    good = _beam([1.0, 1.5], angle_increment=0.2)
+    bad_batches = [
+        ([good, "not a scan"], r"scans\[1\]"),
+        ([good, PointCloud(points=[[1.0, 1.0, 1.0]], origin=(0.5, 0.5, 0.5), range_max=5.0)], r"scans\[1\]"),
+    ]
+    for batch, match in bad_batches:
+        with pytest.raises(ValueError, match=match):
+            m.integrate_batch(batch)
+    with pytest.raises(ValueError, match="pose"):
+        m.integrate_scan(pose=(np.nan, 0.0, 0.0), angle_min=0.0, angle_increment=0.1, ranges=[1.0],
+                         range_min=0.1, range_max=3.0)
+    with pytest.raises(ValueError, match="points"):
+        m.integrate_points([[1.0, np.inf]], origin=(0.5, 0.5), range_max=3.0)
+    assert _same_arrays(m.to_arrays(), before)
+    np.testing.assert_array_equal(m.risk(), risk_before)
+
+
+def test_a_batch_is_fused_in_order_like_successive_calls() -> None:
+    scans = [_beam([2.0]), _beam([1.0])]  # cell 12 is free for the first, occupied for the second
+    batched = FuzzyMap(SPEC_2D, SENSOR)
+    batched.integrate_batch(scans)
+    one_by_one = FuzzyMap(SPEC_2D, SENSOR)
+    for scan in scans:
+        one_by_one.integrate_batch([scan])
+    assert _same_arrays(batched.to_arrays(), one_by_one.to_arrays())
+    reordered = FuzzyMap(SPEC_2D, SENSOR)
+    reordered.integrate_batch(scans[::-1])
+    assert not _same_arrays(batched.to_arrays(), reordered.to_arrays())
+
+
+SPEC_3D = GridSpec(origin=(0.0, 0.0, 0.0), size=(3.0, 2.0, 2.0), resolution=0.1)
+
+
+def test_point_cloud_into_a_3d_map() -> None:
+    # Points in the middle of cells (20, 6..15, 6..15) of a wall, seen from (0.25, 1.05, 1.05).
+    y, z = np.meshgrid(np.linspace(0.65, 1.55, 10), np.linspace(0.65, 1.55, 10))
+    wall = np.stack([np.full(y.size, 2.05), y.ravel(), z.ravel()], axis=1)
+    identity = [0.0, 0.0, 0.0, 1.0]
+    cloud = PointCloud.from_sensor_frame(wall - [0.25, 1.05, 1.05], (0.25, 1.05, 1.05), identity, range_max=10.0)
+    m = FuzzyMap(SPEC_3D, SENSOR)
+    stats = m.integrate_batch([cloud])
+    assert stats.rays == 100
+    risk, observed = m.risk(), m.observed()
+    assert risk.shape == SPEC_3D.shape
+    assert np.all(risk[20, 6:16, 6:16] > 0.5)  # every wall cell a point fell in
+    assert np.all(risk[3:18, 10, 10] < 0.5)  # the central beam's free space
+    assert not observed[23:].any() and not observed[:, :, :3].any()
+    with pytest.raises(ValueError, match="LaserScan"):
+        m.integrate_batch([_beam([1.0])])
+
+
+def test_points_beyond_range_max_clear_up_to_it_and_mark_nothing() -> None:
+    m = FuzzyMap(SPEC_3D, SENSOR)
+    m.integrate_points([[2.75, 1.05, 1.05]], origin=(0.25, 1.05, 1.05), range_max=1.0)
+    expected = np.zeros(SPEC_3D.shape, dtype=bool)
+    expected[2:13, 10, 10] = True  # x from 0.25 to 1.25
+    np.testing.assert_array_equal(m.observed(), expected)
+    assert np.all(m.risk()[2:13, 10, 10] < 0.5)
+    assert np.all(m.risk() <= 0.5)
+
+
+class _CountingEngine:
+    """The paper's engine, counting the states it defuzzifies."""
+
+    def __init__(self) -> None:
+        self._engine = FuzzyEngine.paper()
+        self.defuzzified = 0
+
+    def __getattr__(self, name: str) -> object:
+        return getattr(self._engine, name)
+
+    def defuzzify(self, state: np.ndarray) -> np.ndarray:
+        self.defuzzified += len(state)
+        return self._engine.defuzzify(state)
+
+
+def test_risk_is_recomputed_only_where_cells_changed() -> None:
+    engine = _CountingEngine()
+    m = FuzzyMap(SPEC_2D, SENSOR, engine=engine)  # type: ignore[arg-type]
+    m.risk()
+    start = engine.defuzzified
+    first = m.integrate_batch([_beam([2.0])])
+    first_risk = m.risk().copy()
+    assert engine.defuzzified - start == first.cells_updated
+    m.risk()
+    m.risk_at([[1.0, 1.0]])
+    assert engine.defuzzified - start == first.cells_updated  # nothing changed: nothing recomputed
+    second = m.integrate_batch([_beam([1.0], pose=(0.25, 0.35, 0.0))])  # another row
+    risk = m.risk()
+    assert engine.defuzzified - start == first.cells_updated + second.cells_updated
+    np.testing.assert_array_equal(risk[:, ROW], first_risk[:, ROW])
+    assert np.any(risk[:, 3] != first_risk[:, 3])
+    state = m.to_arrays()["state"].reshape(-1, 7)
+    exact = FuzzyEngine.paper().defuzzify(state).astype(np.float64)
+    # Cached in 16-bit fixed point: the nearest multiple of RISK_STEP to the engine's risk.
+    assert np.all(np.abs(risk.ravel() - exact) <= RISK_STEP / 2)
+    assert np.all(np.mod(risk.astype(np.float64), RISK_STEP) == 0.0)
+
+
+def test_risk_and_observed_are_read_only_snapshots() -> None:
+    m = FuzzyMap(SPEC_2D, SENSOR)
+    with pytest.raises(ValueError):
+        m.risk()[0, 0] = 1.0
+    with pytest.raises(ValueError):
+        m.observed()[0, 0] = True
+    risk, observed = m.risk(), m.observed()
+    m.integrate_batch([_beam([2.0])])
+    assert np.all(risk == np.float32(0.5)) and not observed.any()  # what they were when read
+    assert m.risk()[22, ROW] > 0.5 and m.observed()[22, ROW]
+
+
+@pytest.mark.parametrize("factory", [FuzzyMap, BayesMap])
+def test_unknown_is_exactly_one_half(factory) -> None:
+    m = factory(SPEC_2D, SENSOR)
+    assert m.risk().dtype == np.float32
+    assert np.all(m.risk() == np.float32(0.5))
+    m.integrate_batch([_beam([2.0])])
+    assert np.all(m.risk()[~m.observed()] == np.float32(0.5))
+
+
+@pytest.mark.parametrize("factory", [FuzzyMap, BayesMap])
+def test_risk_does_not_depend_on_when_it_is_read(factory) -> None:
+    # One map read after every scan, one only at the end: the same history, the same bits.
+    scans = [_beam([2.0, 1.5, np.inf], angle_increment=0.2), _beam([1.2], pose=(3.5, 0.5, 2.5)),
+             _beam([1.7], pose=(0.5, 0.5, 0.7)), _beam([2.0, 2.1], angle_increment=0.01)]
+    eager, lazy = factory(SPEC_2D, SENSOR), factory(SPEC_2D, SENSOR)
+    for scan in scans:
+        eager.integrate_batch([scan])
+        eager.risk()
+        eager.risk_at([[2.25, 1.05]])
+        lazy.integrate_batch([scan])
+    assert eager.risk().tobytes() == lazy.risk().tobytes()
+    assert eager.observed().tobytes() == lazy.observed().tobytes()
+
+
+def test_observed_marks_exactly_the_cells_the_beams_reach_on_an_odd_sized_3d_grid() -> None:
+    spec = GridSpec(origin=(0.0, 0.0, 0.0), size=(0.5, 0.3, 0.7), resolution=0.1)  # 105 cells: not whole bytes
+    m = FuzzyMap(spec, SENSOR)
+    pts = np.array([[0.45, 0.25, 0.65], [0.05, 0.25, 0.65], [0.45, 0.05, 0.05]])  # the last cell among others
+    origin = np.array([0.05, 0.05, 0.05])
+    m.integrate_points(pts, origin=origin, range_max=5.0)
+    off = pts - origin
+    dist = np.linalg.norm(off, axis=1)
+    # The beams' segments without the occupied region behind the surface: reached whatever the model.
+    reach = cast_rays(spec, np.repeat(origin[None], 3, axis=0), off / dist[:, None], dist,
+                      measured=np.full(3, np.nan), sigma=np.ones(3), ray_offsets=np.array([0, 3]),
+                      unknown_from=np.inf).cells
+    observed = m.observed().ravel()
+    assert observed[spec.num_cells - 1]
+    assert np.all(observed[reach])
+    assert observed.sum() <= reach.size + 3  # plus at most the occupied region past each surface
+
+
+def test_risk_at_reads_the_cell_of_each_point_and_refuses_points_outside() -> None:
+    m = FuzzyMap(SPEC_2D, SENSOR)
+    m.integrate_batch([_beam([2.0])])
+    pts = np.array([[2.25, 1.05], [1.0, 1.01], [0.0, 0.0], [3.99, 1.99]])
+    got = m.risk_at(pts)
+    assert got.dtype == np.float32
+    np.testing.assert_array_equal(got, m.risk()[[22, 10, 0, 39], [10, 10, 0, 19]])
+    for bad in ([[4.0, 1.0]], [[-0.01, 1.0]], [[1.0, np.nan]], [[1.0, 1.0, 1.0]]):
+        with pytest.raises(ValueError, match="points"):
+            m.risk_at(bad)
+
+
+def _two_scans(m: FuzzyMap | BayesMap) -> None:
+    m.integrate_batch([_beam([2.0, 1.5, np.inf], angle_increment=0.2), _beam([1.2], pose=(3.5, 0.5, 2.5))])
+
+
+@pytest.mark.parametrize("factory", [FuzzyMap, BayesMap])
+def test_to_arrays_round_trip_bit_for_bit(factory) -> None:
+    m = factory(SPEC_2D, SENSOR)
+    _two_scans(m)
+    arrays = m.to_arrays()
+    restored = factory.from_arrays(SPEC_2D, SENSOR, arrays)
+    assert restored.scans_fused == m.scans_fused == 2
+    assert _same_arrays(restored.to_arrays(), arrays)
+    np.testing.assert_array_equal(restored.risk(), m.risk())
+    np.testing.assert_array_equal(restored.observed(), m.observed())
+    # And they go on identically.
+    for x in (m, restored):
+        x.integrate_batch([_beam([1.7], pose=(0.5, 0.5, 0.7))])
+    assert _same_arrays(restored.to_arrays(), m.to_arrays())
+
+
+def test_from_arrays_refuses_arrays_that_do_not_fit() -> None:
+    m = FuzzyMap(SPEC_2D, SENSOR)
+    _two_scans(m)
+    arrays = m.to_arrays()
+    other = GridSpec(origin=(0.0, 0.0), size=(4.0, 2.1), resolution=0.1)
+    with pytest.raises(ValueError, match="arrays"):
+        FuzzyMap.from_arrays(other, SENSOR, arrays)
+    with pytest.raises(ValueError, match="arrays"):
+        BayesMap.from_arrays(SPEC_2D, SENSOR, arrays)
+    with pytest.raises(ValueError, match="arrays"):
+        FuzzyMap.from_arrays(SPEC_2D, SENSOR, {k: v for k, v in arrays.items() if k != "observed"})
+
+
+def test_bayes_log_odds_are_clamped_like_octomap() -> None:
+    m = BayesMap(SPEC_2D, SENSOR)
+    m.integrate_batch([_beam([2.0])] * 40)
+    logodds = m.to_arrays()["logodds"]
+    assert logodds[22, ROW] == np.float32(bayes.CLAMP_MAX)
+    assert np.all(logodds[2:18, ROW] == np.float32(bayes.CLAMP_MIN))
+    assert logodds[0, 0] == 0.0
+    np.testing.assert_allclose(m.risk()[22, ROW], bayes.probability(bayes.CLAMP_MAX), rtol=0, atol=RISK_STEP / 2)
+
+
+def test_constructors_refuse_bad_arguments() -> None:
+    with pytest.raises(ValueError, match="spec"):
+        FuzzyMap((0.0, 0.0), SENSOR)  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="sensor"):
+        BayesMap(SPEC_2D, 0.03)  # type: ignore[arg-type]
+    m = FuzzyMap(SPEC_2D)
+    assert (m.model, m.sensor, m.spec) == ("fuzzy", SensorModel(), SPEC_2D)
+    assert m.state_nbytes() >= SPEC_2D.num_cells * 7
+
+
+@pytest.mark.parametrize(("factory", "state_bytes"), [(FuzzyMap, 7), (BayesMap, 4)])
+def test_memory_accounting_counts_every_array_and_does_not_grow(factory, state_bytes: int) -> None:
+    spec = GridSpec(origin=(0.0, 0.0, 0.0), size=(1.0, 1.2, 0.5), resolution=0.1)  # 600 cells
+    m = factory(spec, SENSOR)
+    n = spec.num_cells
+    # Persistent: the cell states and one observed bit a cell; resident adds the 2-byte risk cache.
+    assert m.state_nbytes() == state_bytes * n + n // 8
+    assert m.resident_nbytes() == m.state_nbytes() + 2 * n
+    before = (m.state_nbytes(), m.resident_nbytes())
+    m.integrate_points([[0.9, 0.9, 0.25], [0.5, 1.1, 0.3]], origin=(0.1, 0.1, 0.25), range_max=5.0)
+    m.risk()
+    assert (m.state_nbytes(), m.resident_nbytes()) == before

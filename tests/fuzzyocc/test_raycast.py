@@ -1,0 +1,140 @@
+import itertools
+
+import numpy as np
+import pytest
+
+from fuzzyocc.config import GridSpec
+from fuzzyocc.keys import flat_to_keys
+from fuzzyocc.raycast import NO_RETURN_DISTANCE, cast_rays, new_scratch
+
+
+def _slab(lo: np.ndarray, hi: np.ndarray, o: np.ndarray, d: np.ndarray) -> tuple[float, float]:
+    """Parameters where the line o + t d enters and leaves the box [lo, hi] (empty: enter > leave)."""
+    enter, leave = -np.inf, np.inf
+    for a in range(o.size):
+        if d[a] == 0.0:
+            if not lo[a] <= o[a] <= hi[a]:
+                return np.inf, -np.inf
+            continue
+        ta, tb = sorted(((lo[a] - o[a]) / d[a], (hi[a] - o[a]) / d[a]))
+        enter, leave = max(enter, ta), min(leave, tb)
+    return enter, leave
+
+
+def _reference(spec: GridSpec, o: np.ndarray, d: np.ndarray, t_end: float) -> dict[tuple[int, ...], tuple[float, float]]:
+    """Brute force over every cell: overlap of the segment [0, t_end] with it, and the line's chord midpoint."""
+    out = {}
+    origin = np.asarray(spec.origin)
+    for key in itertools.product(*(range(n) for n in spec.shape)):
+        lo = origin + np.asarray(key) * spec.resolution
+        enter, leave = _slab(lo, lo + spec.resolution, o, d)
+        if enter > leave:
+            continue
+        overlap = min(leave, t_end) - max(enter, 0.0)
+        out[key] = (overlap, 0.5 * (enter + leave))
+    return out
+
+
+def _one_ray_per_scan(spec: GridSpec, origins: np.ndarray, dirs: np.ndarray, t_end: np.ndarray):
+    n = len(origins)
+    return cast_rays(spec, origins, dirs, t_end, measured=np.zeros(n), sigma=np.ones(n),
+                     ray_offsets=np.arange(n + 1), unknown_from=np.inf)
+
+
+@pytest.mark.parametrize(
+    "spec",
+    [
+        GridSpec(origin=(-0.3, 0.7), size=(2.1, 1.5), resolution=0.3),
+        GridSpec(origin=(0.2, -0.4, 0.1), size=(1.2, 1.0, 0.8), resolution=0.2),
+    ],
+    ids=["2d", "3d"],
+)
+def test_traversal_is_exact_against_brute_force(spec: GridSpec) -> None:
+    rng = np.random.default_rng(11)
+    n = 150
+    lo, hi = np.asarray(spec.origin), np.asarray(spec.upper)
+    # Origins inside and outside the box; directions and lengths so rays start, end and pass anywhere.
+    origins = lo - 0.5 + rng.random((n, spec.ndim)) * (hi - lo + 1.0)
+    dirs = rng.normal(size=(n, spec.ndim))
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    t_end = rng.random(n) * 3.0
+    res = _one_ray_per_scan(spec, origins, dirs, t_end)
+    checked = 0
+    for r in range(n):
+        # With measured range 0 and sigma 1 the evidence is the chord midpoint: it orders the cells along the ray.
+        mids = res.distance_sigmas[res.scan_offsets[r]:res.scan_offsets[r + 1]]
+        got = res.cells[res.scan_offsets[r]:res.scan_offsets[r + 1]][np.argsort(mids, kind="stable")]
+        mids = np.sort(mids)
+        keys = [tuple(k) for k in flat_to_keys(spec, got)]
+        assert res.cells_traversed[r] == len(keys), "a cell was visited twice"
+        ref = _reference(spec, origins[r], dirs[r], t_end[r])
+        must = {k for k, (overlap, _) in ref.items() if overlap > 1e-9}
+        may = {k for k, (overlap, _) in ref.items() if overlap > -1e-9}
+        assert must <= set(keys), "a cell crossed by the segment was skipped"
+        assert set(keys) <= may, "a cell off the segment was visited"
+        # Along the ray, each cell shares a face with the previous one.
+        steps = np.abs(np.diff(np.array(keys).reshape(-1, spec.ndim), axis=0)).sum(axis=1)
+        assert np.all(steps == 1)
+        for k, m in zip(keys, mids):
+            assert m == pytest.approx(ref[k][1], abs=1e-5)
+        checked += len(must) > 0
+    assert checked > n // 4  # the random rays really cross the map
+
+
+def test_axis_aligned_ray_from_outside_is_clipped_and_includes_the_end_cell() -> None:
+    spec = GridSpec(origin=(0.0, 0.0), size=(1.0, 0.5), resolution=0.1)
+    res = _one_ray_per_scan(spec, np.array([[-2.0, 0.25]]), np.array([[1.0, 0.0]]), np.array([2.55]))
+    keys = flat_to_keys(spec, res.cells)
+    assert keys.tolist() == [[i, 2] for i in range(6)]  # x from 0 to 0.55: cells 0..5
+    np.testing.assert_allclose(res.distance_sigmas, 2.0 + 0.05 + 0.1 * np.arange(6), rtol=1e-6)
+
+
+def test_ray_that_misses_the_map_reaches_nothing() -> None:
+    spec = GridSpec(origin=(0.0, 0.0, 0.0), size=(1.0, 1.0, 1.0), resolution=0.25)
+    res = _one_ray_per_scan(spec, np.array([[-1.0, 2.0, 0.5], [0.5, 0.5, 0.5]]),
+                            np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]), np.array([5.0, 0.0]))
+    assert res.scan_offsets.tolist() == [0, 0, 0]
+
+
+def _two_beams_through_one_cell(measured: np.ndarray, unknown_from: float, offsets: list[int]):
+    spec = GridSpec(origin=(0.0, 0.0), size=(1.0, 1.0), resolution=0.1)
+    origins = np.array([[0.05, 0.55], [0.55, 0.05]])
+    dirs = np.array([[1.0, 0.0], [0.0, 1.0]])  # both cross cell (5, 5)
+    return spec, cast_rays(spec, origins, dirs, t_end=np.array([0.9, 0.9]), measured=measured,
+                           sigma=np.array([0.1, 0.1]), ray_offsets=np.array(offsets), unknown_from=unknown_from)
+
+
+def test_a_cell_reached_by_several_beams_of_a_scan_keeps_the_most_occupied_evidence() -> None:
+    spec, res = _two_beams_through_one_cell(np.array([0.5, 0.9]), np.inf, [0, 2])
+    cells = res.cells.tolist()
+    assert len(cells) == len(set(cells)) and res.cells_traversed[0] == 20
+    shared = cells.index(5 * 10 + 5)
+    # Beam 1 crosses the cell 0.0 m from its measured surface, beam 2 0.4 m in front of it.
+    assert res.distance_sigmas[shared] == pytest.approx(0.0, abs=1e-6)
+
+
+def test_scans_are_deduplicated_apart() -> None:
+    _, res = _two_beams_through_one_cell(np.array([0.5, 0.9]), np.inf, [0, 1, 2])
+    assert res.scan_offsets.tolist() == [0, 10, 20]
+    second = res.cells[10:].tolist().index(55) + 10
+    assert res.distance_sigmas[second] == pytest.approx(-4.0, abs=1e-5)
+
+
+def test_evidence_past_unknown_from_counts_only_when_no_beam_brings_more() -> None:
+    # Beam 1 measured at 0.2 m: the shared cell (0.5 m) is 3 sigmas behind its surface.
+    _, alone = _two_beams_through_one_cell(np.array([0.2, 0.9]), 1.5, [0, 1, 2])
+    assert alone.distance_sigmas[alone.cells[:10].tolist().index(55)] == -np.inf
+    _, both = _two_beams_through_one_cell(np.array([0.2, 0.9]), 1.5, [0, 2])
+    assert both.distance_sigmas[both.cells.tolist().index(55)] == pytest.approx(-4.0, abs=1e-5)
+
+
+def test_no_return_beams_mark_free_space_and_the_scratch_comes_back_clean() -> None:
+    spec = GridSpec(origin=(0.0, 0.0), size=(2.0, 2.0), resolution=0.1)
+    scratch = new_scratch(spec)
+    res = cast_rays(spec, np.array([[1.05, 1.05]] * 2), np.array([[1.0, 0.0], [0.0, -1.0]]),
+                    t_end=np.array([0.5, 0.5]), measured=np.array([np.nan, np.nan]), sigma=np.array([0.1, 0.1]),
+                    ray_offsets=np.array([0, 2]), unknown_from=1.5, scratch=scratch)
+    assert res.cells.size == 11  # the sensor's cell is shared by both beams
+    assert np.all(res.distance_sigmas == np.float32(NO_RETURN_DISTANCE))
+    assert np.isnan(scratch).all()
+

@@ -1,0 +1,278 @@
+"""plan(): error codes, the planner registry, verification on thin walls, reproducibility,
+approximate solutions, state spaces, and use from a worker process."""
+
+from __future__ import annotations
+
+import math
+import pickle
+from concurrent.futures import ProcessPoolExecutor
+from multiprocessing import get_context
+
+import numpy as np
+import pytest
+
+import planning.query
+from planning import PlanError, PlanResult, RiskField, available_planners, plan
+
+RES = 0.05
+OMPL_PLANNERS = [p for p in available_planners() if p != "grid"]
+
+
+@pytest.fixture(scope="module")
+def open_field() -> RiskField:
+    return RiskField(np.zeros((80, 80), np.float32), RES, (0.0, 0.0))
+
+
+# ---------------------------------------------------------------- start and goal
+
+
+def test_start_and_goal_outside_the_map_have_their_nav2_codes(open_field: RiskField) -> None:
+    with pytest.raises(PlanError) as err:
+        plan(open_field, (-0.1, 1.0), (2.0, 2.0))
+    assert err.value.code == "START_OUTSIDE_MAP"
+    with pytest.raises(PlanError) as err:
+        plan(open_field, (1.0, 1.0), (2.0, 4.0))  # the map ends at 4.0, exclusive
+    assert err.value.code == "GOAL_OUTSIDE_MAP"
+
+
+def test_start_and_goal_in_collision_have_their_nav2_codes() -> None:
+    risk = np.zeros((80, 80), np.float32)
+    risk[10, 10] = 0.9
+    risk[60, 60] = 0.9
+    field = RiskField(risk, RES, (0.0, 0.0))
+    with pytest.raises(PlanError) as err:
+        plan(field, (0.525, 0.525), (2.0, 2.0), robot_radius=0.0)
+    assert err.value.code == "START_OCCUPIED" and "max_risk" in str(err.value)
+    # the footprint reaches the risky cell from 0.1 m away
+    with pytest.raises(PlanError) as err:
+        plan(field, (1.0, 1.0), (3.1, 3.025), robot_radius=0.15)
+    assert err.value.code == "GOAL_OCCUPIED"
+
+
+def test_unknown_space_is_occupied_only_when_unknown_is_not_allowed() -> None:
+    risk = np.zeros((80, 80), np.float32)
+    observed = np.ones((80, 80), bool)
+    observed[55:70, 55:70] = False
+    risk[~observed] = 0.5
+    field = RiskField(risk, RES, (0.0, 0.0), observed=observed)
+    with pytest.raises(PlanError) as err:
+        plan(field, (1.0, 1.0), (3.1, 3.1), planner="grid", allow_unknown=False)
+    assert err.value.code == "GOAL_OCCUPIED" and "unknown" in str(err.value)
+    result = plan(field, (1.0, 1.0), (3.1, 3.1), planner="grid", allow_unknown=True, max_risk=0.6)
+    assert result.status == "exact"
+
+
+def test_endpoints_are_refused_before_any_planner_runs(monkeypatch: pytest.MonkeyPatch) -> None:
+    def boom(*args: object, **kwargs: object) -> None:
+        raise AssertionError("a planner ran")
+
+    monkeypatch.setattr(planning.query, "_plan_ompl", boom)
+    monkeypatch.setattr(planning.query, "_plan_grid", boom)
+    field = RiskField(np.ones((20, 20), np.float32), RES, (0.0, 0.0))
+    with pytest.raises(PlanError):
+        plan(field, (0.5, 0.5), (0.7, 0.7), planner="RRTstar")
+
+
+def test_plan_error_pickles_with_its_code() -> None:
+    err = pickle.loads(pickle.dumps(PlanError("GOAL_OCCUPIED", "goal (1, 2): unknown space")))
+    assert err.code == "GOAL_OCCUPIED" and str(err) == "goal (1, 2): unknown space"
+
+
+# ---------------------------------------------------------------- arguments and registry
+
+
+def test_unknown_planner_is_refused_with_the_list_of_working_ones(open_field: RiskField) -> None:
+    with pytest.raises(ValueError, match="^planner:") as err:
+        plan(open_field, (1.0, 1.0), (2.0, 2.0), planner="NoSuchPlanner")
+    for name in available_planners():
+        assert name in str(err.value)
+    for name in ("RRTConnect", "RRTstar", "InformedRRTstar", "BITstar", "grid"):
+        assert name in available_planners()
+
+
+def test_a_known_but_unsupported_planner_says_why(open_field: RiskField) -> None:
+    with pytest.raises(ValueError, match="^planner: 'PRMstar' is not supported: .*deadlock") as err:
+        plan(open_field, (1.0, 1.0), (2.0, 2.0), planner="PRMstar")
+    assert "RRTstar" in str(err.value)
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "name"),
+    [
+        ({"time_limit": 0.0}, "time_limit"),
+        ({"robot_radius": -0.1}, "robot_radius"),
+        ({"max_risk": 1.5}, "max_risk"),
+        ({"risk_weight": float("nan")}, "risk_weight"),
+        ({"goal_tolerance": 0.0}, "goal_tolerance"),
+        ({"seed": -1}, "seed"),
+        ({"seed": 1.5}, "seed"),
+        ({"max_iterations": 0}, "max_iterations"),
+        ({"state_space": "R3"}, "state_space"),
+        ({"state_space": "SE3"}, "state_space"),
+        ({"state_space": "Dubins", "start": (1.0, 1.0, 0.0), "goal": (2.0, 2.0, 0.0)}, "turning_radius"),
+        ({"state_space": "SE2"}, "start"),
+        ({"start": (1.0, float("nan"))}, "start"),
+        ({"planner": "grid", "state_space": "SE2", "start": (1.0, 1.0, 0.0), "goal": (2.0, 2.0, 0.0)}, "planner"),
+    ],
+)
+def test_bad_arguments_raise_value_error_naming_them(open_field: RiskField, kwargs: dict, name: str) -> None:
+    args = {"start": (1.0, 1.0), "goal": (2.0, 2.0)} | kwargs
+    with pytest.raises(ValueError, match=rf"^{name}:"):
+        plan(open_field, **args)
+
+
+# ---------------------------------------------------------------- thin walls and doors
+
+
+@pytest.mark.parametrize("planner", available_planners())
+def test_no_planner_returns_a_path_through_a_one_cell_wall(planner: str, make_wall, footprint_check) -> None:
+    # a one-cell wall with a door 7 cells wide: the robot's centre fits through 3 columns
+    field = RiskField(make_wall(100, door_cells=7, door_at=70), RES, (0.0, 0.0))
+    result = plan(field, (0.6, 1.0), (4.4, 1.2), planner=planner, time_limit=0.5, robot_radius=0.1,
+                  max_risk=0.5, seed=1)  # fmt: skip
+    if planner in ("grid", "RRTConnect", "RRTstar", "InformedRRTstar", "BITstar"):
+        assert result.status == "exact", result.message
+    if result.status != "none":
+        assert footprint_check(field, result.path, 0.1) <= 0.5
+        assert result.max_risk <= 0.5
+
+
+@pytest.mark.parametrize("planner", ["grid", "RRTConnect", "RRTstar", "BITstar"])
+def test_a_door_narrower_than_the_footprint_is_never_passed(planner: str, make_wall, footprint_check) -> None:
+    field = RiskField(make_wall(100, door_cells=4, door_at=50), RES, (0.0, 0.0))
+    result = plan(field, (0.6, 2.5), (4.4, 2.5), planner=planner, time_limit=0.3, robot_radius=0.1,
+                  max_risk=0.5, seed=2)  # fmt: skip
+    assert result.status != "exact"
+    if result.status == "approximate":
+        assert footprint_check(field, result.path, 0.1) <= 0.5
+        assert result.path[-1][0] < 2.5  # it stays on the start's side
+
+
+@pytest.mark.parametrize("planner", ["RRTConnect", "RRTstar", "BITstar"])
+def test_a_diagonal_staircase_wall_is_not_cut_at_its_corners(planner: str, footprint_check) -> None:
+    # cells (i, i) only touch at their corners; a footprint of radius > 0 cannot squeeze through
+    risk = np.zeros((80, 80), np.float32)
+    idx = np.arange(80)
+    risk[idx, idx] = 1.0
+    field = RiskField(risk, RES, (0.0, 0.0))
+    result = plan(field, (3.0, 1.0), (1.0, 3.0), planner=planner, time_limit=0.3, robot_radius=0.01,
+                  max_risk=0.5, seed=3)  # fmt: skip
+    assert result.status != "exact"
+    if result.status == "approximate":
+        assert footprint_check(field, result.path, 0.01) <= 0.5
+
+
+# ---------------------------------------------------------------- approximate and exact
+
+
+@pytest.mark.parametrize("planner", ["grid", "RRTConnect", "RRTstar", "InformedRRTstar", "BITstar", "KPIECE1"])
+def test_a_goal_behind_a_closed_wall_is_never_reported_exact(planner: str, footprint_check) -> None:
+    risk = np.zeros((80, 80), np.float32)
+    risk[50:70, 50] = risk[50:70, 69] = risk[50, 50:70] = risk[69, 50:70] = 1.0  # a closed box
+    field = RiskField(risk, RES, (0.0, 0.0))
+    result = plan(field, (0.5, 0.5), (3.0, 3.0), planner=planner, time_limit=0.3, robot_radius=0.05,
+                  max_risk=0.5, seed=4)  # fmt: skip
+    assert result.status in ("approximate", "none")
+    if result.status == "approximate":
+        assert footprint_check(field, result.path, 0.05) <= 0.5
+        assert np.linalg.norm(result.path[-1] - (3.0, 3.0)) > 0.4
+        assert result.message
+    else:
+        assert result.path.shape == (0, 2) and math.isnan(result.cost)
+
+
+# ---------------------------------------------------------------- reproducibility
+
+
+@pytest.mark.parametrize(("planner", "space"), [("RRTConnect", "R2"), ("RRTstar", "R2"), ("BITstar", "R2"),
+                                                ("RRTstar", "SE2"), ("RRTConnect", "Dubins")])  # fmt: skip
+def test_the_same_seed_gives_the_same_path(planner: str, space: str) -> None:
+    rng = np.random.default_rng(12)
+    risk = (rng.random((80, 80)) < 0.04).astype(np.float32)
+    risk[:8, :8] = risk[-8:, -8:] = 0.0
+    field = RiskField(risk, RES, (0.0, 0.0))
+    start, goal = ((0.2, 0.2), (3.8, 3.8)) if space == "R2" else ((0.2, 0.2, 0.0), (3.8, 3.8, 1.0))
+    kwargs = dict(planner=planner, state_space=space, time_limit=0.2, robot_radius=0.0, turning_radius=0.3)
+    first = plan(field, start, goal, seed=7, **kwargs)
+    second = plan(field, start, goal, seed=7, **kwargs)
+    other = plan(field, start, goal, seed=8, **kwargs)
+    assert first.status == "exact"
+    assert np.array_equal(first.path, second.path) and first.cost == second.cost
+    if planner != "BITstar":  # BIT*'s first batches may well agree across seeds
+        assert not np.array_equal(first.path, other.path)
+
+
+# ---------------------------------------------------------------- state spaces
+
+
+def _turning(path: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per step: heading change and chord length."""
+    ds = np.linalg.norm(np.diff(path[:, :2], axis=0), axis=1)
+    dtheta = np.abs(np.remainder(np.diff(path[:, 2]) + np.pi, 2.0 * np.pi) - np.pi)
+    return dtheta, ds
+
+
+@pytest.mark.parametrize("space", ["Dubins", "ReedsShepp"])
+def test_curved_paths_obey_the_turning_radius(space: str, footprint_check) -> None:
+    risk = np.zeros((100, 100), np.float32)
+    risk[40:60, 30:70] = 1.0
+    field = RiskField(risk, RES, (0.0, 0.0))
+    radius = 0.6
+    result = plan(field, (1.0, 2.5, 0.0), (4.0, 2.5, math.pi), planner="RRTConnect", state_space=space,
+                  time_limit=1.0, robot_radius=0.1, turning_radius=radius, seed=5)  # fmt: skip
+    assert result.status == "exact", result.message
+    assert result.path.shape[1] == 3
+    dtheta, ds = _turning(result.path)
+    # steps are at most a cell of curve long, over which the heading turns by at most res / r
+    assert (dtheta <= 1.02 * RES / radius).all() and (ds <= RES + 1e-9).all()
+    if space == "Dubins":  # no cusps: a chord is shorter than its arc, so dtheta / chord bounds 1 / r
+        assert (dtheta[ds > 1e-9] / ds[ds > 1e-9] <= 1.02 / radius).all()
+    assert footprint_check(field, result.path, 0.1) <= 0.6
+    # headings are tangent to the path (forwards or, in Reeds-Shepp, backwards)
+    d = np.diff(result.path[:, :2], axis=0)
+    moving = np.linalg.norm(d, axis=1) > 1e-6
+    heading = np.stack([np.cos(result.path[:-1, 2]), np.sin(result.path[:-1, 2])], 1)
+    cos = np.abs((d * heading).sum(1))[moving] / np.linalg.norm(d, axis=1)[moving]
+    assert (cos > 0.99).all()
+    assert np.allclose(result.path[0], (1.0, 2.5, 0.0))
+
+
+def test_se2_turns_from_the_start_heading_to_the_goal_heading(open_field: RiskField) -> None:
+    result = plan(open_field, (0.5, 0.5, 0.0), (3.5, 3.0, 2.0), planner="RRTstar", state_space="SE2",
+                  time_limit=0.2, robot_radius=0.05, seed=6)  # fmt: skip
+    assert result.status == "exact" and result.path.shape[1] == 3
+    assert result.path[0, 2] == pytest.approx(0.0) and result.path[-1, 2] == pytest.approx(2.0)
+    assert np.allclose(result.path[-1, :2], (3.5, 3.0))
+
+
+@pytest.mark.parametrize("planner", ["grid", "RRTConnect", "RRTstar", "BITstar"])
+def test_three_d_plans_go_through_the_hole_in_a_slab(planner: str, footprint_check) -> None:
+    risk = np.zeros((40, 40, 30), np.float32)
+    risk[:, :, 15] = 1.0
+    risk[26:34, 26:34, 15] = 0.0  # a 0.4 m hole
+    field = RiskField(risk, RES, (0.0, 0.0, 0.0))
+    result = plan(field, (0.5, 0.5, 0.2), (0.5, 0.5, 1.3), planner=planner, time_limit=1.0, robot_radius=0.1,
+                  max_risk=0.5, seed=7)  # fmt: skip
+    assert result.status == "exact", result.message
+    assert result.path.shape[1] == 3
+    assert footprint_check(field, result.path, 0.1) <= 0.5
+    crossing = result.path[np.argmin(np.abs(result.path[:, 2] - 0.775))]
+    assert 1.3 <= crossing[0] <= 1.7 and 1.3 <= crossing[1] <= 1.7
+
+
+# ---------------------------------------------------------------- worker processes
+
+
+def test_plan_runs_in_a_worker_process_with_the_same_seeded_result() -> None:
+    risk = np.zeros((60, 60), np.float32)
+    risk[30, 10:60] = 1.0
+    field = RiskField(risk, RES, (0.0, 0.0))
+    kwargs = dict(planner="RRTstar", robot_radius=0.05, time_limit=0.2, seed=8)
+    with ProcessPoolExecutor(max_workers=1, mp_context=get_context("spawn")) as pool:
+        remote = pool.submit(plan, field, (0.5, 2.5), (2.5, 2.5), **kwargs).result(timeout=120)
+    local = plan(field, (0.5, 2.5), (2.5, 2.5), **kwargs)
+    assert isinstance(remote, PlanResult) and remote.status == "exact"
+    # a fresh process and this one, whose OMPL RNG has served many plans, agree
+    assert np.array_equal(remote.path, local.path)
+    back = pickle.loads(pickle.dumps(remote))
+    assert np.array_equal(back.path, remote.path) and back.cost == remote.cost
