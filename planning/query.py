@@ -5,16 +5,22 @@ kernels; refuse an unusable start or goal with Nav2's codes; build the state spa
 validity checks and the risk objective; solve; simplify without raising the cost;
 interpolate at the map resolution; verify every crossed cell; measure.
 
+Time: ``time_limit`` bounds the whole call in wall-clock time, seeded or not. The solve
+stops at OMPL's own timed termination condition (C++, no Python call needed to fire it)
+set to leave ``SIMPLIFY_SHARE`` of the limit for simplification and ``_post_reserve`` for
+verification and interpolation; simplification has its own timed condition.
+
 Reproducibility: OMPL's seed is process-global (``ou.RNG.setSeed``), and every RNG a
 planner or simplifier makes draws its own seed from it when constructed. So every plan
 constructs, sets up, solves and simplifies under one process-wide lock (``solve()`` holds
-the GIL anyway: threads would gain nothing), and a seeded plan seeds first, then bounds the
-solve by a count of termination checks (about planner iterations) instead of wall time:
-``max_iterations``, by default ``time_limit`` times the planner's calibrated rate (and the
-state space's factor). The same inputs and seed then give the same path in any process, at
-any load, on the same software stack. A wall-clock guard of
-``3 * time_limit + 1`` s still stops a seeded run that would take far longer; such a result
-says so in its message, being no longer reproducible.
+the GIL anyway: threads would gain nothing), and a seeded plan seeds first, then also
+bounds the solve by a count of termination checks (about planner iterations):
+``max_iterations``, by default ``SEEDED_BUDGET_SHARE`` x the solve's seconds x the
+planner's calibrated rate (and the state space's factor), which an idle machine finishes
+well inside the time. The same inputs and seed then give the same path in any process on
+the same software stack, as long as the count, not the clock, ends the solve. On a loaded
+machine the clock may come first: the time limit wins, and the result's message says that
+the path may differ between runs.
 """
 
 from __future__ import annotations
@@ -49,6 +55,10 @@ ou.setLogLevel(ou.LOG_WARN)  # OMPL logs Info to stdout otherwise
 _SOLVE_LOCK = threading.Lock()
 SIMPLIFY_SHARE = 0.15  # of time_limit, kept for simplification after an optimizing solve
 SEEDED_SIMPLIFY_CHECKS = 20_000  # termination checks a seeded simplification may use
+# a seeded solve's default count is this share of what the calibrated rate fits in the solve's
+# seconds: headroom so that the count, not the clock, ends it on an unloaded machine
+SEEDED_BUDGET_SHARE = 0.6
+CLOCK_NOTE = "stopped by the time limit before the seeded iteration budget; the path may differ between runs"
 
 
 # ---------------------------------------------------------------- argument checks
@@ -134,19 +144,24 @@ def _seed(seed: int) -> None:
         ou.setLogLevel(level)
 
 
-class _Budget:
-    """A termination condition counting its own checks, with a wall-clock guard.
+def _post_reserve(time_limit: float) -> float:
+    """Seconds kept after simplification for verification, interpolation and measures."""
+    return min(0.02 + 0.05 * time_limit, 0.25 * time_limit)
+
+
+class _Counter:
+    """A Python termination condition counting its own checks (never reads the clock).
 
     It also notes when an optimizing planner first holds a solution (its best cost turns
-    finite): OMPL's intermediate-solution callback is not bindable in the 2.0.1 wheel.
+    finite): OMPL's intermediate-solution callback is not bindable in the 2.0.1 wheel. It is
+    evaluated inline by the planner's own thread (no period: a periodic Python condition
+    runs in a second thread that deadlocks on the GIL), OR-ed with a timed C++ condition.
     """
 
-    def __init__(self, checks: int | None, seconds: float, t0: float) -> None:
+    def __init__(self, checks: int | None, t0: float) -> None:
         self.checks = checks
         self.count = 0
         self.t0 = t0
-        self.deadline = time.perf_counter() + seconds
-        self.timed_out = False
         self.watch: Any = None  # a planner with bestCost()
         self.first_solution: float | None = None
 
@@ -154,12 +169,19 @@ class _Budget:
         self.count += 1
         if self.first_solution is None and self.watch is not None and math.isfinite(self.watch.bestCost().value()):
             self.first_solution = time.perf_counter() - self.t0
-        if self.checks is not None and self.count > self.checks:
-            return True
-        if time.perf_counter() > self.deadline:
-            self.timed_out = True
-            return True
-        return False
+        return self.checks is not None and self.count > self.checks
+
+    @property
+    def exhausted(self) -> bool:
+        return self.checks is not None and self.count > self.checks
+
+
+def _until(deadline: float, counter: _Counter | None) -> ob.PlannerTerminationCondition:
+    """OMPL's timed condition up to ``deadline`` (perf_counter time), OR-ed with a counter."""
+    timed = ob.timedPlannerTerminationCondition(max(0.0, deadline - time.perf_counter()))
+    if counter is None:
+        return timed
+    return ob.plannerOrTerminationCondition(timed, ob.PlannerTerminationCondition(counter))
 
 
 def _states(space: OmplSpace, path: og.PathGeometric) -> np.ndarray:
@@ -392,13 +414,18 @@ def _plan_ompl(
     # the seed comes before anything that constructs an RNG (spaces, samplers, planners)
     if seed is not None:
         _seed(seed)
-    solve_seconds = (1.0 - SIMPLIFY_SHARE) * time_limit
-    guard = 3.0 * time_limit + 1.0
+    end = t0 + time_limit
+    post = _post_reserve(time_limit)
+    solve_end = end - post - SIMPLIFY_SHARE * time_limit
     if seed is not None:
-        checks = max_iterations if max_iterations is not None else max(1, round(solve_seconds * pspec.rate * sspec.rate_factor))
-        budget = _Budget(checks, guard, t0)
+        if max_iterations is not None:
+            checks = max_iterations
+        else:
+            seconds = max(0.0, solve_end - t0)
+            checks = max(1, round(SEEDED_BUDGET_SHARE * seconds * pspec.rate * sspec.rate_factor))
+        counter = _Counter(checks, t0)
     else:
-        budget = _Budget(max_iterations, solve_seconds, t0)
+        counter = _Counter(max_iterations, t0)
 
     # space, state validity, motion validity, risk objective
     space = sspec.build(grid, turning_radius)
@@ -412,14 +439,17 @@ def _plan_ompl(
     planner = pspec.make(si)
     planner.setProblemDefinition(pdef)
     planner.setup()
-    if pspec.optimizing and hasattr(planner, "bestCost"):
-        budget.watch = planner
-    status = planner.solve(ob.PlannerTerminationCondition(budget))
+    watching = pspec.optimizing and hasattr(planner, "bestCost")
+    if watching:
+        counter.watch = planner
+    use_counter = watching or counter.checks is not None
+    status = planner.solve(_until(solve_end, counter if use_counter else None))
     solved_at = time.perf_counter() - t0
     iterations = int(planner.numIterations()) if hasattr(planner, "numIterations") else 0
-    if seed is not None and budget.timed_out:
-        notes.append(f"seeded run stopped by the {guard:g} s wall-clock guard: not reproducible")
     kind = status.getStatus()
+    finished = kind == ob.PlannerStatus.EXACT_SOLUTION and not pspec.optimizing  # stopped at its first solution
+    if seed is not None and not counter.exhausted and not finished and time.perf_counter() >= solve_end:
+        notes.append(CLOCK_NOTE)
     if kind == ob.PlannerStatus.EXACT_SOLUTION and pdef.hasExactSolution():
         label = "exact"
     elif kind in (ob.PlannerStatus.EXACT_SOLUTION, ob.PlannerStatus.APPROXIMATE_SOLUTION) and pdef.hasSolution():
@@ -428,16 +458,21 @@ def _plan_ompl(
     else:
         notes.append(f"no path found ({status.asString()})")
         return _result(grid, sspec, pspec.name, "none", None, None, t0, "; ".join(notes), iterations)
-    first = budget.first_solution if budget.first_solution is not None else solved_at
+    first = counter.first_solution if counter.first_solution is not None else solved_at
 
     # simplify with the risk objective; keep whichever candidate is cheapest and verifies
     raw = og.PathGeometric(pdef.getSolutionPath())  # a copy: the simplifier edits in place
     simplified = og.PathGeometric(raw)
-    if seed is not None:
-        simp_budget = _Budget(SEEDED_SIMPLIFY_CHECKS, guard, t0)
-    else:
-        simp_budget = _Budget(None, max(SIMPLIFY_SHARE * time_limit, t0 + time_limit - time.perf_counter()), t0)
-    og.PathSimplifier(si, pdef.getGoal(), objective).simplify(simplified, ob.PlannerTerminationCondition(simp_budget))
+    simp_counter = _Counter(SEEDED_SIMPLIFY_CHECKS, t0) if seed is not None else None
+    simp_end = end - post
+    og.PathSimplifier(si, pdef.getGoal(), objective).simplify(simplified, _until(simp_end, simp_counter))
+    if (
+        simp_counter is not None
+        and not simp_counter.exhausted
+        and time.perf_counter() >= simp_end
+        and CLOCK_NOTE not in notes
+    ):
+        notes.append("simplification " + CLOCK_NOTE)
     best = _pick(grid, space, sspec, [simplified, raw], pdef if label == "exact" else None, goal)
     if best is None:
         notes.append("every candidate path crossed an invalid cell between the planner's checks")

@@ -5,14 +5,20 @@ from __future__ import annotations
 
 import math
 import pickle
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
 from concurrent.futures import ProcessPoolExecutor
 from multiprocessing import get_context
 
 import numpy as np
 import pytest
+from scipy import ndimage
 
 import planning.query
 from planning import PlanError, PlanResult, RiskField, available_planners, plan
+from planning.planners import PLANNERS
 
 RES = 0.05
 OMPL_PLANNERS = [p for p in available_planners() if p != "grid"]
@@ -192,14 +198,70 @@ def test_the_same_seed_gives_the_same_path(planner: str, space: str) -> None:
     risk[:8, :8] = risk[-8:, -8:] = 0.0
     field = RiskField(risk, RES, (0.0, 0.0))
     start, goal = ((0.2, 0.2), (3.8, 3.8)) if space == "R2" else ((0.2, 0.2, 0.0), (3.8, 3.8, 1.0))
-    kwargs = dict(planner=planner, state_space=space, time_limit=0.2, robot_radius=0.0, turning_radius=0.3)
+    # a generous time limit: the iteration count, not the clock, ends every run
+    kwargs = dict(planner=planner, state_space=space, time_limit=10.0, max_iterations=1500, robot_radius=0.0,
+                  turning_radius=0.3)  # fmt: skip
     first = plan(field, start, goal, seed=7, **kwargs)
     second = plan(field, start, goal, seed=7, **kwargs)
     other = plan(field, start, goal, seed=8, **kwargs)
     assert first.status == "exact"
+    assert planning.query.CLOCK_NOTE not in first.message + second.message + other.message
     assert np.array_equal(first.path, second.path) and first.cost == second.cost
     if planner != "BITstar":  # BIT*'s first batches may well agree across seeds
         assert not np.array_equal(first.path, other.path)
+
+
+# ---------------------------------------------------------------- the time limit
+
+
+@pytest.fixture
+def busy_core() -> Iterator[None]:
+    """Another process burning a CPU core for the duration of the test."""
+    burner = subprocess.Popen([sys.executable, "-c", "while True: pass"])
+    try:
+        time.sleep(0.1)  # let it start spinning
+        yield
+    finally:
+        burner.kill()
+        burner.wait()
+
+
+@pytest.fixture(scope="module")
+def big_field() -> RiskField:
+    # 400 x 400 cells: boxes with soft risk halos, walls across most of the map
+    rng = np.random.default_rng(21)
+    occ = np.zeros((400, 400), bool)
+    occ[130:133, :330] = True
+    occ[260:263, 70:] = True
+    for _ in range(40):
+        i, j = rng.integers(20, 370, 2)
+        w, h = rng.integers(5, 25, 2)
+        occ[i : i + w, j : j + h] = True
+    occ[:30, :30] = occ[-30:, -30:] = False
+    dist = ndimage.distance_transform_edt(~occ) * RES
+    risk = np.where(occ, 1.0, 0.4 * np.exp(-0.5 * (dist / 0.15) ** 2)).astype(np.float32)
+    return RiskField(risk, RES, (0.0, 0.0))
+
+
+@pytest.mark.parametrize("planner", OMPL_PLANNERS)
+def test_a_plan_returns_within_its_time_limit_on_a_loaded_machine(planner: str, big_field, busy_core) -> None:
+    kwargs = dict(planner=planner, time_limit=0.3, robot_radius=0.2, max_risk=0.6)
+    for seed, max_iterations in ((None, None), (11, None), (12, 10**9)):
+        began = time.perf_counter()
+        result = plan(big_field, (0.5, 0.5), (19.5, 19.5), seed=seed, max_iterations=max_iterations, **kwargs)
+        wall = time.perf_counter() - began
+        assert result.planning_time <= 0.3 + 0.1, (seed, result.planning_time, result.message)
+        assert wall <= 0.3 + 0.1, (seed, wall)
+        if max_iterations is not None and PLANNERS[planner].optimizing and result.status != "none":
+            # an iteration budget far beyond the time: the clock ended it, and the result says so
+            assert planning.query.CLOCK_NOTE in result.message
+
+
+def test_a_seeded_plan_within_its_iteration_budget_does_not_claim_the_clock_stopped_it(open_field) -> None:
+    result = plan(open_field, (0.5, 0.5), (3.5, 3.5), planner="RRTstar", time_limit=10.0, max_iterations=300, seed=1)
+    assert result.status == "exact" and result.planning_time < 10.0
+    assert planning.query.CLOCK_NOTE not in result.message
+    assert 0 < result.iterations <= 300
 
 
 # ---------------------------------------------------------------- state spaces
@@ -267,11 +329,12 @@ def test_plan_runs_in_a_worker_process_with_the_same_seeded_result() -> None:
     risk = np.zeros((60, 60), np.float32)
     risk[30, 10:60] = 1.0
     field = RiskField(risk, RES, (0.0, 0.0))
-    kwargs = dict(planner="RRTstar", robot_radius=0.05, time_limit=0.2, seed=8)
+    kwargs = dict(planner="RRTstar", robot_radius=0.05, time_limit=10.0, max_iterations=1500, seed=8)
     with ProcessPoolExecutor(max_workers=1, mp_context=get_context("spawn")) as pool:
         remote = pool.submit(plan, field, (0.5, 2.5), (2.5, 2.5), **kwargs).result(timeout=120)
     local = plan(field, (0.5, 2.5), (2.5, 2.5), **kwargs)
     assert isinstance(remote, PlanResult) and remote.status == "exact"
+    assert planning.query.CLOCK_NOTE not in remote.message + local.message
     # a fresh process and this one, whose OMPL RNG has served many plans, agree
     assert np.array_equal(remote.path, local.path)
     back = pickle.loads(pickle.dumps(remote))
