@@ -26,7 +26,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from fuzzyocc import BayesMap, FuzzyMap, GridSpec, SensorModel
+from fuzzyocc import BayesMap, FuzzyEngine, FuzzyMap, GridSpec, SensorModel
+from fuzzyocc.engine import _defuzzify_tables
 from fuzzyocc.raycast import cast_rays
 
 RANGE_MAX_M = 30.0
@@ -132,7 +133,8 @@ class Run:
     wall_s: float
     cpu_s: float  # this process, all threads (OctoMap's OpenMP workers too)
     rays: int
-    nbytes: int
+    nbytes: int  # persistent state (OctoMap: the tree)
+    resident: int  # everything held between calls (OctoMap: the tree)
     traversed: int = 0
 
 
@@ -160,7 +162,7 @@ def _integrate(factory: type[FuzzyMap] | type[BayesMap], scene: Scene) -> Run:
             rays += st.rays
             traversed += st.cells_traversed
         m.risk()  # a reader pays for the defuzzification of what changed: count it
-    return Run(clock.wall, clock.cpu, rays, m.state_nbytes(), traversed)
+    return Run(clock.wall, clock.cpu, rays, m.state_nbytes(), m.resident_nbytes(), traversed)
 
 
 def _octomap(scene: Scene) -> Run:
@@ -179,7 +181,8 @@ def _octomap(scene: Scene) -> Run:
     with _Clock() as clock:
         for pts, org in zip(pts3, org3):
             tree.insertPointCloud(pts, org, maxrange=RANGE_MAX_M)
-    return Run(clock.wall, clock.cpu, sum(len(p) for p in pts3), int(tree.memoryUsage()))
+    usage = int(tree.memoryUsage())
+    return Run(clock.wall, clock.cpu, sum(len(p) for p in pts3), usage, usage)
 
 
 def _segment_cells(scene: Scene) -> int:
@@ -195,6 +198,11 @@ def _segment_cells(scene: Scene) -> int:
                         unknown_from=np.inf)
         total += int(res.cells_traversed.sum())
     return total
+
+
+def _lut_nbytes() -> int:
+    tables = _defuzzify_tables(FuzzyEngine.paper())
+    return 0 if tables is None else sum(a.nbytes for a in tables)
 
 
 def _warm_up() -> None:
@@ -227,12 +235,15 @@ def run(scene: Scene, repeat: int) -> None:
     cpu = {label: min(x.cpu_s for x in r) for label, r in runs.items()}
     best["OctoMap"].traversed = _segment_cells(scene)
     octo = best["OctoMap"]
-    print(f"  {'model':9s} {'wall s':>7s} {'cpu s':>7s} {'rays/s':>10s} {'cells/s':>12s} {'state MB':>9s} "
-          f"{'rays/s vs OctoMap':>18s} {'(by cpu s)':>11s} {'memory vs OctoMap':>18s}")
+    cells = scene.spec.num_cells
+    print(f"  {'model':9s} {'wall s':>7s} {'cpu s':>7s} {'rays/s':>10s} {'cells/s':>12s} "
+          f"{'rays/s vs OctoMap':>18s} {'(by cpu s)':>11s} {'state MB':>9s} {'B/cell':>6s} {'vs OctoMap':>10s} "
+          f"{'resident MB':>11s} {'B/cell':>6s} {'vs OctoMap':>10s}")
     for label, r in best.items():
         print(f"  {label:9s} {r.wall_s:7.3f} {cpu[label]:7.3f} {r.rays / r.wall_s:10,.0f} "
-              f"{r.traversed / r.wall_s:12,.0f} {r.nbytes / 1e6:9.2f} "
-              f"{octo.wall_s / r.wall_s:17.2f}x {cpu['OctoMap'] / cpu[label]:10.2f}x {r.nbytes / octo.nbytes:17.2f}x")
+              f"{r.traversed / r.wall_s:12,.0f} {octo.wall_s / r.wall_s:17.2f}x {cpu['OctoMap'] / cpu[label]:10.2f}x "
+              f"{r.nbytes / 1e6:9.2f} {r.nbytes / cells:6.2f} {r.nbytes / octo.nbytes:9.2f}x "
+              f"{r.resident / 1e6:11.2f} {r.resident / cells:6.2f} {r.resident / octo.resident:9.2f}x")
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -247,8 +258,11 @@ def main(argv: list[str] | None = None) -> None:
     t0 = time.perf_counter()
     _warm_up()
     print(f"numba warm-up on tiny maps: {time.perf_counter() - t0:.1f} s (excluded from the timings below)")
-    print("state MB: FuzzyMap/BayesMap state_nbytes() (cell states, observed mask, float32 risk cache, "
-          "dirty mask); OctoMap tree.memoryUsage()")
+    print("state MB: FuzzyMap/BayesMap state_nbytes(), the persistent state (cell states, observed bits); "
+          "resident MB: resident_nbytes(), all a map holds between calls (plus the 16-bit risk cache); "
+          "OctoMap: tree.memoryUsage() for both; B/cell: per cell of our dense grid")
+    print(f"not in any row: the paper engine's defuzzification tables, {_lut_nbytes() / 1e6:.1f} MB once per "
+          "process (shared by every FuzzyMap); arrays an integrate call allocates and frees")
     print(f"wall s: the fastest of {args.repeat} interleaved runs (a fresh map each), one integrate call per "
           "scan, plus one risk() read at the end (defuzzification of the changed cells); cpu s: the least "
           "process CPU time of those runs (all threads); rays/s and cells/s are by wall time")

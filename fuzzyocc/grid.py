@@ -79,7 +79,9 @@ class CellGrid:
 
     @staticmethod
     def _uniform(state: np.ndarray) -> bool:
-        return bool(np.all(state == state[:1]))
+        # Byte for byte (equal bytes are equal states), without a temporary the size of the state.
+        rows = np.ascontiguousarray(state).view(np.uint8).reshape(state.shape[0], -1)
+        return bool(_rows_equal_first(rows))
 
     # -- states ---------------------------------------------------------------------------
     def read(self, cells: np.ndarray) -> np.ndarray:
@@ -156,6 +158,15 @@ def _scatter_rows(state, cells, rows):  # pragma: no cover - compiled
         c = cells[n]
         for k in range(state.shape[1]):
             state[c, k] = rows[n, k]
+
+
+@njit(cache=True, nogil=True)
+def _rows_equal_first(rows):  # pragma: no cover - compiled
+    for n in range(1, rows.shape[0]):
+        for k in range(rows.shape[1]):
+            if rows[n, k] != rows[0, k]:
+                return False
+    return True
 
 
 @njit(cache=True, nogil=True)

@@ -36,6 +36,8 @@ from fuzzyocc.scans import LaserScan, PointCloud, Rays
 
 Scan = LaserScan | PointCloud
 
+_BAYES_CHUNK = 1 << 16  # cells per step of a Bayes update (each cell is updated on its own)
+
 
 def _check_spec(spec: object) -> None:
     if not isinstance(spec, GridSpec):
@@ -353,8 +355,11 @@ class BayesMap(OccupancyMap):
         return float(bayes.BAYES_OCCUPIED_EXTENT)
 
     def _update(self, cells: np.ndarray, distance_sigmas: np.ndarray) -> int:
-        evidence = bayes.logodds(bayes.opdf(distance_sigmas, 1.0))
-        self._grid.write(cells, bayes.update_logodds(self._grid.read(cells), evidence))
+        # In chunks: the OPDF's float64 temporaries would otherwise peak at ~100 MB for a 3-D sweep.
+        for lo in range(0, cells.size, _BAYES_CHUNK):
+            part = cells[lo : lo + _BAYES_CHUNK]
+            evidence = bayes.logodds(bayes.opdf(distance_sigmas[lo : lo + _BAYES_CHUNK], 1.0))
+            self._grid.write(part, bayes.update_logodds(self._grid.read(part), evidence))
         return int(cells.size)
 
     def _risk_of(self, state: np.ndarray) -> np.ndarray:

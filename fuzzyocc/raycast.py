@@ -85,7 +85,10 @@ def _cast_kernel(origins, dirs, t_end, slope, offset, ray_offsets, lower, shape,
     # exit: NaN means "not reached by the current scan", so the whole grid is never cleared.
     n_scans = ray_offsets.shape[0] - 1
     nx, ny, nz = shape[0], shape[1], shape[2]
-    touched = np.empty(best.shape[0], np.int64)  # this scan's cells, at most one per cell
+    # This scan's cells, kept only while they are few enough for a sort (below an eighth of the
+    # grid, see the dense sweep further down): at most 1 byte a cell of the grid, not 8.
+    keep = best.shape[0] // 8 + 1
+    touched = np.empty(keep, np.int64)  # fixed size: growing it in the hot loop slows the traversal
     cells = np.empty(1024, np.int64)
     dist = np.empty(1024, np.float32)
     scan_offsets = np.zeros(n_scans + 1, np.int64)
@@ -141,7 +144,8 @@ def _cast_kernel(origins, dirs, t_end, slope, offset, ray_offsets, lower, shape,
                     v = -np.inf
                 b = best[c]
                 if b != b:
-                    touched[n] = c
+                    if n < keep:
+                        touched[n] = c
                     n += 1
                     best[c] = v
                 elif v > b:
@@ -174,7 +178,7 @@ def _cast_kernel(origins, dirs, t_end, slope, offset, ray_offsets, lower, shape,
             dist = grown_d
         # Hand the cells out in increasing id order, so that the map's reads and writes of
         # their states sweep memory instead of jumping about.
-        if 8 * n >= best.shape[0]:  # dense: a sweep of the scratch is cheaper than a sort
+        if 8 * n >= best.shape[0]:  # dense (past keep): a sweep of the scratch is cheaper than a sort
             q = n_out
             for c in range(best.shape[0]):
                 b = best[c]
@@ -193,7 +197,7 @@ def _cast_kernel(origins, dirs, t_end, slope, offset, ray_offsets, lower, shape,
         n_out += n
         scan_offsets[s + 1] = n_out
         traversed[s] = visits
-    return cells[:n_out].copy(), dist[:n_out].copy(), scan_offsets, traversed
+    return cells[:n_out], dist[:n_out], scan_offsets, traversed  # views: a copy would double the peak
 
 
 def new_scratch(spec: GridSpec) -> np.ndarray:

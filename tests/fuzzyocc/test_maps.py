@@ -343,3 +343,17 @@ def test_memory_accounting_counts_every_array_and_does_not_grow(factory, state_b
     m.integrate_points([[0.9, 0.9, 0.25], [0.5, 1.1, 0.3]], origin=(0.1, 0.1, 0.25), range_max=5.0)
     m.risk()
     assert (m.state_nbytes(), m.resident_nbytes()) == before
+
+
+def test_bayes_updates_every_cell_a_large_scan_clears() -> None:
+    spec = GridSpec(origin=(0.0, 0.0), size=(20.0, 20.0), resolution=0.05)  # 160000 cells
+    m = BayesMap(spec, SENSOR)
+    angles = 2000
+    m.integrate_scan(pose=(10.0, 10.0, 0.0), angle_min=-np.pi, angle_increment=2 * np.pi / angles,
+                     ranges=np.full(angles, np.inf), range_min=0.1, range_max=9.0)
+    observed = m.observed()
+    assert observed.sum() > 100_000  # far more cells than one step of the update handles
+    free = bayes.update_logodds(np.float32(0.0), bayes.logodds(bayes.opdf(-1e6, 1.0)))
+    logodds = m.to_arrays()["logodds"]
+    assert np.all(logodds[observed] == free)
+    assert np.all(logodds[~observed] == 0.0)

@@ -138,3 +138,37 @@ def test_no_return_beams_mark_free_space_and_the_scratch_comes_back_clean() -> N
     assert np.all(res.distance_sigmas == np.float32(NO_RETURN_DISTANCE))
     assert np.isnan(scratch).all()
 
+
+
+@pytest.mark.parametrize(
+    "spec",
+    [
+        GridSpec(origin=(0.0, 0.0, 0.0), size=(10.0, 10.0, 2.0), resolution=0.05),  # few cells reached: sorted
+        GridSpec(origin=(0.0, 0.0), size=(5.0, 5.0), resolution=0.05),  # most cells reached: swept
+    ],
+    ids=["sparse", "dense"],
+)
+def test_each_scan_of_a_batch_gets_the_union_of_its_beams_with_their_largest_evidence(spec: GridSpec) -> None:
+    rng = np.random.default_rng(5)
+    offsets = np.array([0, 40, 100, 250, 600])  # growing scans: buffers grow between and within them
+    n = offsets[-1]
+    lo, hi = np.asarray(spec.origin), np.asarray(spec.upper)
+    origins = lo + rng.random((n, spec.ndim)) * (hi - lo)
+    dirs = rng.normal(size=(n, spec.ndim))
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    t_end = rng.uniform(1.0, 8.0, n)
+    measured = np.where(rng.random(n) < 0.3, np.nan, t_end - 0.1)
+    sigma = np.full(n, 0.05)
+    batch = cast_rays(spec, origins, dirs, t_end, measured, sigma, offsets, unknown_from=1.5)
+    beams = cast_rays(spec, origins, dirs, t_end, measured, sigma, np.arange(n + 1), unknown_from=1.5)
+    reached = np.diff(batch.scan_offsets)
+    assert reached.max() > 4 * 1024  # more than the kernel's first buffers hold
+    assert (reached.max() < spec.num_cells // 8) == (spec.ndim == 3)
+    for s in range(len(offsets) - 1):
+        cells = batch.cells[batch.scan_offsets[s]:batch.scan_offsets[s + 1]]
+        dist = batch.distance_sigmas[batch.scan_offsets[s]:batch.scan_offsets[s + 1]]
+        lo_b, hi_b = beams.scan_offsets[offsets[s]], beams.scan_offsets[offsets[s + 1]]
+        want = np.full(spec.num_cells, np.nan, dtype=np.float32)
+        np.fmax.at(want, beams.cells[lo_b:hi_b], beams.distance_sigmas[lo_b:hi_b])
+        np.testing.assert_array_equal(cells, np.flatnonzero(~np.isnan(want)))  # each once, increasing
+        np.testing.assert_array_equal(dist, want[cells])
