@@ -36,7 +36,7 @@ class Settings(BaseSettings):
         2_000_000, ge=1, description="Most ranges in a LaserScan, or points in a point cloud."
     )
     max_map_cells: int = Field(
-        16_000_000, ge=1, description="Most cells in one map (~12 bytes a cell in memory)."
+        16_000_000, ge=1, description="Most cells in one map (about 9 bytes a cell in memory for a fuzzy map)."
     )
     max_query_points: int = Field(100_000, ge=1, description="Most points in one risk query.")
     max_plan_time_s: float = Field(30.0, gt=0.0, le=3600.0, description="Largest plan time_limit, seconds.")
