@@ -3,6 +3,7 @@
 
     python3 dev.py serve [--host H --port P --data-dir D]   # install, then serve
     python3 dev.py test [pytest args]                        # install, then run the tests
+    python3 dev.py bench NAME [args]                         # install, then run bench/bench_NAME.py
 
 Each command creates ``.venv`` beside this file when it is missing and installs
 the project into it (again only when ``pyproject.toml`` changed), then runs.
@@ -29,8 +30,8 @@ def _ensure_env(extras: str) -> None:
     if not PYTHON.exists():
         print(f"creating virtual environment in {VENV}", flush=True)
         venv.EnvBuilder(with_pip=True).create(VENV)
-    digest = hashlib.sha256((ROOT / "pyproject.toml").read_bytes() + extras.encode()).hexdigest()
-    stamp = VENV / ".fuzzyrisk-installed"
+    digest = hashlib.sha256((ROOT / "pyproject.toml").read_bytes()).hexdigest()
+    stamp = VENV / f".fuzzyrisk-installed-{extras.replace(',', '-') or 'runtime'}"
     if stamp.exists() and stamp.read_text() == digest:
         return
     print(f"installing the project ({extras or 'runtime'} dependencies) into {VENV}", flush=True)
@@ -41,13 +42,22 @@ def _ensure_env(extras: str) -> None:
 
 
 def main(argv: list[str]) -> int:
-    if not argv or argv[0] not in {"serve", "test"}:
+    if not argv or argv[0] not in {"serve", "test", "bench"}:
         print(__doc__, file=sys.stderr)
         return 2
     command, rest = argv[0], argv[1:]
     if command == "serve":
         _ensure_env("")
         return subprocess.call([str(PYTHON), "-m", "app", *rest], cwd=ROOT)
+    if command == "bench":
+        names = sorted(p.stem.removeprefix("bench_") for p in (ROOT / "bench").glob("bench_*.py"))
+        names.append("soak")
+        if not rest or rest[0] not in names:
+            print(f"usage: python3 dev.py bench {{{','.join(names)}}} [args]", file=sys.stderr)
+            return 2
+        _ensure_env("test,plots,bench")
+        module = "bench.soak" if rest[0] == "soak" else f"bench.bench_{rest[0]}"
+        return subprocess.call([str(PYTHON), "-m", module, *rest[1:]], cwd=ROOT)
     _ensure_env("test,plots")
     lint = subprocess.call([str(VENV / "bin" / "lint-imports")], cwd=ROOT)
     if lint != 0:
