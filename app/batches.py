@@ -140,16 +140,60 @@ def from_json(batch: ScanBatch, dims: int, limits: Limits) -> list[Scan]:
 # ---------------------------------------------------------------- binary upload
 
 
-def _load_body(body: bytes) -> tuple[np.ndarray, bool]:
+def _npy_header(body: bytes) -> tuple[tuple[int, ...], bool, np.dtype, int]:
+    """(shape, fortran_order, dtype, data offset) of a ``.npy`` body, read without loading the data."""
+    stream = io.BytesIO(body)
+    try:
+        major, minor = np.lib.format.read_magic(stream)
+        if (major, minor) == (1, 0):
+            shape, fortran, dtype = np.lib.format.read_array_header_1_0(stream)
+        elif (major, minor) == (2, 0):
+            shape, fortran, dtype = np.lib.format.read_array_header_2_0(stream)
+        else:
+            raise Invalid(f"body: .npy format version {major}.{minor} is not read here: save with numpy.save "
+                          "(version 1.0 or 2.0)")
+    except Invalid:
+        raise
+    except Exception as exc:
+        # a hostile header reaches ast/tokenize inside numpy, which raise ValueError, SyntaxError,
+        # tokenize.TokenError, RecursionError...: every one of them means "not a .npy we can read"
+        raise Invalid(f"body: not a readable .npy header ({type(exc).__name__}: {exc}); "
+                      "save the array with numpy.save") from None
+    return tuple(shape), bool(fortran), dtype, stream.tell()
+
+
+def _load_npy(body: bytes, limits: Limits) -> np.ndarray:
+    """The float64 array of a ``.npy`` body; the header is checked before any data is touched.
+
+    A header can claim any shape: the beam count is checked against the limit (413) and the
+    byte count against the bytes actually sent (422) before an array is made, so a lying
+    header costs nothing.
+    """
+    shape, fortran, dtype, offset = _npy_header(body)
+    if dtype.kind != "f" or dtype.itemsize not in (4, 8):
+        raise Invalid(f"body: the .npy array must be float32 or float64, got {dtype}")
+    if dtype.byteorder not in ("<", "="):
+        raise Invalid(f"body: the .npy array is big-endian ({dtype.str}): send little-endian float32 or float64")
+    if len(shape) not in (1, 2):
+        raise Invalid(f"body: the .npy array must be (N,) ranges or (N, D) points, got shape {shape}")
+    if any(n < 0 for n in shape):
+        raise Invalid(f"body: the .npy header claims a negative dimension in shape {shape}")
+    _check_rays("body", shape[0], limits)
+    need = math.prod(shape) * dtype.itemsize  # Python ints: a claim of 10**12 beams cannot overflow
+    have = len(body) - offset
+    if need != have:
+        raise Invalid(
+            f"body: the .npy header says shape {shape} of {dtype} ({need} bytes) but {have} bytes follow the "
+            "header: the file is truncated or has trailing bytes"
+        )
+    array = np.frombuffer(body, dtype=dtype, count=math.prod(shape), offset=offset)
+    return array.reshape(shape, order="F" if fortran else "C").astype(np.float64)
+
+
+def _load_body(body: bytes, limits: Limits) -> tuple[np.ndarray, bool]:
     """(float64 array, came from .npy): a ``.npy`` file, or raw little-endian float32 values (1-D)."""
     if body.startswith(_NPY_MAGIC):
-        try:
-            array = np.load(io.BytesIO(body), allow_pickle=False)
-        except (ValueError, OSError, EOFError) as exc:
-            raise Invalid(f"body: not a readable .npy file ({exc})") from None
-        if array.dtype.kind != "f" or array.dtype.itemsize not in (4, 8):
-            raise Invalid(f"body: the .npy array must be float32 or float64, got {array.dtype}")
-        return array.astype(np.float64), True
+        return _load_npy(body, limits), True
     if not body:
         raise Invalid("body is empty: send a .npy array or raw little-endian float32 values")
     if len(body) % 4:
@@ -174,7 +218,7 @@ def from_binary(body: bytes, params: Mapping[str, float | None], dims: int, limi
     ``x, y, theta, range_max``.
     """
     registration_sigma = params.get("registration_sigma") or 0.0
-    array, is_npy = _load_body(body)
+    array, is_npy = _load_body(body, limits)
     if dims == 3:
         x, y, z, range_max = _need(params, ("x", "y", "z", "range_max"), "a point cloud on a 3-D map")
         given = [params.get(k) for k in ("qx", "qy", "qz", "qw")]

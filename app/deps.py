@@ -1,4 +1,8 @@
-"""Dependencies of the routes, as named ``Annotated`` aliases."""
+"""Dependencies of the routes, as named ``Annotated`` aliases.
+
+They are ``async def`` although they never await: FastAPI runs a plain ``def`` dependency
+in its thread pool, a round trip per dependency per request for a few attribute reads.
+"""
 
 from __future__ import annotations
 
@@ -18,15 +22,15 @@ _bearer = HTTPBearer(
 )
 
 
-def get_settings_dep(request: Request) -> Settings:
+async def get_settings_dep(request: Request) -> Settings:
     return request.app.state.settings  # type: ignore[no-any-return]
 
 
-def get_service(request: Request) -> MapService:
+async def get_service(request: Request) -> MapService:
     return request.app.state.service  # type: ignore[no-any-return]
 
 
-def require_api_key(
+async def require_api_key(
     settings: Annotated[Settings, Depends(get_settings_dep)],
     credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)],
 ) -> None:

@@ -6,6 +6,7 @@ Services raise these; routes stay free of status codes. Every answer is
 
 from __future__ import annotations
 
+import logging
 import math
 from typing import Any
 
@@ -13,6 +14,14 @@ from fastapi import FastAPI, Request
 from fastapi.encoders import jsonable_encoder
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
+
+from app.storage import StorageUnavailable
+
+LOG = logging.getLogger("fuzzyrisk.storage")
+#: What a client is told when the data directory cannot take a write.
+STORAGE_UNAVAILABLE_DETAIL = "the data directory is full or read-only; nothing was applied"
+#: Seconds a client should wait before retrying a write refused by storage (an operator must act first).
+STORAGE_RETRY_AFTER_S = 30
 
 
 class ServiceError(Exception):
@@ -85,7 +94,10 @@ def _validation_errors(exc: RequestValidationError) -> list[dict[str, Any]]:
 
 
 def install_error_handlers(app: FastAPI) -> None:
-    """Answer every ``ServiceError`` as ``{"detail": ...}`` with its status, and 422s without echoing bodies."""
+    """Answer every ``ServiceError`` as ``{"detail": ...}`` with its status, and 422s without echoing bodies.
+
+    ``StorageUnavailable`` (a full or read-only data directory) answers 503 with ``Retry-After``.
+    """
 
     async def handle(_request: Request, exc: Exception) -> JSONResponse:
         assert isinstance(exc, ServiceError)
@@ -95,5 +107,14 @@ def install_error_handlers(app: FastAPI) -> None:
         assert isinstance(exc, RequestValidationError)
         return JSONResponse({"detail": _validation_errors(exc)}, status_code=422)
 
+    async def handle_storage(request: Request, exc: Exception) -> JSONResponse:
+        # the services raise before touching a map in memory, so "nothing was applied" holds
+        LOG.error("write refused by storage: %s %s: %s", request.method, request.url.path, exc)
+        return JSONResponse(
+            {"detail": STORAGE_UNAVAILABLE_DETAIL}, status_code=503,
+            headers={"Retry-After": str(STORAGE_RETRY_AFTER_S)},
+        )
+
     app.add_exception_handler(ServiceError, handle)
+    app.add_exception_handler(StorageUnavailable, handle_storage)
     app.add_exception_handler(RequestValidationError, handle_validation)

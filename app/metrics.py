@@ -40,3 +40,6 @@ class Metrics:
         )
         self.maps = Gauge("fuzzyrisk_maps", "Maps held", registry=r)
         self.snapshots = Counter("fuzzyrisk_snapshots", "Map snapshots written", registry=r)
+        self.snapshot_failures = Counter(
+            "fuzzyrisk_snapshot_failures", "Map snapshots that storage refused (retried later)", registry=r
+        )

@@ -1,14 +1,29 @@
 """The service's domain functions: the only bridge from HTTP to ``fuzzyocc`` and ``planning``.
 
-Concurrency: each map has an ``asyncio.Lock``; every use of a map object (a batch,
-a risk read, a snapshot) holds it, so batches to one map are applied one at a
-time in arrival order (the lock is FIFO) and a read never sees a half-applied
-batch. The CPU work runs off the event loop: parsing, validation and fusion in
-a thread pool (numpy and numba release the GIL), plans in worker processes.
-Different maps proceed in parallel.
+Concurrency: each map has two orderings.
+
+* ``turns`` (writers: batches, delete, the final snapshot): a batch takes a ticket
+  the moment it arrives, is parsed and validated in a parsing thread with no lock
+  held (so batch k+1 parses while batch k fuses), then waits for its ticket's turn.
+  Batches are therefore committed and applied in arrival order, whatever order
+  their parsing finishes in; a batch refused by validation gives its turn up.
+* ``apply_lock`` (short): held while the map object is used, i.e. while a batch is
+  applied, while a snapshot copies the arrays (compression and the write happen
+  after, holding the turn only) and while a reader (risk, query, plan) copies. A
+  reader waits for at most the batch being applied, never behind the queued ones,
+  and never sees a half-applied batch or a version that does not match the arrays.
+
+The CPU work runs off the event loop: parsing, validation and fusion in a thread
+pool (numpy and numba release the GIL), plans in worker processes. Different
+maps proceed in parallel.
 
 Durability: a batch is parsed and validated completely, then committed (fsync)
-with the version it brings the map to, then applied, then acknowledged.
+with the version it brings the map to, then applied, then acknowledged. A store
+that cannot take the commit (full disk, read-only directory) raises
+``StorageUnavailable`` before anything is applied. A snapshot is only an
+optimisation of restarts (the batch log already holds every acknowledged batch),
+so a failed snapshot is logged, counted and retried later, never answered as an
+error.
 """
 
 from __future__ import annotations
@@ -77,6 +92,47 @@ def _unnpz(payload: bytes) -> dict[str, np.ndarray]:
         return {key: archive[key] for key in archive.files}
 
 
+class Turns:
+    """Tickets handed out in arrival order; holders pass one at a time, in ticket order.
+
+    ``take`` is synchronous, so calling it before the first ``await`` of a request fixes the
+    request's place in line. Every ticket taken must be ``done`` exactly once (``finally``),
+    whether its holder ran, failed or was cancelled, or the line stops.
+    """
+
+    def __init__(self) -> None:
+        self._next = 0
+        self._serving = 0
+        self._finished: set[int] = set()
+        self._waiters: dict[int, asyncio.Future[None]] = {}
+
+    def take(self) -> int:
+        ticket = self._next
+        self._next += 1
+        return ticket
+
+    async def wait(self, ticket: int) -> None:
+        """Return once every earlier ticket is done."""
+        if ticket == self._serving:
+            return
+        waiter = asyncio.get_running_loop().create_future()
+        self._waiters[ticket] = waiter
+        try:
+            await waiter
+        finally:
+            del self._waiters[ticket]
+
+    def done(self, ticket: int) -> None:
+        """Give the turn up (a ticket finished early, e.g. a refused batch, is skipped when its turn comes)."""
+        self._finished.add(ticket)
+        while self._serving in self._finished:
+            self._finished.discard(self._serving)
+            self._serving += 1
+        waiter = self._waiters.get(self._serving)
+        if waiter is not None and not waiter.done():
+            waiter.set_result(None)
+
+
 @dataclass
 class MapEntry:
     """A map held in memory, with what the service knows about it."""
@@ -87,8 +143,13 @@ class MapEntry:
     snapshot_version: int
     scans_fused: int
     updated: str
-    lock: asyncio.Lock = field(default_factory=asyncio.Lock)
-    last_scan: batches.ScanView | None = None
+    turns: Turns = field(default_factory=Turns)
+    apply_lock: asyncio.Lock = field(default_factory=asyncio.Lock)
+    #: the last scan fused; its view for the web page is built when first asked for
+    last_scan: batches.Scan | None = None
+    last_view: batches.ScanView | None = None
+    #: version at the last failed snapshot attempt (the next attempt waits snapshot_every batches more)
+    snapshot_failed_version: int = 0
     deleted: bool = False
 
     @property
@@ -162,7 +223,7 @@ def _restore(stored: StoredMap) -> MapEntry:
             LOG.exception("map %s: batch %d cannot be replayed; skipped", entry.name, version)
             continue
         entry.version = version
-        entry.last_scan = batches.scan_view(scans[-1])
+        entry.last_scan = scans[-1]
     entry.scans_fused = built.scans_fused
     return entry
 
@@ -177,11 +238,17 @@ class MapService:
         self._maps: dict[str, MapEntry] = {}
         self._create_lock = asyncio.Lock()
         self._threads = ThreadPoolExecutor(settings.fusion_threads, thread_name_prefix="fusion")
+        # parsing has its own threads: a burst of queued batches must not put its parsing ahead of
+        # the commit and fusion of the batch whose turn it is, nor ahead of readers' copies
+        self._parsers = ThreadPoolExecutor(settings.fusion_threads, thread_name_prefix="parse")
         self._plans = PlanPool(workers=settings.plan_workers, queue=settings.plan_queue)
         self._limits = batches.Limits(max_scans=settings.max_scans_per_batch, max_rays=settings.max_rays_per_scan)
 
     async def _run(self, fn: Callable[..., T], *args: Any) -> T:
         return await asyncio.get_running_loop().run_in_executor(self._threads, fn, *args)
+
+    async def _run_parser(self, fn: Callable[..., T], *args: Any) -> T:
+        return await asyncio.get_running_loop().run_in_executor(self._parsers, fn, *args)
 
     # ---------------------------------------------------------------- lifecycle
 
@@ -204,18 +271,46 @@ class MapService:
     async def stop(self) -> None:
         """Wait for batches in flight, snapshot every map with unsnapshotted batches, release everything."""
         for entry in list(self._maps.values()):
-            async with entry.lock:
+            ticket = entry.turns.take()
+            try:
+                await entry.turns.wait(ticket)
                 if not entry.deleted and entry.version > entry.snapshot_version:
-                    await self._run(self._snapshot, entry)
+                    await self._snapshot(entry)
+            finally:
+                entry.turns.done(ticket)
         self._plans.shutdown()
+        self._parsers.shutdown(wait=True)
         self._threads.shutdown(wait=True)
         self.storage.close()
 
-    def _snapshot(self, entry: MapEntry) -> None:
-        """Store the map's arrays and drop the batches they cover (caller holds the map's lock)."""
-        self.storage.write_snapshot(entry.name, entry.version, _npz(entry.map.to_arrays()))
-        entry.snapshot_version = entry.version
+    async def _snapshot(self, entry: MapEntry) -> None:
+        """Store the map's arrays and drop the batches they cover; a failure is logged and counted only.
+
+        The caller holds the map's turn (no batch can change the map meanwhile). Nothing is lost
+        when this fails: the batches since the last snapshot stay in the log and are replayed at start.
+        """
+        async with entry.apply_lock:  # readers wait for the copy only, not for deflate and fsync
+            version = entry.version
+            arrays = await self._run(entry.map.to_arrays)
+        try:
+            await self._run(lambda: self.storage.write_snapshot(entry.name, version, _npz(arrays)))
+        except Exception as exc:
+            # StorageUnavailable (full, read-only) mostly, but whatever it is, the batch that triggered
+            # the snapshot is committed and applied: it must still be acknowledged
+            entry.snapshot_failed_version = version
+            self.metrics.snapshot_failures.inc()
+            LOG.warning(
+                "snapshot failed; the batches stay in the log and the snapshot is retried later",
+                extra={"fields": {"map": entry.name, "version": version, "error": str(exc)}},
+            )
+            return
+        entry.snapshot_version = version
         self.metrics.snapshots.inc()
+
+    def _snapshot_due(self, entry: MapEntry) -> bool:
+        every = self.settings.snapshot_every
+        # after a failure, wait another ``every`` batches: a full disk should not cost a snapshot per batch
+        return entry.version - max(entry.snapshot_version, entry.snapshot_failed_version) >= every
 
     # ---------------------------------------------------------------- maps
 
@@ -261,14 +356,18 @@ class MapService:
             return entry.info()
 
     async def delete_map(self, name: str) -> None:
-        """Remove a map and its stored rows (after the batch in flight, if any)."""
+        """Remove a map and its stored rows (after the batches that arrived before, if any)."""
         entry = self._entry(name)
-        async with entry.lock:
+        ticket = entry.turns.take()
+        try:
+            await entry.turns.wait(ticket)
             if entry.deleted:
                 raise NotFound(f"no map named {name!r}")
             await self._run(self.storage.delete_map, name)
             entry.deleted = True
             del self._maps[name]
+        finally:
+            entry.turns.done(ticket)
         self.metrics.maps.set(len(self._maps))
 
     # ---------------------------------------------------------------- scans
@@ -289,18 +388,22 @@ class MapService:
             raise RequestValidationError(errors) from None
         return batches.from_json(batch, dims, self._limits)
 
-    def _ingest(
+    def _prepare(
         self, entry: MapEntry, body: bytes, content_type: str, params: Mapping[str, float | None]
-    ) -> tuple[BatchResult, batches.ScanView, str]:
-        """Parse, validate, commit, apply (in a fusion thread; the caller holds the map's lock)."""
+    ) -> tuple[list[batches.Scan], bytes]:
+        """Parse, validate and encode a batch (in a fusion thread, no lock held: it touches no map state)."""
         scans = self._parse(body, content_type, params, entry.spec.ndim)
-        version = entry.version + 1
-        payload = batches.encode(scans)
+        return scans, batches.encode(scans)
+
+    def _commit(self, entry: MapEntry, version: int, payload: bytes, updated: str) -> None:
+        """Make the batch durable (in a fusion thread; the caller holds the map's turn)."""
         started = time.perf_counter()
-        updated = _now()
         self.storage.append_batch(entry.name, version, payload, updated)
-        committed = time.perf_counter()
-        self.metrics.commit_seconds.observe(committed - started)
+        self.metrics.commit_seconds.observe(time.perf_counter() - started)
+
+    def _apply(self, entry: MapEntry, version: int, scans: list[batches.Scan]) -> BatchResult:
+        """Fuse a committed batch (in a fusion thread; the caller holds the turn and the apply lock)."""
+        started = time.perf_counter()
         try:
             stats = entry.map.integrate_batch(scans)
         except BaseException:
@@ -308,47 +411,64 @@ class MapService:
             self.storage.discard_batch(entry.name, version)
             raise
         model = entry.meta["model"]
-        self.metrics.fusion_seconds.labels(model).observe(time.perf_counter() - committed)
+        self.metrics.fusion_seconds.labels(model).observe(time.perf_counter() - started)
         self.metrics.scans_fused.labels(model).inc(stats.scans)
         self.metrics.rays.labels(model).inc(stats.rays)
         self.metrics.cells_updated.labels(model).inc(stats.cells_updated)
-        result = BatchResult(scans_fused=stats.scans, rays=stats.rays, cells_updated=stats.cells_updated, version=version)
-        return result, batches.scan_view(scans[-1]), updated
+        return BatchResult(scans_fused=stats.scans, rays=stats.rays, cells_updated=stats.cells_updated, version=version)
 
     async def add_scans(
         self, name: str, *, body: bytes, content_type: str, params: Mapping[str, float | None]
     ) -> BatchResult:
-        """Fuse one batch (JSON ``ScanBatch`` or one binary scan) into a map, durably, all or nothing."""
+        """Fuse one batch (JSON ``ScanBatch`` or one binary scan) into a map, durably, all or nothing.
+
+        Batches to one map are committed and applied in the order they arrived here.
+        """
         entry = self._entry(name)
-        async with entry.lock:
-            if entry.deleted:
-                raise NotFound(f"no map named {name!r}")
+        ticket = entry.turns.take()  # before any await: this fixes the batch's place in line
+        try:
             try:
-                result, view, updated = await self._run(self._ingest, entry, body, content_type, params)
+                scans, payload = await self._run_parser(self._prepare, entry, body, content_type, params)
             except (Invalid, TooLarge, RequestValidationError, UnsupportedMediaType) as exc:
                 self.metrics.batches_rejected.labels(type(exc).__name__).inc()
                 raise
-            # assigned here, on the event loop, so that MapInfo never mixes two versions
-            entry.version, entry.scans_fused, entry.updated, entry.last_scan = (
-                result.version, entry.map.scans_fused, updated, view
-            )
-            if entry.version - entry.snapshot_version >= self.settings.snapshot_every:
-                await self._run(self._snapshot, entry)
+            await entry.turns.wait(ticket)
+            if entry.deleted:
+                raise NotFound(f"no map named {name!r}")
+            version, updated = entry.version + 1, _now()
+            # StorageUnavailable from here leaves the map untouched: nothing is applied before the commit
+            await self._run(self._commit, entry, version, payload, updated)
+            async with entry.apply_lock:
+                result = await self._run(self._apply, entry, version, scans)
+                # assigned here, on the event loop and under the apply lock, so that a reader and
+                # MapInfo never pair the new arrays with the old version (or mix two versions)
+                entry.version, entry.scans_fused, entry.updated = result.version, entry.map.scans_fused, updated
+                entry.last_scan, entry.last_view = scans[-1], None
+            if self._snapshot_due(entry):
+                await self._snapshot(entry)
             return result
+        finally:
+            entry.turns.done(ticket)
 
-    def last_scan(self, name: str) -> LastScan:
+    async def last_scan(self, name: str) -> LastScan:
+        """Beam ends of the last scan fused; the view is built at the first request, not per batch."""
         entry = self._entry(name)
-        view = entry.last_scan
-        if view is None:
+        scan, view, version = entry.last_scan, entry.last_view, entry.version
+        if scan is None:
             raise NotFound(f"map {name!r} has fused no scan since the service started")
-        return LastScan(origin=view.origin, endpoints=view.endpoints, hit=view.hit, version=entry.version)
+        if view is None:
+            # most batches are never drawn; a big cloud's view takes a while, so off the event loop
+            view = await self._run(batches.scan_view, scan)
+            if entry.last_scan is scan:  # not replaced by a newer batch meanwhile
+                entry.last_view = view
+        return LastScan(origin=view.origin, endpoints=view.endpoints, hit=view.hit, version=version)
 
     # ---------------------------------------------------------------- risk
 
     async def read_grid(self, name: str) -> GridSnapshot:
         """Copies of the map's risk and observed arrays, consistent with one version."""
         entry = self._entry(name)
-        async with entry.lock:
+        async with entry.apply_lock:
             risk, observed = await self._run(lambda: (entry.map.risk().copy(), entry.map.observed().copy()))
             return GridSnapshot(entry.spec, entry.version, risk, observed)
 
@@ -363,7 +483,7 @@ class MapService:
         if any(len(p) != dims for p in points):
             bad = next(i for i, p in enumerate(points) if len(p) != dims)
             raise Invalid(f"points[{bad}] has {len(points[bad])} coordinates; this map is {dims}-D")
-        async with entry.lock:
+        async with entry.apply_lock:
             try:
                 values = await self._run(entry.map.risk_at, np.asarray(points, dtype=np.float64))
             except ValueError as exc:
@@ -456,9 +576,9 @@ class MapService:
     async def plan(self, name: str, request: PlanRequest) -> PlanResult:
         """Plan on the map's current risk in a worker process (``planning.plan`` checks the parameters)."""
         self._check_plan(request)
+        started = time.perf_counter()  # the wait for the grid is part of what the client waits for
         grid = await self.read_grid(name)
         params = request.model_dump(exclude_none=True)
-        started = time.perf_counter()
         outcome = "error"
         try:
             answer = await self._plans.run(

@@ -23,6 +23,10 @@ class NameTaken(Exception):
     """A map with this name is already stored."""
 
 
+class StorageUnavailable(Exception):
+    """A write could not be made durable (disk full, read-only or failing data directory); nothing was stored."""
+
+
 @dataclass
 class StoredMap:
     """Everything stored about one map."""
@@ -48,7 +52,11 @@ class Storage(Protocol):
         """Remove a map with its snapshot and batches (no error when absent)."""
 
     def append_batch(self, name: str, version: int, payload: bytes, updated: str) -> None:
-        """Durably store the batch that brings ``name`` to ``version`` before returning."""
+        """Durably store the batch that brings ``name`` to ``version`` before returning.
+
+        Every write method raises ``StorageUnavailable`` when the store cannot take the write;
+        the store is then exactly as it was before the call.
+        """
 
     def discard_batch(self, name: str, version: int) -> None:
         """Forget a batch that could not be applied (it was never acknowledged)."""
@@ -99,16 +107,35 @@ class SqliteStorage:
             self._db.executescript(_SCHEMA)
 
     def _write(self, statements: list[tuple[str, tuple[Any, ...]]]) -> None:
-        """Run statements in one immediate transaction: all of them are on disk when this returns."""
+        """Run statements in one immediate transaction: all of them are on disk when this returns.
+
+        ``StorageUnavailable`` (nothing written) when SQLite cannot write: a full disk, a
+        read-only directory or an I/O error, at any statement or at the COMMIT itself.
+        """
         with self._lock:
-            self._db.execute("BEGIN IMMEDIATE")
+            if self._db.in_transaction:  # left open by a ROLLBACK that failed too
+                self._rollback()
             try:
-                for sql, args in statements:
-                    self._db.execute(sql, args)
-            except BaseException:
+                self._db.execute("BEGIN IMMEDIATE")
+                try:
+                    for sql, args in statements:
+                        self._db.execute(sql, args)
+                    # inside the try: a COMMIT that fails (SQLITE_FULL at the WAL append) leaves
+                    # the transaction open, and the next BEGIN would fail on it
+                    self._db.execute("COMMIT")
+                except BaseException:
+                    self._rollback()
+                    raise
+            except sqlite3.OperationalError as exc:
+                raise StorageUnavailable(f"{exc} (SQLite {getattr(exc, 'sqlite_errorname', '?')})") from exc
+
+    def _rollback(self) -> None:
+        # SQLite may already have rolled back by itself (some SQLITE_FULL and IOERR cases)
+        if self._db.in_transaction:
+            try:
                 self._db.execute("ROLLBACK")
-                raise
-            self._db.execute("COMMIT")
+            except sqlite3.Error:
+                pass  # the original error is the one to report
 
     def load_all(self) -> list[StoredMap]:
         with self._lock:
@@ -155,6 +182,10 @@ class SqliteStorage:
 
     def close(self) -> None:
         with self._lock:
-            # fold the WAL back into the main file so a copied data dir is one self-contained file
-            self._db.execute("PRAGMA wal_checkpoint(TRUNCATE)")
-            self._db.close()
+            try:
+                # fold the WAL back into the main file so a copied data dir is one self-contained file
+                self._db.execute("PRAGMA wal_checkpoint(TRUNCATE)")
+            except sqlite3.OperationalError:
+                pass  # full or read-only: the WAL stays, and SQLite folds it in at the next open
+            finally:
+                self._db.close()

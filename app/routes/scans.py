@@ -95,4 +95,4 @@ async def post_scans(
 @router.get("/{name}/scans/last", responses={404: {"description": "no such map, or no scan yet"}})
 async def last_scan(name: MapNamePath, service: ServiceDep) -> LastScan:
     """Beam ends of the last scan fused (map frame, at most 4096): the web page draws them."""
-    return service.last_scan(name)
+    return await service.last_scan(name)
