@@ -260,7 +260,8 @@ def main(argv: list[str] | None = None) -> None:
     print(f"numba warm-up on tiny maps: {time.perf_counter() - t0:.1f} s (excluded from the timings below)")
     print("state MB: FuzzyMap/BayesMap state_nbytes(), the persistent state (cell states, observed bits); "
           "resident MB: resident_nbytes(), all a map holds between calls (plus the 16-bit risk cache); "
-          "OctoMap: tree.memoryUsage() for both; B/cell: per cell of our dense grid")
+          "OctoMap: tree.memoryUsage() for both; B/cell: per cell of our dense grid; FuzzyMap keeps a block of "
+          "cells in one state (4x4x4 in 3-D, 4x4 in 2-D) once, so its B/cell is below its 7 bytes of state")
     print(f"not in any row: the paper engine's defuzzification tables, {_lut_nbytes() / 1e6:.1f} MB once per "
           "process (shared by every FuzzyMap); arrays an integrate call allocates and frees")
     print(f"wall s: the fastest of {args.repeat} interleaved runs (a fresh map each), one integrate call per "

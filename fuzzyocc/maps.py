@@ -23,13 +23,14 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import cast
 
 import numpy as np
 
 from fuzzyocc import bayes
 from fuzzyocc.config import GridSpec, SensorModel
 from fuzzyocc.engine import FuzzyEngine
-from fuzzyocc.grid import CellGrid
+from fuzzyocc.grid import BlockGrid, CellGrid
 from fuzzyocc.keys import coords_to_keys, keys_to_flat
 from fuzzyocc.raycast import CastResult, cast_rays
 from fuzzyocc.scans import LaserScan, PointCloud, Rays
@@ -82,12 +83,20 @@ class OccupancyMap:
             raise ValueError(f"sensor must be a SensorModel, got {type(sensor).__name__}")
         self.spec = spec
         self.sensor = sensor
-        self._grid = CellGrid(spec, self._initial_state(), np.zeros(spec.num_cells, dtype=np.bool_), self._risk_of)
+        self._grid: CellGrid | BlockGrid = self._new_grid()
         self._scans_fused = 0
 
     def _restore(self, state: np.ndarray, observed: np.ndarray, scans_fused: int) -> None:
-        self._grid = CellGrid(self.spec, state, observed, self._risk_of)
+        self._grid = self._grid_from(state, observed)
         self._scans_fused = scans_fused
+
+    def _new_grid(self) -> CellGrid | BlockGrid:
+        """Storage of a new map (every cell unknown, none observed)."""
+        return self._grid_from(self._initial_state(), np.zeros(self.spec.num_cells, dtype=np.bool_))
+
+    def _grid_from(self, state: np.ndarray, observed: np.ndarray) -> CellGrid | BlockGrid:
+        """Storage holding ``state`` ((num_cells, ...), taken over) and ``observed``."""
+        return CellGrid(self.spec, state, observed, self._risk_of)
 
     # -- what a model defines ------------------------------------------------------------
     def _initial_state(self) -> np.ndarray:
@@ -189,6 +198,7 @@ class OccupancyMap:
             sigma=sigma,
             ray_offsets=np.concatenate([[0], np.cumsum(counts)]),
             unknown_from=self.occupied_extent,
+            block_shift=self._grid.block_shift,
         )
 
     # -- reading -------------------------------------------------------------------------
@@ -231,12 +241,18 @@ class OccupancyMap:
         """Bytes of the map's persistent state: cell states and observed mask (1 bit a cell).
 
         What the map is, and what :meth:`to_arrays` must save (its observed array is
-        unpacked to one byte a cell). See :meth:`resident_nbytes` for the caches too.
+        unpacked to one byte a cell, its states to ``L`` bytes a cell). A :class:`FuzzyMap`
+        keeps a block of cells in one state once (see :class:`fuzzyocc.grid.BlockGrid`):
+        its figure is the block table, the blocks' shared states and the mixed blocks'
+        cells. See :meth:`resident_nbytes` for the caches too.
         """
         return self._grid.persistent_nbytes()
 
     def resident_nbytes(self) -> int:
-        """Bytes the map holds between calls: :meth:`state_nbytes` plus the risk cache (2 a cell).
+        """Bytes the map holds between calls: :meth:`state_nbytes` plus the risk cache.
+
+        The risk cache is 2 bytes a cell (a :class:`FuzzyMap`: a cell of a mixed block, one
+        code per uniform block), and a :class:`FuzzyMap` also counts its pool's spare slots.
 
         Not counted: arrays an integrate call allocates and frees (the ray caster's
         per-cell scratch, the batch's cells and evidence), and the engine's
@@ -279,6 +295,10 @@ class OccupancyMap:
 class FuzzyMap(OccupancyMap):
     """Payeur's fuzzy occupancy map: L uint8 label activations per cell (7 bytes for the paper's).
 
+    Stored by uniform blocks (:class:`fuzzyocc.grid.BlockGrid`): a block of cells in one state
+    (free space, unknown space, the inside of an obstacle) keeps that state once, so the map
+    holds far less than ``L`` bytes a cell; states and risk are those of a dense grid bit for bit.
+
     Parameters
     ----------
     spec : GridSpec
@@ -295,11 +315,16 @@ class FuzzyMap(OccupancyMap):
         self.engine = FuzzyEngine.paper() if engine is None else engine
         super().__init__(spec, sensor)
 
-    def _initial_state(self) -> np.ndarray:
-        unknown = np.asarray(self.engine.unknown_state(), dtype=np.uint8)
-        state = np.empty((self.spec.num_cells, unknown.size), dtype=np.uint8)
-        state[:] = unknown
-        return state
+    @property
+    def _blocks(self) -> BlockGrid:
+        return cast(BlockGrid, self._grid)
+
+    def _new_grid(self) -> BlockGrid:
+        # Without the dense initial state: one uniform row for the whole grid.
+        return BlockGrid.filled(self.spec, np.asarray(self.engine.unknown_state(), dtype=np.uint8), self._risk_of)
+
+    def _grid_from(self, state: np.ndarray, observed: np.ndarray) -> BlockGrid:
+        return BlockGrid.from_dense(self.spec, state, observed, self._risk_of)
 
     @property
     def occupied_extent(self) -> float:
@@ -307,9 +332,7 @@ class FuzzyMap(OccupancyMap):
         return float(self.engine.occupied_extent)
 
     def _update(self, cells: np.ndarray, distance_sigmas: np.ndarray) -> int:
-        evidence = self.engine.fuzzify(distance_sigmas)
-        self.engine.fuse_at(self._grid.state, cells, evidence)
-        self._grid.mark_changed(cells)
+        self._blocks.fuse(cells, self.engine.fuzzify(distance_sigmas), self.engine.row_fusion())
         return int(cells.size)
 
     def _risk_of(self, state: np.ndarray) -> np.ndarray:
@@ -318,7 +341,7 @@ class FuzzyMap(OccupancyMap):
     def to_arrays(self) -> dict[str, np.ndarray]:
         """Everything needed to restore the map bit for bit (copies)."""
         arrays = self._common_arrays()
-        arrays["state"] = self._grid.state.reshape(*self.spec.shape, -1).copy()
+        arrays["state"] = self._blocks.dense().reshape(*self.spec.shape, -1)
         arrays["labels"] = np.array(self.engine.labels)
         return arrays
 
@@ -333,7 +356,7 @@ class FuzzyMap(OccupancyMap):
             raise ValueError(f"arrays hold labels {labels}, the engine has {tuple(engine.labels)}")
         state = cls._take(arrays, "state", (*spec.shape, engine.num_labels), np.uint8)
         restored = cls(spec, sensor, engine)
-        restored._restore(state.reshape(spec.num_cells, -1).copy(), observed, scans)
+        restored._restore(state.reshape(spec.num_cells, -1), observed, scans)  # compressed: a copy
         return restored
 
 
@@ -345,6 +368,10 @@ class BayesMap(OccupancyMap):
     """
 
     model = "bayes"
+
+    @property
+    def _cells(self) -> CellGrid:
+        return cast(CellGrid, self._grid)
 
     def _initial_state(self) -> np.ndarray:
         return np.zeros(self.spec.num_cells, dtype=np.float32)
@@ -359,7 +386,7 @@ class BayesMap(OccupancyMap):
         for lo in range(0, cells.size, _BAYES_CHUNK):
             part = cells[lo : lo + _BAYES_CHUNK]
             evidence = bayes.logodds(bayes.opdf(distance_sigmas[lo : lo + _BAYES_CHUNK], 1.0))
-            self._grid.write(part, bayes.update_logodds(self._grid.read(part), evidence))
+            self._cells.write(part, bayes.update_logodds(self._cells.read(part), evidence))
         return int(cells.size)
 
     def _risk_of(self, state: np.ndarray) -> np.ndarray:
@@ -368,7 +395,7 @@ class BayesMap(OccupancyMap):
     def to_arrays(self) -> dict[str, np.ndarray]:
         """Everything needed to restore the map bit for bit (copies)."""
         arrays = self._common_arrays()
-        arrays["logodds"] = self._grid.state.reshape(self.spec.shape).copy()
+        arrays["logodds"] = self._cells.state.reshape(self.spec.shape).copy()
         return arrays
 
     @classmethod

@@ -41,8 +41,8 @@ class CastResult:
     Attributes
     ----------
     cells : (M,) ndarray of int64
-        Flat cell ids (C order over ``spec.shape``); within a scan each cell appears once,
-        in increasing order.
+        Cell ids: flat (C order over ``spec.shape``), or block by block with ``block_shift``
+        (see :func:`cast_rays`); within a scan each cell appears once, in increasing order.
     distance_sigmas : (M,) ndarray of float32
         The evidence each cell takes from its scan: among the scan's beams through the cell,
         the largest ``(cell position - measured range) / sigma`` (the most occupied-ward) of
@@ -79,12 +79,18 @@ def _axis_setup(o, d, t0, lower, n, res):  # pragma: no cover - compiled
 
 @njit(cache=True, nogil=True)
 def _cast_kernel(origins, dirs, t_end, slope, offset, ray_offsets, lower, shape, res,
-                 unknown_from, best):  # pragma: no cover - compiled; tested through cast_rays
+                 unknown_from, best, shift, nblk):  # pragma: no cover - compiled; tested through cast_rays
     # Evidence of a cell is ``slope * midpoint + offset`` (eq. 5 in sigmas; slope 0 for a
     # no-return). ``best`` is a scratch array over all cells, NaN everywhere on entry and on
     # exit: NaN means "not reached by the current scan", so the whole grid is never cleared.
     n_scans = ray_offsets.shape[0] - 1
     nx, ny, nz = shape[0], shape[1], shape[2]
+    # Cell id: block id << block bits | offset in the block; with shift 0 (blocks of one
+    # cell) that is the flat id (ix * ny + iy) * nz + iz.
+    hx, hy, hz = shift[0], shift[1], shift[2]
+    mx, my, mz = (1 << hx) - 1, (1 << hy) - 1, (1 << hz) - 1
+    bits = hx + hy + hz
+    nby, nbz = nblk[1], nblk[2]
     # This scan's cells, kept only while they are few enough for a sort (below an eighth of the
     # grid, see the dense sweep further down): at most 1 byte a cell of the grid, not 8.
     keep = best.shape[0] // 8 + 1
@@ -137,7 +143,8 @@ def _cast_kernel(origins, dirs, t_end, slope, offset, ray_offsets, lower, shape,
                 else:
                     t_out = tmz
                     ax = 2
-                c = (ix * ny + iy) * nz + iz
+                c = ((((ix >> hx) * nby + (iy >> hy)) * nbz + (iz >> hz)) << bits
+                     | (((ix & mx) << hy | (iy & my)) << hz) | (iz & mz))
                 visits += 1
                 v = a_ * (0.5 * (t_in + t_out)) + b_
                 if v >= unknown_from:
@@ -200,9 +207,20 @@ def _cast_kernel(origins, dirs, t_end, slope, offset, ray_offsets, lower, shape,
     return cells[:n_out], dist[:n_out], scan_offsets, traversed  # views: a copy would double the peak
 
 
-def new_scratch(spec: GridSpec) -> np.ndarray:
-    """The scratch array :func:`cast_rays` needs (NaN over every cell); reusable across calls."""
-    return np.full(spec.num_cells, np.nan, dtype=np.float32)
+def _layout(spec: GridSpec, block_shift: tuple[int, int, int] | None) -> tuple[np.ndarray, np.ndarray]:
+    """``(shift, blocks along each axis)`` of the cell numbering (3 axes; a 2-D grid is one layer)."""
+    shape = np.ones(3, dtype=np.int64)
+    shape[: spec.ndim] = spec.shape
+    shift = np.zeros(3, dtype=np.int64) if block_shift is None else np.asarray(block_shift, dtype=np.int64)
+    if shift.shape != (3,) or np.any(shift < 0) or np.any(shift > 8):
+        raise ValueError(f"block_shift must be 3 integers in [0, 8], got {block_shift}")
+    return shift, (shape + (1 << shift) - 1) >> shift
+
+
+def new_scratch(spec: GridSpec, block_shift: tuple[int, int, int] | None = None) -> np.ndarray:
+    """The scratch array :func:`cast_rays` needs (NaN over every cell id); reusable across calls."""
+    shift, nblk = _layout(spec, block_shift)
+    return np.full(int(np.prod(nblk)) << int(shift.sum()), np.nan, dtype=np.float32)
 
 
 def cast_rays(
@@ -216,6 +234,7 @@ def cast_rays(
     *,
     unknown_from: float,
     scratch: np.ndarray | None = None,
+    block_shift: tuple[int, int, int] | None = None,
 ) -> CastResult:
     """Traverse the cells of every ray of a batch of scans and keep one evidence per (scan, cell).
 
@@ -239,7 +258,14 @@ def cast_rays(
     unknown_from : float
         Distance (sigmas) at and past which the evidence is pure UNK.
     scratch : (num_cells,) float32 ndarray, optional
-        From :func:`new_scratch`; pass one to avoid allocating it per call. NaN on return.
+        From :func:`new_scratch` (with the same ``block_shift``); pass one to avoid allocating
+        it per call. NaN on return.
+    block_shift : (3,) ints, optional
+        Number cells block by block, for a map stored in blocks of ``2**block_shift[a]`` cells
+        along axis ``a`` (x, y, z; a 2-D grid has one z layer): the id of cell ``(i, j, k)`` is
+        ``block << sum(block_shift) | offset``, ``block`` the C-order index of
+        ``(i >> sx, j >> sy, k >> sz)`` among the blocks covering the grid and ``offset`` the
+        C-order index of ``(i & mx, j & my, k & mz)`` in its block. Default: flat ids.
 
     Returns
     -------
@@ -265,10 +291,12 @@ def cast_rays(
     measured = np.asarray(measured, dtype=np.float64)
     no_return = np.isnan(measured)
     slope = np.where(no_return, 0.0, 1.0 / np.asarray(sigma, dtype=np.float64))
+    shift, nblk = _layout(spec, block_shift)
+    n_ids = int(np.prod(nblk)) << int(shift.sum())
     if scratch is None:
-        scratch = new_scratch(spec)
-    elif scratch.shape != (spec.num_cells,) or scratch.dtype != np.float32:
-        raise ValueError("scratch must come from new_scratch(spec)")
+        scratch = np.full(n_ids, np.nan, dtype=np.float32)
+    elif scratch.shape != (n_ids,) or scratch.dtype != np.float32:
+        raise ValueError("scratch must come from new_scratch(spec, block_shift)")
     cells, dist, scan_offsets, traversed = _cast_kernel(
         np.ascontiguousarray(origins),
         np.ascontiguousarray(directions),
@@ -281,5 +309,7 @@ def cast_rays(
         float(spec.resolution),
         float(unknown_from),
         scratch,
+        shift,
+        nblk,
     )
     return CastResult(cells=cells, distance_sigmas=dist, scan_offsets=scan_offsets, cells_traversed=traversed)

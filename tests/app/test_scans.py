@@ -28,7 +28,7 @@ def test_a_batch_answers_its_counts_and_the_new_version(lab: TestClient, kit: An
     assert body["scans_fused"] == 2 and body["rays"] == 135 and body["version"] == 1
     assert body["cells_updated"] > 135
     info = lab.get("/maps/lab").json()
-    assert info["version"] == 1 and info["scans_fused"] == 2 and info["updated"] > info["created"]
+    assert info["version"] == 1 and info["scans_fused"] == 2 and info["updated"] >= info["created"]  # same millisecond is possible
 
 
 def test_a_scan_makes_the_wall_risky_and_the_space_before_it_safe(lab: TestClient, kit: Any) -> None:

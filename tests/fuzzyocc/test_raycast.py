@@ -172,3 +172,48 @@ def test_each_scan_of_a_batch_gets_the_union_of_its_beams_with_their_largest_evi
         np.fmax.at(want, beams.cells[lo_b:hi_b], beams.distance_sigmas[lo_b:hi_b])
         np.testing.assert_array_equal(cells, np.flatnonzero(~np.isnan(want)))  # each once, increasing
         np.testing.assert_array_equal(dist, want[cells])
+
+
+@pytest.mark.parametrize(
+    ("spec", "block_shift"),
+    [
+        (GridSpec(origin=(0.0, 0.0, 0.0), size=(3.3, 2.9, 1.3), resolution=0.1), (2, 2, 2)),  # sparse: sorted
+        (GridSpec(origin=(0.0, 0.0, 0.0), size=(1.3, 0.9, 0.5), resolution=0.1), (2, 1, 3)),  # dense: swept
+        (GridSpec(origin=(0.0, 0.0), size=(3.7, 2.1), resolution=0.1), (3, 3, 0)),
+    ],
+    ids=["sparse-3d", "dense-3d", "2d"],
+)
+def test_block_numbering_reaches_the_same_cells_with_the_same_evidence(spec: GridSpec, block_shift) -> None:
+    rng = np.random.default_rng(11)
+    n = 300
+    lo, hi = np.asarray(spec.origin), np.asarray(spec.upper)
+    origins = lo + rng.random((n, spec.ndim)) * (hi - lo)
+    dirs = rng.normal(size=(n, spec.ndim))
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    t_end = rng.uniform(0.5, 4.0, n)
+    measured = np.where(rng.random(n) < 0.3, np.nan, t_end - 0.1)
+    args = (spec, origins, dirs, t_end, measured, np.full(n, 0.05), np.array([0, 100, n]))
+    flat = cast_rays(*args, unknown_from=1.5)
+    scratch = new_scratch(spec, block_shift)
+    blocks = cast_rays(*args, unknown_from=1.5, block_shift=block_shift, scratch=scratch)
+    assert np.all(np.isnan(scratch))
+    # The id of cell (i, j, k) by the documented formula, from its flat id.
+    shape = np.ones(3, dtype=np.int64)
+    shape[: spec.ndim] = spec.shape
+    keys = np.zeros((flat.cells.size, 3), dtype=np.int64)
+    keys[:, : spec.ndim] = flat_to_keys(spec, flat.cells)
+    sh = np.asarray(block_shift)
+    nblk = -(-shape // (1 << sh))
+    block = np.ravel_multi_index(tuple((keys >> sh).T), tuple(nblk))
+    offset = np.ravel_multi_index(tuple((keys & ((1 << sh) - 1)).T), tuple(1 << sh))
+    want = block << sh.sum() | offset
+    np.testing.assert_array_equal(blocks.scan_offsets, flat.scan_offsets)
+    for s in range(2):
+        part = slice(flat.scan_offsets[s], flat.scan_offsets[s + 1])
+        order = np.argsort(want[part])
+        np.testing.assert_array_equal(blocks.cells[part], want[part][order])  # each once, increasing
+        np.testing.assert_array_equal(blocks.distance_sigmas[part], flat.distance_sigmas[part][order])
+    with pytest.raises(ValueError, match="scratch"):
+        cast_rays(*args, unknown_from=1.5, block_shift=block_shift, scratch=new_scratch(spec))
+    with pytest.raises(ValueError, match="block_shift"):
+        cast_rays(*args, unknown_from=1.5, block_shift=(1, 1))
