@@ -466,10 +466,13 @@ class MapService:
     # ---------------------------------------------------------------- risk
 
     async def read_grid(self, name: str) -> GridSnapshot:
-        """Copies of the map's risk and observed arrays, consistent with one version."""
+        """The map's risk and observed arrays, consistent with one version.
+
+        ``risk()`` and ``observed()`` already hand out new read-only arrays, so no copy is needed.
+        """
         entry = self._entry(name)
         async with entry.apply_lock:
-            risk, observed = await self._run(lambda: (entry.map.risk().copy(), entry.map.observed().copy()))
+            risk, observed = await self._run(lambda: (entry.map.risk(), entry.map.observed()))
             return GridSnapshot(entry.spec, entry.version, risk, observed)
 
     async def risk_at(self, name: str, points: list[list[float]]) -> RiskValues:
