@@ -429,56 +429,59 @@ def _plan_ompl(
 
     # space, state validity, motion validity, risk objective
     space = sspec.build(grid, turning_radius)
-    si = space.si
-    # problem: start, goal region, objective (set before the planner's setup, or it is ignored)
-    pdef = ob.ProblemDefinition(si)
-    pdef.setStartAndGoalStates(space.to_state(start), space.to_state(goal), tolerance)
-    objective = space.objective
-    pdef.setOptimizationObjective(objective)
-    # planner, then solve
-    planner = pspec.make(si)
-    planner.setProblemDefinition(pdef)
-    planner.setup()
-    watching = pspec.optimizing and hasattr(planner, "bestCost")
-    if watching:
-        counter.watch = planner
-    use_counter = watching or counter.checks is not None
-    status = planner.solve(_until(solve_end, counter if use_counter else None))
-    solved_at = time.perf_counter() - t0
-    iterations = int(planner.numIterations()) if hasattr(planner, "numIterations") else 0
-    kind = status.getStatus()
-    finished = kind == ob.PlannerStatus.EXACT_SOLUTION and not pspec.optimizing  # stopped at its first solution
-    if seed is not None and not counter.exhausted and not finished and time.perf_counter() >= solve_end:
-        notes.append(CLOCK_NOTE)
-    if kind == ob.PlannerStatus.EXACT_SOLUTION and pdef.hasExactSolution():
-        label = "exact"
-    elif kind in (ob.PlannerStatus.EXACT_SOLUTION, ob.PlannerStatus.APPROXIMATE_SOLUTION) and pdef.hasSolution():
-        label = "approximate"
-        notes.append(f"goal not reached: the path ends {pdef.getSolutionDifference():.3g} from the goal region")
-    else:
-        notes.append(f"no path found ({status.asString()})")
-        return _result(grid, sspec, pspec.name, "none", None, None, t0, "; ".join(notes), iterations)
-    first = counter.first_solution if counter.first_solution is not None else solved_at
+    try:
+        si = space.si
+        # problem: start, goal region, objective (set before the planner's setup, or it is ignored)
+        pdef = ob.ProblemDefinition(si)
+        pdef.setStartAndGoalStates(space.to_state(start), space.to_state(goal), tolerance)
+        objective = space.objective
+        pdef.setOptimizationObjective(objective)
+        # planner, then solve
+        planner = pspec.make(si)
+        planner.setProblemDefinition(pdef)
+        planner.setup()
+        watching = pspec.optimizing and hasattr(planner, "bestCost")
+        if watching:
+            counter.watch = planner
+        use_counter = watching or counter.checks is not None
+        status = planner.solve(_until(solve_end, counter if use_counter else None))
+        solved_at = time.perf_counter() - t0
+        iterations = int(planner.numIterations()) if hasattr(planner, "numIterations") else 0
+        kind = status.getStatus()
+        finished = kind == ob.PlannerStatus.EXACT_SOLUTION and not pspec.optimizing  # stopped at its first solution
+        if seed is not None and not counter.exhausted and not finished and time.perf_counter() >= solve_end:
+            notes.append(CLOCK_NOTE)
+        if kind == ob.PlannerStatus.EXACT_SOLUTION and pdef.hasExactSolution():
+            label = "exact"
+        elif kind in (ob.PlannerStatus.EXACT_SOLUTION, ob.PlannerStatus.APPROXIMATE_SOLUTION) and pdef.hasSolution():
+            label = "approximate"
+            notes.append(f"goal not reached: the path ends {pdef.getSolutionDifference():.3g} from the goal region")
+        else:
+            notes.append(f"no path found ({status.asString()})")
+            return _result(grid, sspec, pspec.name, "none", None, None, t0, "; ".join(notes), iterations)
+        first = counter.first_solution if counter.first_solution is not None else solved_at
 
-    # simplify with the risk objective; keep whichever candidate is cheapest and verifies
-    raw = og.PathGeometric(pdef.getSolutionPath())  # a copy: the simplifier edits in place
-    simplified = og.PathGeometric(raw)
-    simp_counter = _Counter(SEEDED_SIMPLIFY_CHECKS, t0) if seed is not None else None
-    simp_end = end - post
-    og.PathSimplifier(si, pdef.getGoal(), objective).simplify(simplified, _until(simp_end, simp_counter))
-    if (
-        simp_counter is not None
-        and not simp_counter.exhausted
-        and time.perf_counter() >= simp_end
-        and CLOCK_NOTE not in notes
-    ):
-        notes.append("simplification " + CLOCK_NOTE)
-    best = _pick(grid, space, sspec, [simplified, raw], pdef if label == "exact" else None, goal)
-    if best is None:
-        notes.append("every candidate path crossed an invalid cell between the planner's checks")
-        return _result(grid, sspec, pspec.name, "none", None, None, t0, "; ".join(notes), iterations)
-    path, fine = best
-    return _result(grid, sspec, pspec.name, label, path, fine, t0, "; ".join(notes), iterations, first)
+        # simplify with the risk objective; keep whichever candidate is cheapest and verifies
+        raw = og.PathGeometric(pdef.getSolutionPath())  # a copy: the simplifier edits in place
+        simplified = og.PathGeometric(raw)
+        simp_counter = _Counter(SEEDED_SIMPLIFY_CHECKS, t0) if seed is not None else None
+        simp_end = end - post
+        og.PathSimplifier(si, pdef.getGoal(), objective).simplify(simplified, _until(simp_end, simp_counter))
+        if (
+            simp_counter is not None
+            and not simp_counter.exhausted
+            and time.perf_counter() >= simp_end
+            and CLOCK_NOTE not in notes
+        ):
+            notes.append("simplification " + CLOCK_NOTE)
+        best = _pick(grid, space, sspec, [simplified, raw], pdef if label == "exact" else None, goal)
+        if best is None:
+            notes.append("every candidate path crossed an invalid cell between the planner's checks")
+            return _result(grid, sspec, pspec.name, "none", None, None, t0, "; ".join(notes), iterations)
+        path, fine = best
+        return _result(grid, sspec, pspec.name, label, path, fine, t0, "; ".join(notes), iterations, first)
+    finally:
+        space.close()  # the compiled objective's table goes back to its pool
 
 
 def _pick(

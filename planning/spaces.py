@@ -14,7 +14,9 @@ Each state space comes with the three callbacks OMPL calls from C++:
   its C++ cost-to-go and its direct informed sampler (the ellipse of length <= best cost),
   both admissible here because every motion costs at least its length;
   ``motionCostHeuristic`` is overridden back to plain length, because the parent's calls
-  ``motionCost`` and would then overestimate.
+  ``motionCost`` and would then overestimate. For R2, SE2, Dubins and R3, ``plan`` uses the
+  same objective compiled into OMPL (``native.py``) and keeps these classes as its reference
+  and fallback.
 
 Costs are defined on the position trace only (the heading of SE2 costs nothing; see
 ``_build_se2``).
@@ -30,6 +32,7 @@ from typing import Any
 from ompl import base as ob
 
 from planning import _kernels
+from planning.native import NativeObjective, native_objective
 from planning.packed import PackedGrid, entry
 
 _Cost = ob.Cost
@@ -279,6 +282,20 @@ class OmplSpace:
     to_state: Callable[[Sequence[float]], Any]
     values: Callable[[Any], tuple[float, ...]]
     keepalive: tuple[Any, ...]  # Python objects C++ holds by reference
+    native: NativeObjective | None = None  # set when ``objective`` is the compiled one
+
+    def close(self) -> None:
+        """Release the compiled objective once the planner and problem are done with it."""
+        if self.native is not None:
+            self.native.release()
+
+
+def _risk_objective(
+    si: ob.SpaceInformation, grid: PackedGrid, space: str, python: ob.OptimizationObjective
+) -> tuple[ob.OptimizationObjective, NativeObjective | None]:
+    """The compiled objective where it passes its checks (``native.py``), else the Python one."""
+    native = native_objective(si, grid, space, python)
+    return (python if native is None else native.objective), native
 
 
 @dataclass(frozen=True)
@@ -329,7 +346,8 @@ def _build_r2(grid: PackedGrid, turning_radius: float | None) -> OmplSpace:
         s[0], s[1] = float(v[0]), float(v[1])
         return s
 
-    return OmplSpace(si, RiskCostR2(si, grid), to_state, lambda s: (s[0], s[1]), (space, checker, motion))
+    objective, native = _risk_objective(si, grid, "R2", RiskCostR2(si, grid))
+    return OmplSpace(si, objective, to_state, lambda s: (s[0], s[1]), (space, checker, motion), native)
 
 
 def _se2_like(space: ob.SE2StateSpace, grid: PackedGrid, straight: bool) -> OmplSpace:
@@ -348,12 +366,13 @@ def _se2_like(space: ob.SE2StateSpace, grid: PackedGrid, straight: bool) -> Ompl
     si.setMotionValidator(motion)
     _finish(si, grid)
     objective: ob.OptimizationObjective
+    native = None
     if straight:
-        objective = RiskCostSE2(si, grid)
+        objective, native = _risk_objective(si, grid, "SE2", RiskCostSE2(si, grid))
     elif dubins:
-        objective = RiskCostDubins(si, grid)
+        objective, native = _risk_objective(si, grid, "Dubins", RiskCostDubins(si, grid))
     else:
-        objective = RiskCostCurve(si, grid)
+        objective = RiskCostCurve(si, grid)  # needs OMPL's interpolation: stays in Python
 
     def to_state(v: Sequence[float]) -> Any:
         s = si.allocState()
@@ -361,7 +380,9 @@ def _se2_like(space: ob.SE2StateSpace, grid: PackedGrid, straight: bool) -> Ompl
         s.setYaw(wrap_angle(float(v[2])))  # OMPL's SO2 bounds are [-pi, pi): pi itself is out
         return s
 
-    return OmplSpace(si, objective, to_state, lambda s: (s.getX(), s.getY(), s.getYaw()), (space, checker, motion))
+    return OmplSpace(
+        si, objective, to_state, lambda s: (s.getX(), s.getY(), s.getYaw()), (space, checker, motion), native
+    )
 
 
 def _build_se2(grid: PackedGrid, turning_radius: float | None) -> OmplSpace:
@@ -400,7 +421,8 @@ def _build_r3(grid: PackedGrid, turning_radius: float | None) -> OmplSpace:
         s[0], s[1], s[2] = float(v[0]), float(v[1]), float(v[2])
         return s
 
-    return OmplSpace(si, RiskCostR3(si, grid), to_state, lambda s: (s[0], s[1], s[2]), (space, checker, motion))
+    objective, native = _risk_objective(si, grid, "R3", RiskCostR3(si, grid))
+    return OmplSpace(si, objective, to_state, lambda s: (s[0], s[1], s[2]), (space, checker, motion), native)
 
 
 STATE_SPACES: dict[str, SpaceSpec] = {
