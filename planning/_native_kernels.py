@@ -1,10 +1,11 @@
-"""``motionCost`` with OMPL's C++ signature, compiled by numba (see ``native.py``).
+"""OMPL's per-state and per-edge virtual functions with their C++ signatures, compiled by numba.
 
-Each function here is a C callable ``double (const void *self, const State *s1, const State *s2)``:
-on x86-64 (System V) that is exactly how ``ompl::base::Cost motionCost(const State *, const
-State *) const`` is called, because ``Cost`` is a single trivially copyable double, returned in
-xmm0. The objective's packed grid is found through the object's own (private) virtual table,
-in the word after its last copied slot.
+See ``native.py``. On x86-64 (System V) a C function ``double f(void *self, const State *s1,
+const State *s2)`` is called exactly as ``Cost OptimizationObjective::motionCost(const State *,
+const State *) const`` (``Cost`` is one trivially copyable double, returned in xmm0), and a
+``uint8_t f(void *self, ...)`` returning 0 or 1 as a member function returning ``bool``. An
+object's packed grid is found through its own (private) virtual table, in the word after the
+last copied slot.
 
 State layouts, as OMPL 2.0 lays them out (every ``State`` starts with its vtable pointer):
 ``RealVectorStateSpace::StateType`` is ``{vptr, double *values}``; ``SE2StateSpace::StateType``
@@ -24,7 +25,11 @@ from planning import _kernels
 COPIED_SLOTS = 48
 GRID_SLOT = COPIED_SLOTS
 
-MOTION_COST = types.float64(types.intp, types.intp, types.intp)
+MOTION_COST = types.float64(types.intp, types.intp, types.intp)  # Cost motionCost(s1, s2) const
+IS_VALID = types.uint8(types.intp, types.intp)  # bool isValid(state) const
+CHECK_MOTION = types.uint8(types.intp, types.intp, types.intp)  # bool checkMotion(s1, s2) const
+# bool checkMotion(s1, s2, std::pair<State *, double> &lastValid) const
+CHECK_MOTION_LAST = types.uint8(types.intp, types.intp, types.intp, types.intp)
 
 
 @intrinsic
@@ -86,4 +91,127 @@ def cost_dubins(this: int, s1: int, s2: int) -> float:
     return _kernels.dubins_cost(_grid(this), x1, y1, t1, x2, y2, t2)
 
 
-COST_FUNCTIONS = {"R2": cost_r2, "R3": cost_r3, "SE2": cost_se2, "Dubins": cost_dubins}
+@njit(cache=True, inline="always")
+def _cell_valid(address: int, u: float, v: float, w: float) -> bool:
+    """The packed valid flag of the cell holding grid coordinates (u, v, w); False outside."""
+    ptr = _kernels._f64_ptr(address)
+    nx = ptr[_kernels.H_SHAPE]
+    ny = ptr[_kernels.H_SHAPE + 1]
+    nz = ptr[_kernels.H_SHAPE + 2]
+    if not (0.0 <= u < nx and 0.0 <= v < ny and 0.0 <= w < nz):  # NaN fails too
+        return False
+    index = (int(u) * int(ny) + int(v)) * int(nz) + int(w)
+    return ptr[_kernels.HEADER + int(ptr[_kernels.H_NCELLS]) + index] != 0.0
+
+
+@njit(cache=True, inline="always")
+def _valid_xy(address: int, x: float, y: float) -> bool:
+    ptr = _kernels._f64_ptr(address)
+    inv = ptr[_kernels.H_INV_RES]
+    return _cell_valid(address, (x - ptr[_kernels.H_ORIGIN]) * inv, (y - ptr[_kernels.H_ORIGIN + 1]) * inv, 0.0)
+
+
+@cfunc(IS_VALID, cache=True)
+def valid_r2(this: int, s: int) -> int:
+    p = _real(s)
+    return 1 if _valid_xy(_grid(this), p[0], p[1]) else 0
+
+
+@cfunc(IS_VALID, cache=True)
+def valid_se2(this: int, s: int) -> int:
+    x, y, _ = _se2(s)
+    return 1 if _valid_xy(_grid(this), x, y) else 0
+
+
+@cfunc(IS_VALID, cache=True)
+def valid_r3(this: int, s: int) -> int:
+    p = _real(s)
+    address = _grid(this)
+    ptr = _kernels._f64_ptr(address)
+    inv = ptr[_kernels.H_INV_RES]
+    u = (p[0] - ptr[_kernels.H_ORIGIN]) * inv
+    v = (p[1] - ptr[_kernels.H_ORIGIN + 1]) * inv
+    w = (p[2] - ptr[_kernels.H_ORIGIN + 2]) * inv
+    return 1 if _cell_valid(address, u, v, w) else 0
+
+
+@njit(cache=True, inline="always")
+def _free_r2(this: int, s1: int, s2: int) -> int:
+    a = _real(s1)
+    b = _real(s2)
+    return 1 if _kernels.segment_free_2d(_grid(this), a[0], a[1], b[0], b[1]) else 0
+
+
+@njit(cache=True, inline="always")
+def _free_se2(this: int, s1: int, s2: int) -> int:
+    x1, y1, _ = _se2(s1)
+    x2, y2, _ = _se2(s2)
+    return 1 if _kernels.segment_free_2d(_grid(this), x1, y1, x2, y2) else 0
+
+
+@njit(cache=True, inline="always")
+def _free_dubins(this: int, s1: int, s2: int) -> int:
+    x1, y1, t1 = _se2(s1)
+    x2, y2, t2 = _se2(s2)
+    return 1 if _kernels.dubins_free(_grid(this), x1, y1, t1, x2, y2, t2) else 0
+
+
+@njit(cache=True, inline="always")
+def _free_r3(this: int, s1: int, s2: int) -> int:
+    a = _real(s1)
+    b = _real(s2)
+    return 1 if _kernels.segment_free_3d(_grid(this), a[0], a[1], a[2], b[0], b[1], b[2]) else 0
+
+
+# The overload with ``lastValid`` answers like the plain one and leaves ``lastValid`` as the
+# caller set it, which is what OMPL 2.0.1's bindings do for a Python MotionValidator: planners
+# behave the same with the compiled validator and with the Python fallback.
+
+
+@cfunc(CHECK_MOTION, cache=True)
+def free_r2(this: int, s1: int, s2: int) -> int:
+    return _free_r2(this, s1, s2)
+
+
+@cfunc(CHECK_MOTION_LAST, cache=True)
+def free_last_r2(this: int, s1: int, s2: int, last_valid: int) -> int:
+    return _free_r2(this, s1, s2)
+
+
+@cfunc(CHECK_MOTION, cache=True)
+def free_se2(this: int, s1: int, s2: int) -> int:
+    return _free_se2(this, s1, s2)
+
+
+@cfunc(CHECK_MOTION_LAST, cache=True)
+def free_last_se2(this: int, s1: int, s2: int, last_valid: int) -> int:
+    return _free_se2(this, s1, s2)
+
+
+@cfunc(CHECK_MOTION, cache=True)
+def free_dubins(this: int, s1: int, s2: int) -> int:
+    return _free_dubins(this, s1, s2)
+
+
+@cfunc(CHECK_MOTION_LAST, cache=True)
+def free_last_dubins(this: int, s1: int, s2: int, last_valid: int) -> int:
+    return _free_dubins(this, s1, s2)
+
+
+@cfunc(CHECK_MOTION, cache=True)
+def free_r3(this: int, s1: int, s2: int) -> int:
+    return _free_r3(this, s1, s2)
+
+
+@cfunc(CHECK_MOTION_LAST, cache=True)
+def free_last_r3(this: int, s1: int, s2: int, last_valid: int) -> int:
+    return _free_r3(this, s1, s2)
+
+
+# role -> state space -> compiled function
+FUNCTIONS = {
+    "cost": {"R2": cost_r2, "R3": cost_r3, "SE2": cost_se2, "Dubins": cost_dubins},
+    "valid": {"R2": valid_r2, "R3": valid_r3, "SE2": valid_se2, "Dubins": valid_se2},
+    "check": {"R2": free_r2, "R3": free_r3, "SE2": free_se2, "Dubins": free_dubins},
+    "check_last": {"R2": free_last_r2, "R3": free_last_r3, "SE2": free_last_se2, "Dubins": free_last_dubins},
+}

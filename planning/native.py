@@ -1,32 +1,31 @@
-"""The risk objective as native code inside OMPL: no C++ compiler, no Python call per edge.
+"""Validity, motion checks and the risk objective as native code inside OMPL, no C++ compiler.
 
-Why: OMPL calls the objective's ``motionCost`` from C++ for every edge it weighs (RRTstar: about
-20 per iteration). Overridden in Python, one call costs about 1 us, 0.6 us of which is the
-crossing from C++ into Python itself, and RRTstar loses half its iterations to it
-(``bench/README.md``). The OMPL wheel ships ``libompl.so`` but no headers, so a C++ subclass
-cannot be compiled against it, and a fresh machine may have no C++ compiler anyway.
+Why: OMPL calls these from C++ for every state and edge it weighs: RRTstar about 20
+``motionCost`` calls per iteration, RRTConnect about 30 000 motion and 15 000 state checks per
+plan on a maze. Overridden in Python, one call costs about 1 us, 0.6 us of which is the crossing
+from C++ into Python itself (``bench/README.md``). The OMPL wheel ships ``libompl.so`` but no
+headers, so a C++ subclass cannot be compiled against it, and a fresh machine may have no C++
+compiler anyway.
 
-How: the objective is a plain ``PathLengthOptimizationObjective`` made through the bindings,
-whose C++ object is pointed at a private copy of its class's virtual table in which
+How: a plain OMPL object (a ``PathLengthOptimizationObjective``, an
+``AllValidStateValidityChecker``, or the ``DiscreteMotionValidator`` / ``DubinsMotionValidator``
+that ``SpaceInformation.setup`` makes) is pointed at a private copy of its class's virtual
+table in which the slots of ``motionCost`` / ``isValid`` / both ``checkMotion`` hold numba
+``cfunc`` s with the same C++ signatures (``_native_kernels.py``). They read the states'
+coordinates from OMPL's state structs and run the very kernels the Python callbacks of
+``spaces.py`` run; the word after the copied slots holds the packed grid's address. The
+objective's ``motionCostHeuristic`` slot gets the class's own ``motionCost`` (the length),
+because the class's heuristic calls ``motionCost`` and would overestimate. Everything else
+(cost-to-go, informed sampler, combination of costs) stays the class's C++.
+:meth:`NativePatch.release` points the object back at its class's table, which is then reused.
 
-- the ``motionCost`` slot holds a numba ``cfunc`` with ``motionCost``'s C++ signature
-  (``_native_kernels.py``), which reads the states' coordinates from OMPL's state structs and
-  walks the packed grid with the same kernel as the Python objective of ``spaces.py``;
-- the ``motionCostHeuristic`` slot holds the class's own ``motionCost``, the length, because
-  the class's heuristic calls ``motionCost`` and would then overestimate;
-- the word after the copied slots holds the packed grid's address.
-
-Everything else (cost-to-go, informed sampler, combination of costs) stays the class's C++,
-exactly as with the Python subclass. :meth:`NativeObjective.release` points the object back at
-its class's table, so a table is reused only when no objective uses it.
-
-Everything the trick assumes is verified once per process and state space before it is used,
-reading only memory known to be mapped or through ``/proc/self/mem`` (which fails cleanly on a
-bad address instead of crashing): x86-64 Linux; the library's exported symbols; nanobind
-storing the object inline, with the class's vtable as its first word; ``motionCost`` and the
-heuristic found once each in the table; state layouts read back equal to what the bindings
-report; and the patched objective's costs equal to the Python objective's on random segments.
-Any failure logs one warning, and the Python objectives of ``spaces.py`` are used instead.
+Everything the trick assumes is verified once per process, kind and state space before it is
+used, reading memory through ``/proc/self/mem`` (which fails cleanly on a bad address instead of
+crashing) where it is not known to be mapped: x86-64 Linux; the library's exported symbols;
+nanobind's instance layout; the object's class, by the name in its table's type info; each
+function found once in its class's table; state layouts read back equal to what the bindings
+report; and answers equal to the Python callbacks' on random states and segments. Any failure
+logs one warning and the Python callbacks are used instead.
 """
 
 from __future__ import annotations
@@ -39,6 +38,7 @@ import platform
 import struct
 import sys
 import threading
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -51,33 +51,68 @@ from planning.packed import PackedGrid
 log = logging.getLogger(__name__)
 
 SPACES = ("R2", "R3", "SE2", "Dubins")
+KINDS = ("objective", "validity", "motion")
 
-_VTABLE = "_ZTVN4ompl4base31PathLengthOptimizationObjectiveE"
-_MOTION_COST = "_ZNK4ompl4base31PathLengthOptimizationObjective10motionCostEPKNS0_5StateES4_"
-_HEURISTIC = "_ZNK4ompl4base31PathLengthOptimizationObjective19motionCostHeuristicEPKNS0_5StateES4_"
+# The classes whose objects get private tables, by the mangled name in their type info: per
+# role, the mangled name of the class's own function, looked up in the library and found in
+# the class's table to locate the role's slot; and the class's vtable symbol, when the objects
+# are made from Python (nanobind's module may hold its own copy of an inline class's table, whose
+# functions are not exported: the slots are then located in the library's copy)
+_DUBINS_MV = "N4ompl4base21DubinsMotionValidatorINS0_16DubinsStateSpaceEEE"
+_CLASSES: dict[str, tuple[str | None, dict[str, str]]] = {
+    "N4ompl4base31PathLengthOptimizationObjectiveE": (
+        "_ZTVN4ompl4base31PathLengthOptimizationObjectiveE",
+        {
+            "cost": "_ZNK4ompl4base31PathLengthOptimizationObjective10motionCostEPKNS0_5StateES4_",
+            "heuristic": "_ZNK4ompl4base31PathLengthOptimizationObjective19motionCostHeuristicEPKNS0_5StateES4_",
+        },
+    ),
+    "N4ompl4base28AllValidStateValidityCheckerE": (
+        "_ZTVN4ompl4base28AllValidStateValidityCheckerE",
+        {"valid": "_ZNK4ompl4base28AllValidStateValidityChecker7isValidEPKNS0_5StateE"},
+    ),
+    "N4ompl4base23DiscreteMotionValidatorE": (
+        None,
+        {
+            "check": "_ZNK4ompl4base23DiscreteMotionValidator11checkMotionEPKNS0_5StateES4_",
+            "check_last": "_ZNK4ompl4base23DiscreteMotionValidator11checkMotionEPKNS0_5StateES4_RSt4pairIPS2_dE",
+        },
+    ),
+    _DUBINS_MV: (
+        None,
+        {
+            "check": "_ZNK4ompl4base21DubinsMotionValidatorINS0_16DubinsStateSpaceEE11checkMotionEPKNS0_5StateES6_",
+            "check_last": "_ZNK4ompl4base21DubinsMotionValidatorINS0_16DubinsStateSpaceEE11checkMotionEPKNS0_5St"
+            "ateES6_RSt4pairIPS4_dE",
+        },
+    ),
+}
 
 # nanobind's instance header (struct nb_inst): PyObject_HEAD, then the int32 offset of the C++
 # object and a bit field in which bit 2 ("direct") says the object is stored inline at that offset
 _NB_HEADER = 16
 _NB_DIRECT = 1 << 2
-_CHECK_SEGMENTS = 256
+_CHECKS = 256
 
-_enabled = True
+_enabled = set(KINDS)
 _lock = threading.Lock()
-_verdicts: dict[str, str] = {}  # state space -> "" when usable, else why not
-_library: _Library | None = None
+_verdicts: dict[str, str] = {}  # "role space" -> "" when usable, else why not
+_library: ctypes.CDLL | None = None
+_classes: dict[int, _Class] = {}  # by vtable address (each copy of a class's table apart)
 
 
-def set_enabled(enabled: bool) -> None:
-    """Use native objectives when they pass their checks (the default), or never."""
-    global _enabled
-    _enabled = bool(enabled)
+def set_enabled(enabled: bool, kinds: Iterable[str] = KINDS) -> None:
+    """Use the compiled ``kinds`` (of KINDS) where they pass their checks (the default), or never."""
+    for kind in kinds:
+        if kind not in KINDS:
+            raise ValueError(f"unknown kind {kind!r}: one of {', '.join(KINDS)}")
+        (_enabled.add if enabled else _enabled.discard)(kind)
 
 
 def status() -> dict[str, str]:
-    """Per state space checked so far: "native", or why the Python objective is used."""
+    """Per "kind space" checked so far (e.g. "objective R2"): "native", or why Python is used."""
     with _lock:
-        return {name: why or "native" for name, why in _verdicts.items()}
+        return {key: why or "native" for key, why in _verdicts.items()}
 
 
 def _peek(address: int, size: int) -> bytes | None:
@@ -111,40 +146,84 @@ def _instance(obj: Any) -> tuple[int, bool] | None:
     return offset, bool(flags & _NB_DIRECT)
 
 
+def _cpp_address(obj: Any, inline: bool) -> int | None:
+    """Address of the C++ object behind a nanobind instance, stored inline or held by pointer."""
+    where = _instance(obj)
+    if where is None or where[1] != inline:
+        return None
+    return id(obj) + where[0] if inline else _peek_word(id(obj) + where[0])
+
+
 @dataclass
-class _Library:
-    vtable: int  # address of the class's vtable (its offset-to-top word)
-    original: np.ndarray  # the class's table: 2 header words, then COPIED_SLOTS slots
-    cost_slot: int
-    heuristic_slot: int
-    functions: dict[str, int]  # state space -> address of its cfunc
+class _Class:
+    """One copy of a class's table: its words, its slots by role, and the private tables made from it."""
+
+    vtable: int  # the address objects of this copy point at (its first slot)
+    original: np.ndarray  # 2 header words (offset to top, type info), then COPIED_SLOTS slots
+    slots: dict[str, int]  # role -> slot index
     free: list[np.ndarray] = field(default_factory=list)
     tables: list[np.ndarray] = field(default_factory=list)  # every table made: never freed
 
 
-def _load_library() -> _Library:
-    """The class's vtable and the compiled cost functions; raises RuntimeError when unusable."""
+def _open_library() -> ctypes.CDLL:
     if sys.platform != "linux" or platform.machine() not in ("x86_64", "AMD64"):
         raise RuntimeError(f"needs x86-64 Linux (System V calls), this is {sys.platform} {platform.machine()}")
     path = os.path.join(os.path.dirname(ompl.__file__), "libompl.so")
     try:
-        lib = ctypes.CDLL(path, mode=os.RTLD_NOLOAD | os.RTLD_LAZY)  # the copy the bindings loaded
-        vtable, cost, heuristic = (ctypes.cast(getattr(lib, s), ctypes.c_void_p).value for s in
-                                   (_VTABLE, _MOTION_COST, _HEURISTIC))  # fmt: skip
-    except (OSError, AttributeError) as exc:
-        raise RuntimeError(f"OMPL's library or its symbols were not found: {exc}") from exc
-    from planning import _native_kernels as nk  # compiles (or loads) the cost functions
+        return ctypes.CDLL(path, mode=os.RTLD_NOLOAD | os.RTLD_LAZY)  # the copy the bindings loaded
+    except OSError as exc:
+        raise RuntimeError(f"OMPL's library was not found: {exc}") from exc
 
-    words = _peek(vtable, 8 * (2 + nk.COPIED_SLOTS)) if vtable else None
+
+def _symbol(name: str) -> int:
+    global _library
+    if _library is None:
+        _library = _open_library()
+    try:
+        return int(ctypes.cast(getattr(_library, name), ctypes.c_void_p).value or 0)
+    except AttributeError as exc:
+        raise RuntimeError(f"OMPL's library does not export {name}") from exc
+
+
+def _table_words(vptr: int) -> np.ndarray:
+    from planning._native_kernels import COPIED_SLOTS
+
+    words = _peek(vptr - 16, 8 * (2 + COPIED_SLOTS))
     if words is None:
-        raise RuntimeError("the objective's virtual table could not be read")
-    original = np.frombuffer(words, dtype=np.int64).copy()
-    slots = original[2:].view(np.uint64)
-    found = [np.flatnonzero(slots == np.uint64(f)) for f in (cost, heuristic)]
-    if any(len(f) != 1 for f in found):
-        raise RuntimeError("motionCost or motionCostHeuristic not found once in the virtual table")
-    functions = {name: int(nk.COST_FUNCTIONS[name].address) for name in SPACES}
-    return _Library(vtable, original, int(found[0][0]), int(found[1][0]), functions)
+        raise RuntimeError("a virtual table could not be read")
+    return np.frombuffer(words, dtype=np.int64).copy()
+
+
+def _class_of(this: int) -> _Class:
+    """The class of the C++ object at ``this``, identified by its type info, with its slots."""
+    vptr = _peek_word(this)
+    if vptr is None:
+        raise RuntimeError("the object could not be read")
+    with _lock:
+        known = _classes.get(vptr)
+        ours = any(vptr == int(t.ctypes.data) + 16 for c in _classes.values() for t in c.tables)
+    if ours:
+        raise RuntimeError("the object is already compiled")
+    if known is not None:
+        return known
+    original = _table_words(vptr)
+    info = int(original[1])
+    name_at = _peek_word(info + 8) if info else None
+    raw = _peek(name_at, 128) if name_at else None
+    name = raw.split(b"\0", 1)[0].decode("ascii", "replace") if raw else ""
+    if name not in _CLASSES:
+        raise RuntimeError(f"unexpected class {name or '(unreadable)'}")
+    vtable_symbol, roles = _CLASSES[name]
+    reference = original if vtable_symbol is None else _table_words(_symbol(vtable_symbol) + 16)
+    slots = {}
+    for role, function in roles.items():
+        found = np.flatnonzero(reference[2:].view(np.uint64) == np.uint64(_symbol(function)))
+        if len(found) != 1:
+            raise RuntimeError(f"{function} is not found once in its class's virtual table")
+        slots[role] = int(found[0])
+    cls = _Class(vptr, original, slots)
+    with _lock:
+        return _classes.setdefault(vptr, cls)
 
 
 def _state_layout_ok(space: str, si: ob.SpaceInformation) -> bool:
@@ -178,101 +257,171 @@ def _state_layout_ok(space: str, si: ob.SpaceInformation) -> bool:
     )
 
 
-class NativeObjective:
-    """A ``PathLengthOptimizationObjective`` whose ``motionCost`` is the compiled risk cost.
+class NativePatch:
+    """An OMPL object pointed at a private copy of its class's table, with compiled slots.
 
-    Hand ``objective`` to OMPL; call :meth:`release` once the planner and problem are done
-    with it (the object then costs plain length again and its table is reused).
+    ``functions`` maps roles of the class (see ``_CLASSES``) to a compiled function's address,
+    or to the name of another role whose original function the slot should take. Holds the
+    object (so it outlives the patch) and the packed grid its functions read. Call
+    :meth:`release` once OMPL is done with it: the object gets its class's table back (and
+    behaves as that class again) and the table is reused.
     """
 
-    def __init__(self, si: ob.SpaceInformation, grid: PackedGrid, space: str, library: _Library) -> None:
-        self.objective = ob.PathLengthOptimizationObjective(si)
-        self.grid = grid  # keeps the packed buffer alive while the table points at it
-        self._library = library
-        where = _instance(self.objective)
-        if where is None or not where[1]:
-            raise RuntimeError("nanobind does not store the objective inline")
-        self._this = id(self.objective) + where[0]
-        vptr = ctypes.c_uint64.from_address(self._this)
-        if vptr.value != library.vtable + 16:
-            raise RuntimeError("the objective's first word is not its class's virtual table")
+    def __init__(self, obj: Any, this: int, grid: PackedGrid, functions: dict[str, int | str]) -> None:
+        self._table: np.ndarray | None = None
+        self.obj = obj
+        self.grid = grid
+        self._this = this
+        self._cls = cls = _class_of(this)
         with _lock:
-            table = library.free.pop() if library.free else None
-        if table is None:
-            table = np.empty(len(library.original) + 1, dtype=np.int64)
-            with _lock:
-                library.tables.append(table)
-        table[:-1] = library.original
-        table[2 + library.cost_slot] = library.functions[space]
-        table[2 + library.heuristic_slot] = library.original[2 + library.cost_slot]
+            table = cls.free.pop() if cls.free else None
+            if table is None:
+                table = np.empty(len(cls.original) + 1, dtype=np.int64)
+                cls.tables.append(table)
+        table[:-1] = cls.original
+        for role, function in functions.items():
+            slot = 2 + cls.slots[role]
+            table[slot] = cls.original[2 + cls.slots[function]] if isinstance(function, str) else function
         table[-1] = grid.address
-        self._table: np.ndarray | None = table
-        vptr.value = int(table.ctypes.data) + 16
+        self._table = table
+        ctypes.c_uint64.from_address(this).value = int(table.ctypes.data) + 16
 
     def release(self) -> None:
         """Give the object back its class's table (idempotent)."""
         table, self._table = self._table, None
         if table is None:
             return
-        ctypes.c_uint64.from_address(self._this).value = self._library.vtable + 16
+        ctypes.c_uint64.from_address(self._this).value = self._cls.vtable
         table[-1] = 0
         with _lock:
-            self._library.free.append(table)
+            self._cls.free.append(table)
 
     def __del__(self) -> None:
         self.release()
 
 
-def _agrees(native: NativeObjective, reference: ob.OptimizationObjective, si: ob.SpaceInformation,
-            grid: PackedGrid, space: str) -> bool:  # fmt: skip
-    """Costs of random segments, native against the Python objective: bit-identical."""
+def _random_states(si: ob.SpaceInformation, grid: PackedGrid, space: str, n: int, margin: float) -> list[Any]:
+    """``n`` states spread over the map, ``margin`` of its size beyond its edges (numpy's RNG:
+    OMPL's global one is left alone, for seeded plans)."""
     rng = np.random.default_rng(0)
     low = np.asarray(grid.origin, dtype=float)
-    high = low + np.asarray(grid.shape, dtype=float) * grid.resolution
-    a, b = si.allocState(), si.allocState()  # owned by their Python wrappers
-    for _ in range(_CHECK_SEGMENTS):
-        for s in (a, b):
-            p = rng.uniform(low, high)
-            if space in ("R2", "R3"):
-                for i, v in enumerate(p):
-                    s[i] = float(v)
-            else:
-                s.setXY(float(p[0]), float(p[1]))
-                s.setYaw(float(rng.uniform(-math.pi, math.pi)))
-        if native.objective.motionCost(a, b).value() != reference.motionCost(a, b).value():
-            return False
-    return True
+    size = np.asarray(grid.shape, dtype=float) * grid.resolution
+    states = []
+    for _ in range(n):
+        p = rng.uniform(low - margin * size, low + (1.0 + margin) * size)
+        s = si.allocState()  # owned by its Python wrapper
+        if space in ("R2", "R3"):
+            for i, v in enumerate(p):
+                s[i] = float(v)
+        else:
+            s.setXY(float(p[0]), float(p[1]))
+            s.setYaw(float(rng.uniform(-math.pi, math.pi)))
+        states.append(s)
+    return states
+
+
+def _patch(kind: str, space: str, si: ob.SpaceInformation, make: Callable[[], NativePatch],
+           agrees: Callable[[NativePatch], bool]) -> NativePatch | None:  # fmt: skip
+    """Make a patched object once its space's checks pass; None (and one warning) otherwise."""
+    key = f"{kind} {space}"
+    if kind not in _enabled or space not in SPACES:
+        return None
+    with _lock:
+        verdict = _verdicts.get(key)
+    if verdict:
+        return None
+    try:
+        if verdict is None and not _state_layout_ok(space, si):
+            raise RuntimeError(f"{space} states are not laid out as expected")
+        patch = make()
+        if verdict is None and not agrees(patch):
+            patch.release()
+            raise RuntimeError(f"the compiled {kind} of {space} disagrees with the Python one")
+    except RuntimeError as exc:
+        with _lock:
+            _verdicts[key] = str(exc)
+        log.warning("compiled %s off for %s, using the Python one: %s", kind, space, exc)
+        return None
+    with _lock:
+        _verdicts[key] = ""
+    return patch
+
+
+def _function(role: str, space: str) -> int:
+    """Address of the compiled function of ``role`` for ``space`` (compiled or loaded on first use)."""
+    from planning._native_kernels import FUNCTIONS
+
+    return int(FUNCTIONS[role][space].address)
 
 
 def native_objective(
     si: ob.SpaceInformation, grid: PackedGrid, space: str, reference: ob.OptimizationObjective
-) -> NativeObjective | None:
-    """The compiled risk objective for ``space``, or None where it is off or failed its checks.
+) -> NativePatch | None:
+    """A ``PathLengthOptimizationObjective`` whose ``motionCost`` is the compiled risk cost.
 
-    ``reference`` is the Python objective it must agree with (checked on the first call per
-    process and state space).
+    Its heuristic becomes the class's own ``motionCost`` (the length), since the class's
+    heuristic calls ``motionCost`` and would overestimate. ``reference`` is the Python
+    objective it must agree with, bit for bit (checked once per process and space).
     """
-    global _library
-    if not _enabled or space not in SPACES:
-        return None
-    with _lock:
-        verdict = _verdicts.get(space)
-    if verdict:
-        return None
-    try:
-        if _library is None:
-            _library = _load_library()
-        if verdict is None and not _state_layout_ok(space, si):
-            raise RuntimeError(f"{space} states are not laid out as expected")
-        native = NativeObjective(si, grid, space, _library)
-        if verdict is None and not _agrees(native, reference, si, grid, space):
-            native.release()
-            raise RuntimeError(f"native {space} costs differ from the Python objective's")
-    except RuntimeError as exc:
-        with _lock:
-            _verdicts[space] = str(exc)
-        log.warning("native risk objective off for %s, using the Python one: %s", space, exc)
-        return None
-    with _lock:
-        _verdicts[space] = ""
-    return native
+
+    def make() -> NativePatch:
+        obj = ob.PathLengthOptimizationObjective(si)
+        this = _cpp_address(obj, inline=True)
+        if this is None:
+            raise RuntimeError("nanobind does not store the objective inline")
+        return NativePatch(obj, this, grid, {"cost": _function("cost", space), "heuristic": "cost"})
+
+    def agrees(patch: NativePatch) -> bool:
+        states = _random_states(si, grid, space, 2 * _CHECKS, 0.0)
+        return all(patch.obj.motionCost(a, b).value() == reference.motionCost(a, b).value()
+                   for a, b in zip(states[::2], states[1::2]))  # fmt: skip
+
+    return _patch("objective", space, si, make, agrees)
+
+
+def native_validity(
+    si: ob.SpaceInformation, grid: PackedGrid, space: str, reference: Callable[[], Callable[[Any], bool]]
+) -> NativePatch | None:
+    """A state validity checker whose ``isValid`` is the compiled cell lookup (set it on ``si``).
+
+    ``reference()`` makes the Python checker it must agree with, on states in and around the
+    map (called on the first check only).
+    """
+
+    def make() -> NativePatch:
+        obj = ob.AllValidStateValidityChecker(si)
+        this = _cpp_address(obj, inline=True)
+        if this is None:
+            raise RuntimeError("nanobind does not store the validity checker inline")
+        return NativePatch(obj, this, grid, {"valid": _function("valid", space)})
+
+    def agrees(patch: NativePatch) -> bool:
+        states = _random_states(si, grid, space, 4 * _CHECKS, 0.1)
+        python = reference()
+        return all(bool(patch.obj.isValid(s)) == bool(python(s)) for s in states)
+
+    return _patch("validity", space, si, make, agrees)
+
+
+def native_motion(
+    si: ob.SpaceInformation, grid: PackedGrid, space: str, reference: Callable[[Any, Any], bool]
+) -> NativePatch | None:
+    """The set-up ``si``'s own ``DiscreteMotionValidator`` with its checks compiled (the cell walk).
+
+    Call after ``si.setup()`` with no motion validator set. The ``lastValid`` overload answers
+    like the plain one and leaves ``lastValid`` alone, as OMPL 2.0.1's bindings do for a Python
+    validator. ``reference`` is the Python check it must agree with.
+    """
+
+    def make() -> NativePatch:
+        obj = si.getMotionValidator()
+        this = _cpp_address(obj, inline=False)
+        if this is None:
+            raise RuntimeError("the space's motion validator could not be located")
+        return NativePatch(obj, this, grid, {r: _function(r, space) for r in ("check", "check_last")})
+
+    def agrees(patch: NativePatch) -> bool:
+        states = _random_states(si, grid, space, 2 * _CHECKS, 0.0)
+        return all(bool(patch.obj.checkMotion(a, b)) == bool(reference(a, b)) for a, b in zip(states[::2], states[1::2]))
+
+    return _patch("motion", space, si, make, agrees)

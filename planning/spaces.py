@@ -32,7 +32,7 @@ from typing import Any
 from ompl import base as ob
 
 from planning import _kernels
-from planning.native import NativeObjective, native_objective
+from planning.native import NativePatch, native_motion, native_objective, native_validity
 from planning.packed import PackedGrid, entry
 
 _Cost = ob.Cost
@@ -282,20 +282,61 @@ class OmplSpace:
     to_state: Callable[[Sequence[float]], Any]
     values: Callable[[Any], tuple[float, ...]]
     keepalive: tuple[Any, ...]  # Python objects C++ holds by reference
-    native: NativeObjective | None = None  # set when ``objective`` is the compiled one
+    native: tuple[NativePatch, ...] = ()  # the compiled checks and objective in use
 
     def close(self) -> None:
-        """Release the compiled objective once the planner and problem are done with it."""
-        if self.native is not None:
-            self.native.release()
+        """Release the compiled objects once the planner and problem are done with them."""
+        for patch in self.native:
+            patch.release()
+
+
+def _set_checks(
+    si: ob.SpaceInformation,
+    grid: PackedGrid,
+    name: str,
+    make_checker: Callable[[], Callable[[Any], bool]],
+    motion: type | None,
+) -> tuple[list[NativePatch], tuple[Any, ...]]:
+    """Set ``si``'s validity checker and motion validator, compiled where they pass their checks
+    (``native.py``), and set ``si`` up. ``motion`` None means OMPL's Reeds-Shepp validator.
+    The Python checker is made only when needed (its flat list costs 8 bytes a cell).
+
+    Returns the compiled objects in use and the Python ones C++ holds by reference.
+    """
+    patches: list[NativePatch] = []
+    fast = native_validity(si, grid, name, make_checker) if motion is not None else None
+    checker = None
+    if fast is not None:
+        si.setStateValidityChecker(fast.obj)
+        patches.append(fast)
+    else:
+        checker = make_checker()
+        si.setStateValidityChecker(checker)
+    if motion is None:
+        validator: Any = ob.ReedsSheppMotionValidator(si)
+        si.setMotionValidator(validator)
+        _finish(si, grid)
+        return patches, (checker, validator)
+    _finish(si, grid)  # with OMPL's default motion validator, which native_motion compiles
+    python = motion(si, grid)
+    moves = native_motion(si, grid, name, python.checkMotion)
+    if moves is not None:
+        patches.append(moves)
+        return patches, ()
+    si.setMotionValidator(python)
+    si.setup()
+    return patches, (checker, python)
 
 
 def _risk_objective(
-    si: ob.SpaceInformation, grid: PackedGrid, space: str, python: ob.OptimizationObjective
-) -> tuple[ob.OptimizationObjective, NativeObjective | None]:
+    si: ob.SpaceInformation, grid: PackedGrid, name: str, python: ob.OptimizationObjective, patches: list[NativePatch]
+) -> ob.OptimizationObjective:
     """The compiled objective where it passes its checks (``native.py``), else the Python one."""
-    native = native_objective(si, grid, space, python)
-    return (python if native is None else native.objective), native
+    fast = native_objective(si, grid, name, python)
+    if fast is None:
+        return python
+    patches.append(fast)
+    return fast.obj
 
 
 @dataclass(frozen=True)
@@ -335,19 +376,15 @@ def _build_r2(grid: PackedGrid, turning_radius: float | None) -> OmplSpace:
     space = ob.RealVectorStateSpace(2)
     space.setBounds(_bounds(grid, 2))
     si = ob.SpaceInformation(space)
-    checker = _validity_2d(grid, se2=False)
-    si.setStateValidityChecker(checker)
-    motion = StraightMotionR2(si, grid)
-    si.setMotionValidator(motion)
-    _finish(si, grid)
+    patches, keep = _set_checks(si, grid, "R2", lambda: _validity_2d(grid, se2=False), StraightMotionR2)
 
     def to_state(v: Sequence[float]) -> Any:
         s = si.allocState()
         s[0], s[1] = float(v[0]), float(v[1])
         return s
 
-    objective, native = _risk_objective(si, grid, "R2", RiskCostR2(si, grid))
-    return OmplSpace(si, objective, to_state, lambda s: (s[0], s[1]), (space, checker, motion), native)
+    objective = _risk_objective(si, grid, "R2", RiskCostR2(si, grid), patches)
+    return OmplSpace(si, objective, to_state, lambda s: (s[0], s[1]), (space, *keep), tuple(patches))
 
 
 def _se2_like(space: ob.SE2StateSpace, grid: PackedGrid, straight: bool) -> OmplSpace:
@@ -355,22 +392,17 @@ def _se2_like(space: ob.SE2StateSpace, grid: PackedGrid, straight: bool) -> Ompl
     si = ob.SpaceInformation(space)
     dubins = isinstance(space, ob.DubinsStateSpace)
     # Reeds-Shepp motions are checked pose by pose by OMPL: against the eroded mask (module docstring)
-    checker = _validity_2d(grid, se2=True, valid=None if straight or dubins else grid.eroded_valid_flat())
-    si.setStateValidityChecker(checker)
-    if straight:
-        motion: Any = StraightMotionSE2(si, grid)
-    elif dubins:
-        motion = DubinsMotion(si, grid)
-    else:
-        motion = ob.ReedsSheppMotionValidator(si)
-    si.setMotionValidator(motion)
-    _finish(si, grid)
+    def make_checker() -> Callable[[Any], bool]:
+        return _validity_2d(grid, se2=True, valid=None if straight or dubins else grid.eroded_valid_flat())
+
+    name = "SE2" if straight else "Dubins" if dubins else "ReedsShepp"
+    motion = StraightMotionSE2 if straight else DubinsMotion if dubins else None
+    patches, keep = _set_checks(si, grid, name, make_checker, motion)
     objective: ob.OptimizationObjective
-    native = None
     if straight:
-        objective, native = _risk_objective(si, grid, "SE2", RiskCostSE2(si, grid))
+        objective = _risk_objective(si, grid, name, RiskCostSE2(si, grid), patches)
     elif dubins:
-        objective, native = _risk_objective(si, grid, "Dubins", RiskCostDubins(si, grid))
+        objective = _risk_objective(si, grid, name, RiskCostDubins(si, grid), patches)
     else:
         objective = RiskCostCurve(si, grid)  # needs OMPL's interpolation: stays in Python
 
@@ -381,7 +413,7 @@ def _se2_like(space: ob.SE2StateSpace, grid: PackedGrid, straight: bool) -> Ompl
         return s
 
     return OmplSpace(
-        si, objective, to_state, lambda s: (s.getX(), s.getY(), s.getYaw()), (space, checker, motion), native
+        si, objective, to_state, lambda s: (s.getX(), s.getY(), s.getYaw()), (space, *keep), tuple(patches)
     )
 
 
@@ -410,19 +442,15 @@ def _build_r3(grid: PackedGrid, turning_radius: float | None) -> OmplSpace:
     space = ob.RealVectorStateSpace(3)
     space.setBounds(_bounds(grid, 3))
     si = ob.SpaceInformation(space)
-    checker = _validity_3d(grid)
-    si.setStateValidityChecker(checker)
-    motion = StraightMotionR3(si, grid)
-    si.setMotionValidator(motion)
-    _finish(si, grid)
+    patches, keep = _set_checks(si, grid, "R3", lambda: _validity_3d(grid), StraightMotionR3)
 
     def to_state(v: Sequence[float]) -> Any:
         s = si.allocState()
         s[0], s[1], s[2] = float(v[0]), float(v[1]), float(v[2])
         return s
 
-    objective, native = _risk_objective(si, grid, "R3", RiskCostR3(si, grid))
-    return OmplSpace(si, objective, to_state, lambda s: (s[0], s[1], s[2]), (space, checker, motion), native)
+    objective = _risk_objective(si, grid, "R3", RiskCostR3(si, grid), patches)
+    return OmplSpace(si, objective, to_state, lambda s: (s[0], s[1], s[2]), (space, *keep), tuple(patches))
 
 
 STATE_SPACES: dict[str, SpaceSpec] = {

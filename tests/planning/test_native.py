@@ -1,4 +1,4 @@
-"""The compiled risk objective (planning/native.py): same costs, same plans, safe fallback."""
+"""Compiled validity, motion checks and objective (planning/native.py): same answers, same plans, safe fallback."""
 
 from __future__ import annotations
 
@@ -16,11 +16,15 @@ RES = 0.05
 SPACES_3 = {"R2": 2, "SE2": 2, "Dubins": 2, "R3": 3}
 
 
-def _field(ndim: int, seed: int = 3) -> RiskField:
+def _field(ndim: int, seed: int = 3, walls: bool = False) -> RiskField:
     rng = np.random.default_rng(seed)
     shape = (90, 70) if ndim == 2 else (30, 25, 12)
     origin = (-1.3, 2.1) if ndim == 2 else (-1.3, 2.1, 0.4)
-    return RiskField((rng.random(shape) * 0.5).astype(np.float32), RES, origin)
+    risk = (rng.random(shape) * 0.5).astype(np.float32)
+    if walls:  # one-cell walls and scattered blocked cells: validity answers of both kinds
+        risk[::9] = 1.0
+        risk[rng.random(shape) < 0.02] = 1.0
+    return RiskField(risk, RES, origin)
 
 
 def _build(space: str, field: RiskField, *, enabled: bool, weight: float = 2.5):
@@ -45,8 +49,8 @@ def test_native_costs_equal_the_python_objective_bit_for_bit(name: str) -> None:
     field = _field(SPACES_3[name])
     _, fast = _build(name, field, enabled=True)
     _, slow = _build(name, field, enabled=False)
-    assert fast.native is not None, native.status()
-    assert slow.native is None
+    assert len(fast.native) == 3, native.status()  # validity, motion and objective compiled
+    assert slow.native == ()
     rng = np.random.default_rng(9)
     states = list(_random_states(fast, field, rng, 400))
     for a, b in zip(states[::2], states[1::2], strict=True):
@@ -58,7 +62,7 @@ def test_native_costs_equal_the_python_objective_bit_for_bit(name: str) -> None:
 def test_native_heuristic_is_the_length_and_never_above_the_cost(name: str) -> None:
     field = _field(SPACES_3[name])
     _, space = _build(name, field, enabled=True)
-    assert space.native is not None
+    assert space.native, native.status()
     rng = np.random.default_rng(5)
     states = list(_random_states(space, field, rng, 200))
     for a, b in zip(states[::2], states[1::2], strict=True):
@@ -78,10 +82,10 @@ def test_released_objective_costs_plain_length_and_its_table_is_reused() -> None
     assert space.objective.motionCost(a, b).value() == pytest.approx(math.hypot(2.0, 1.5))
     for _ in range(20):
         plan(field, (0.0, 3.0), (2.0, 4.5), planner="RRTstar", time_limit=0.05, robot_radius=0.0, seed=1)
-    library = native._library
-    assert library is not None
-    assert len(library.tables) <= 2  # released tables are reused, not one per plan
-    assert len(library.free) == len(library.tables)
+    assert native._classes
+    for cls in native._classes.values():
+        assert len(cls.tables) <= 2  # released tables are reused, not one per plan
+        assert len(cls.free) == len(cls.tables)
 
 
 @pytest.mark.parametrize(("name", "start", "goal"), [
@@ -89,7 +93,7 @@ def test_released_objective_costs_plain_length_and_its_table_is_reused() -> None
     ("Dubins", (0.0, 3.0, 0.0), (2.7, 5.2, 1.0)),
     ("R3", (-1.0, 2.4, 0.5), (0.0, 3.2, 0.9)),
 ])  # fmt: skip
-def test_seeded_plans_are_identical_with_the_native_and_the_python_objective(name, start, goal) -> None:
+def test_seeded_plans_are_identical_compiled_and_in_python(name, start, goal) -> None:
     field = _field(len(start) if name == "R3" else 2)
     kw = dict(planner="RRTstar", state_space=name, time_limit=1.0, robot_radius=0.05, max_risk=0.6,
               risk_weight=2.0, seed=11, turning_radius=0.4 if name == "Dubins" else None)  # fmt: skip
@@ -99,7 +103,7 @@ def test_seeded_plans_are_identical_with_the_native_and_the_python_objective(nam
         slow = plan(field, start, goal, **kw)
     finally:
         native.set_enabled(True)
-    assert native.status()[name] == "native"
+    assert all(native.status()[f"{kind} {name}"] == "native" for kind in native.KINDS)
     assert fast.status == slow.status == "exact"
     np.testing.assert_array_equal(fast.path, slow.path)
     assert fast.cost == slow.cost
@@ -113,15 +117,45 @@ def test_a_failed_check_falls_back_to_python_with_one_warning(monkeypatch, caplo
         first = plan(field, (0.0, 3.0), (2.7, 5.2), planner="RRTstar", time_limit=0.2, robot_radius=0.05, seed=2)
         second = plan(field, (0.0, 3.0), (2.7, 5.2), planner="RRTstar", time_limit=0.2, robot_radius=0.05, seed=2)
     assert first.status == second.status == "exact"
-    assert "not laid out as expected" in native.status()["R2"]
+    assert all("not laid out as expected" in native.status()[f"{kind} R2"] for kind in native.KINDS)
     warnings = [r for r in caplog.records if r.name == "planning.native"]
-    assert len(warnings) == 1 and "using the Python one" in warnings[0].getMessage()
+    assert len(warnings) == len(native.KINDS)  # one per kind, not one per plan
+    assert all("using the Python one" in w.getMessage() for w in warnings)
     _, space = _build("R2", field, enabled=True)
-    assert space.native is None and type(space.objective).__name__ == "RiskCostR2"
+    assert space.native == () and type(space.objective).__name__ == "RiskCostR2"
 
 
 def test_reeds_shepp_keeps_the_python_objective() -> None:
     field = _field(2)
     grid = PackedGrid(field, 0.05, 0.6, True, 1.0, 0.4)
     space = STATE_SPACES["ReedsShepp"].build(grid, 0.4)
-    assert space.native is None
+    assert space.native == ()
+    assert type(space.objective).__name__ == "RiskCostCurve"
+
+
+@pytest.mark.parametrize("name", list(SPACES_3))
+def test_native_validity_and_motion_checks_answer_as_the_python_ones(name: str) -> None:
+    field = _field(SPACES_3[name], walls=True)
+    _, fast = _build(name, field, enabled=True)
+    _, slow = _build(name, field, enabled=False)
+    assert len(fast.native) == 3
+    rng = np.random.default_rng(21)
+    states = list(_random_states(fast, field, rng, 600))
+    answers = [bool(fast.si.isValid(s)) for s in states]
+    assert answers == [bool(slow.si.isValid(s)) for s in states]
+    assert 0 < sum(answers) < len(answers)  # both answers occur
+    # long segments, and short ones (up to 6 cells) from each state, along its heading in SE2
+    ends = list(_random_states(fast, field, rng, 300))
+    shorts = []
+    for a in states[:300]:
+        v = np.asarray(fast.values(a), dtype=float)
+        if name in ("SE2", "Dubins"):
+            d = rng.uniform(0.0, 6 * RES)
+            shorts.append(fast.to_state((v[0] + d * math.cos(v[2]), v[1] + d * math.sin(v[2]), v[2])))
+        else:
+            shorts.append(fast.to_state(tuple(v + rng.uniform(-3 * RES, 3 * RES, len(v)))))
+    pairs = list(zip(states[:300], ends, strict=True)) + list(zip(states[:300], shorts, strict=True))
+    moves = [bool(fast.si.checkMotion(a, b)) for a, b in pairs]
+    assert moves == [bool(slow.si.checkMotion(a, b)) for a, b in pairs]
+    assert 0 < sum(moves) < len(moves)
+    fast.close()
