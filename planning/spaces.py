@@ -14,9 +14,10 @@ Each state space comes with the three callbacks OMPL calls from C++:
   its C++ cost-to-go and its direct informed sampler (the ellipse of length <= best cost),
   both admissible here because every motion costs at least its length;
   ``motionCostHeuristic`` is overridden back to plain length, because the parent's calls
-  ``motionCost`` and would then overestimate. For R2, SE2, Dubins and R3, ``plan`` uses the
-  same objective compiled into OMPL (``native.py``) and keeps these classes as its reference
-  and fallback.
+  ``motionCost`` and would then overestimate.
+
+For R2, SE2, Dubins and R3, the three are compiled into OMPL (``native.py``: same kernels, no
+Python call per state or edge); the Python versions here are their reference and fallback.
 
 Costs are defined on the position trace only (the heading of SE2 costs nothing; see
 ``_build_se2``).
