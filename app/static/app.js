@@ -20,7 +20,10 @@
     scan: null,          // GET /maps/{name}/scans/last, or null before the first scan
     start: null,         // [x, y(, z)] world metres
     goal: null,
-    path: null,          // [[x, y(, z)], ...] of the last plan
+    startHeading: null,  // radians (REP 103: 0 = +x, counter-clockwise), or null when none applies
+    goalHeading: null,
+    path: null,          // [[x, y(, z or theta)], ...] of the last plan
+    pathHeadings: false, // the path's third value is a heading (SE2, Dubins, ReedsShepp)
     zoom: 1,             // canvas pixels per cell
   };
 
@@ -137,6 +140,11 @@
     return `(${p.map((v) => fmt(v, d)).join(", ")})`;
   }
 
+  const fmtHeading = (theta) => `heading ${fmt(theta, 3)} rad`;
+
+  // a 2-D pose [x, y, theta]: the position in metres, then the heading in words
+  const fmtPose = (p) => `${fmtPoint(p.slice(0, 2))}, ${fmtHeading(p[2])}`;
+
   function cellsOf(info) {
     return info.shape || info.size.map((s) => Math.round(s / info.resolution));
   }
@@ -245,6 +253,7 @@
       const midZ = info.origin[2] + info.size[2] / 2;
       $("start-z").value = $("goal-z").value = fmt(midZ, coordDigits());
     }
+    renderMotionModels();
     $("view-title").textContent = `Map ${info.name}`;
     setResult("idle", "Set a start and a goal, then press Plan.", 0);
     showPathList(null);
@@ -339,8 +348,8 @@
     ctx.drawImage(state.image, 0, 0, canvas.width, canvas.height);
     if (state.scan && $("show-scan").checked) drawScan(state.scan);
     if (state.path && state.path.length > 1) drawPath(state.path);
-    if (state.start) drawMarker(state.start, "S");
-    if (state.goal) drawMarker(state.goal, "G");
+    if (state.start) drawMarker(state.start, "S", state.startHeading);
+    if (state.goal) drawMarker(state.goal, "G", state.goalHeading);
     canvas.dataset.version = String(state.shownVersion);
     canvas.setAttribute("aria-label", canvasLabel());
   }
@@ -398,7 +407,47 @@
     ctx.stroke();
   }
 
-  function drawMarker(p, letter) {
+  // the heading as an arrow from the marker's centre: black, edged in white so that it reads
+  // on free (white), risky (crimson) and unknown (grey-blue) cells alike
+  function drawHeading(cx, cy, theta) {
+    const length = 30;  // canvas pixels, centre to tip
+    const head = 9;
+    const dx = Math.cos(theta);
+    const dy = -Math.sin(theta);  // world y up, canvas y down (see toCanvas)
+    const tip = [cx + dx * length, cy + dy * length];
+    const base = [tip[0] - dx * head, tip[1] - dy * head];
+    const side = [-dy * head * 0.6, dx * head * 0.6];
+    const shaft = () => {
+      ctx.beginPath();
+      ctx.moveTo(cx, cy);
+      ctx.lineTo(base[0], base[1]);
+    };
+    const arrowHead = () => {
+      ctx.beginPath();
+      ctx.moveTo(tip[0], tip[1]);
+      ctx.lineTo(base[0] + side[0], base[1] + side[1]);
+      ctx.lineTo(base[0] - side[0], base[1] - side[1]);
+      ctx.closePath();
+    };
+    ctx.lineCap = "butt";
+    ctx.lineJoin = "miter";
+    ctx.strokeStyle = "#fff";
+    ctx.lineWidth = 6;
+    shaft();
+    ctx.stroke();
+    ctx.lineWidth = 3;
+    arrowHead();
+    ctx.stroke();
+    ctx.strokeStyle = "#000";
+    ctx.fillStyle = "#000";
+    ctx.lineWidth = 3;
+    shaft();
+    ctx.stroke();
+    arrowHead();
+    ctx.fill();
+  }
+
+  function drawMarker(p, letter, heading = null) {
     const [cx, cy] = toCanvas(p);
     const radius = Number($("robot-radius").value);
     if (Number.isFinite(radius) && radius > 0) {
@@ -411,6 +460,8 @@
       ctx.stroke();
       ctx.setLineDash([]);
     }
+    // under the letter's disc, so that the arrow starts at its edge
+    if (heading !== null) drawHeading(cx, cy, heading);
     ctx.beginPath();
     ctx.arc(cx, cy, 9, 0, 2 * Math.PI);
     ctx.fillStyle = "#fff";
@@ -429,8 +480,9 @@
     const info = state.current;
     let text = `Risk map of ${info.name}, version ${state.shownVersion}`;
     if (info.dimensions === 3) text += " (maximum over z)";
-    if (state.start) text += `; start ${fmtPoint(state.start)}`;
-    if (state.goal) text += `; goal ${fmtPoint(state.goal)}`;
+    const heading = (theta) => (theta === null ? "" : `, ${fmtHeading(theta)}`);
+    if (state.start) text += `; start ${fmtPoint(state.start)}${heading(state.startHeading)}`;
+    if (state.goal) text += `; goal ${fmtPoint(state.goal)}${heading(state.goalHeading)}`;
     if (state.path && state.path.length > 1) text += `; a path of ${state.path.length} points is drawn`;
     return text;
   }
@@ -501,14 +553,96 @@
     syncPoints();
   }
 
+  // the heading typed for the start or goal, or null when the motion model has none or it is not a number
+  function readHeading(which) {
+    if (!motion().heading) return null;
+    const text = $(`${which}-theta`).value.trim();
+    const theta = Number(text);
+    return text !== "" && Number.isFinite(theta) ? theta : null;
+  }
+
   function syncPoints() {
     if (!state.current) return;
     state.start = validPoint(readPoint("start"));
     state.goal = validPoint(readPoint("goal"));
+    state.startHeading = readHeading("start");
+    state.goalHeading = readHeading("goal");
     draw();
   }
 
   const validPoint = (p) => (p && p.every(Number.isFinite) ? p : null);
+
+  // ---------------------------------------------------------------- motion models
+
+  // The state spaces this page can ask for: the map dimensions each fits, whether start and goal
+  // carry a heading, and whether the motion is a car's with a turning radius. GET /planners says
+  // which ones the service runs; the page offers those that fit the shown map.
+  const MOTION = {
+    R2: { dims: 2, label: "R2 (x, y)", heading: false, curved: false,
+      hint: "Position only: the robot can move in any direction." },
+    SE2: { dims: 2, label: "SE2 (x, y, heading)", heading: true, curved: false,
+      hint: "Position and heading: the robot can turn on the spot and move in any direction." },
+    Dubins: { dims: 2, label: "Dubins car (forward only)", heading: true, curved: true,
+      hint: "A car that drives forward only and turns no tighter than its turning radius." },
+    ReedsShepp: { dims: 2, label: "Reeds-Shepp car (forward, reverse)", heading: true, curved: true,
+      hint: "A car that drives forward and in reverse and turns no tighter than its turning radius." },
+    R3: { dims: 3, label: "R3 (x, y, z)", heading: false, curved: false,
+      hint: "Position in 3-D: the robot can move in any direction." },
+  };
+  let servedSpaces = null;  // GET /planners' state_spaces, null until it answers
+
+  const motion = () => MOTION[$("motion-model").value] || MOTION.R2;
+
+  function renderMotionModels() {
+    const dims = state.current ? state.current.dimensions : 2;
+    const fallback = dims === 3 ? "R3" : "R2";
+    let names = Object.keys(MOTION).filter((name) => MOTION[name].dims === dims
+      && (!servedSpaces || servedSpaces.includes(name)));
+    if (names.length === 0) names = [fallback];
+    const select = $("motion-model");
+    // keep the operator's choice from map to map when the new map offers it too
+    const previous = select.value;
+    const chosen = names.includes(previous) ? previous : (names.includes(fallback) ? fallback : names[0]);
+    if ([...select.options].map((o) => o.value).join() !== names.join()) {
+      select.replaceChildren(...names.map((name) => {
+        const option = document.createElement("option");
+        option.value = name;
+        option.textContent = MOTION[name].label;
+        return option;
+      }));
+    }
+    select.value = chosen;
+    applyMotionModel(chosen !== previous);
+  }
+
+  function applyMotionModel(changed = true) {
+    const m = motion();
+    for (const el of document.querySelectorAll(".heading-only")) el.hidden = !m.heading;
+    for (const el of document.querySelectorAll(".curved-only")) el.hidden = !m.curved;
+    $("motion-hint").textContent = m.hint;
+    if (changed) $("planner-note").hidden = true;
+    fitPlannerToMotion();
+    syncPoints();
+  }
+
+  // the grid planner (A*) searches positions only: it is offered in R2 and R3, not with a heading
+  function fitPlannerToMotion() {
+    const select = $("planner");
+    const grid = select.querySelector('option[value="grid"]');
+    if (!grid) return;
+    const positionsOnly = !motion().heading;
+    grid.disabled = !positionsOnly;
+    grid.textContent = positionsOnly ? "grid (A*)" : "grid (A*, R2 and R3 only)";
+    if (!positionsOnly && select.value === "grid") {
+      const other = [...select.options].find((o) => o.value === "RRTstar" && !o.disabled)
+        || [...select.options].find((o) => !o.disabled);
+      if (!other) return;
+      select.value = other.value;
+      const note = $("planner-note");
+      note.textContent = `The grid planner plans positions only, so the planner is now ${other.value}.`;
+      note.hidden = false;
+    }
+  }
 
   function setResult(kind, text, points) {
     const box = $("plan-result");
@@ -522,7 +656,7 @@
     details.hidden = !path || path.length === 0;
     $("path-list").replaceChildren(...(path || []).map((p) => {
       const li = document.createElement("li");
-      li.textContent = fmtPoint(p);
+      li.textContent = state.pathHeadings ? fmtPose(p) : fmtPoint(p);
       return li;
     }));
   }
@@ -534,13 +668,37 @@
     GOAL_OCCUPIED: "The goal is in an obstacle or too close to one: the risk within the robot radius is above the max risk.",
   };
 
-  function numberField(id, label, { min = -Infinity, max = Infinity } = {}) {
-    const value = Number($(id).value);
-    if ($(id).value.trim() === "" || !Number.isFinite(value) || value < min || value > max) {
-      const range = max === Infinity ? `at least ${min}` : `between ${min} and ${max}`;
-      throw new Error(`${label} must be a number ${range}.`);
+  // an Error naming the form field it is about, so that the field can be marked and focused
+  function fieldError(id, message) {
+    const error = new Error(message);
+    error.field = id;
+    return error;
+  }
+
+  // min and max are inclusive, above is an exclusive lower bound; unit goes into the message
+  function numberField(id, label, { min = -Infinity, max = Infinity, above = -Infinity, unit = "" } = {}) {
+    const input = $(id);
+    const value = Number(input.value);
+    if (input.value.trim() === "" || input.validity.badInput || !Number.isFinite(value) || value < min
+        || value > max || value <= above) {
+      let range = "";
+      if (above > -Infinity) range = ` greater than ${above}`;
+      else if (min > -Infinity) range = max === Infinity ? ` at least ${min}` : ` between ${min} and ${max}`;
+      throw fieldError(id, `${label} must be a number${range}${unit ? ` (${unit})` : ""}.`);
     }
     return value;
+  }
+
+  const SEED_MAX = 2 ** 32 - 1;
+
+  // the optional seed: null when empty (a random plan), else a whole number 0 .. 2^32 - 1
+  function readSeed() {
+    const text = $("seed").value.trim();
+    if (text === "") return null;
+    if (!/^[0-9]+$/.test(text) || Number(text) > SEED_MAX) {
+      throw fieldError("seed", `Seed must be a whole number from 0 to ${SEED_MAX}, or empty for a random plan.`);
+    }
+    return Number(text);
   }
 
   async function plan(event) {
@@ -552,14 +710,17 @@
     }
     const start = validPoint(readPoint("start"));
     const goal = validPoint(readPoint("goal"));
+    const space = $("motion-model").value;
+    const m = motion();
     let body;
     try {
       if (!start) throw new Error("Set the start: click the map or type its coordinates.");
       if (!goal) throw new Error("Set the goal: click the map or type its coordinates.");
+      const heading = (which, label) => numberField(`${which}-theta`, label, { unit: "radians" });
       body = {
-        start,
-        goal,
-        state_space: info.dimensions === 3 ? "R3" : "R2",
+        start: m.heading ? [...start, heading("start", "Start heading")] : start,
+        goal: m.heading ? [...goal, heading("goal", "Goal heading")] : goal,
+        state_space: m.dims === info.dimensions ? space : (info.dimensions === 3 ? "R3" : "R2"),
         planner: $("planner").value,
         time_limit: numberField("time-limit", "Time limit", { min: 0.01 }),
         robot_radius: numberField("robot-radius", "Robot radius", { min: 0 }),
@@ -567,18 +728,29 @@
         risk_weight: numberField("risk-weight", "Risk weight", { min: 0 }),
         allow_unknown: $("allow-unknown").checked,
       };
+      if (m.curved) body.turning_radius = numberField("turning-radius", "Turning radius", { above: 0, unit: "metres" });
+      const seed = readSeed();
+      if (seed !== null) body.seed = seed;
+      if (m.heading && body.planner === "grid") {
+        throw fieldError("planner", `The grid planner plans positions only: choose another planner for ${m.label}.`);
+      }
     } catch (error) {
       setResult("error", error.message, 0);
+      if (error.field) {
+        $(error.field).setAttribute("aria-invalid", "true");
+        $(error.field).focus();
+      }
       return;
     }
     const gen = state.gen;
     const button = $("plan-button");
     button.disabled = true;
-    setResult("busy", `Planning with ${body.planner}…`, 0);
+    setResult("busy", `Planning with ${body.planner}${m.heading ? ` for ${m.label}` : ""}…`, 0);
     try {
       const result = await api(`maps/${enc(info.name)}/plan`, { method: "POST", body });
       if (gen !== state.gen) return;
       state.path = result.path;
+      state.pathHeadings = info.dimensions === 2 && result.state_space !== "R2";
       showPlan(result);
     } catch (error) {
       if (gen !== state.gen) return;
@@ -603,8 +775,10 @@
     const n = r.path ? r.path.length : 0;
     delete $("plan-result").dataset.code;
     showPathList(r.path);
+    const space = ["R2", "R3"].includes(r.state_space) ? "" : ` in ${r.state_space}`;
+    const note = r.message ? ` Note: ${r.message}.` : "";
     const figures = `length ${fmt(r.length)} m, max risk ${fmt(r.max_risk)}, mean risk ${fmt(r.mean_risk)}, ` +
-      `cost ${fmt(r.cost)}; planned by ${r.planner} in ${fmt(r.planning_time, 3)} s; ${n} points.`;
+      `cost ${fmt(r.cost)}; planned by ${r.planner}${space} in ${fmt(r.planning_time, 3)} s; ${n} points.${note}`;
     if (r.status === "exact") {
       setResult("path", `Path found: ${figures}`, n);
     } else if (r.status === "approximate") {
@@ -630,9 +804,14 @@
     const p = state.current && cellCentreAt(event.clientX, event.clientY);
     canvas.title = p ? `cell centre x ${fmt(p[0], coordDigits())} m, y ${fmt(p[1], coordDigits())} m` : "";
   });
-  for (const id of ["start-x", "start-y", "start-z", "goal-x", "goal-y", "goal-z", "robot-radius"]) {
+  for (const id of ["start-x", "start-y", "start-z", "start-theta", "goal-x", "goal-y", "goal-z", "goal-theta",
+    "robot-radius"]) {
     $(id).addEventListener("input", syncPoints);
   }
+  $("motion-model").addEventListener("change", () => applyMotionModel());
+  // a field marked invalid by the last Plan is unmarked as soon as it is edited
+  $("plan-form").addEventListener("input", (event) => event.target.removeAttribute("aria-invalid"));
+  $("plan-form").addEventListener("change", (event) => event.target.removeAttribute("aria-invalid"));
   $("plan-form").addEventListener("submit", plan);
   $("show-scan").addEventListener("change", draw);
   $("forget-key").addEventListener("click", () => {
@@ -646,7 +825,7 @@
 
   async function loadPlanners() {
     try {
-      const { planners } = await api("planners");
+      const { planners, state_spaces: spaces } = await api("planners");
       const select = $("planner");
       const chosen = select.value || "RRTstar";
       select.replaceChildren(...planners.map(({ name }) => {
@@ -656,6 +835,8 @@
         option.selected = name === chosen;
         return option;
       }));
+      servedSpaces = spaces;
+      renderMotionModels();
     } catch (error) {
       setTimeout(loadPlanners, POLL_MS);
     }
