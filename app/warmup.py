@@ -12,11 +12,11 @@ import time
 import numpy as np
 
 from fuzzyocc import BayesMap, FuzzyMap, GridSpec, LaserScan, PointCloud, SensorModel
-from planning import RiskField, plan
+import planning
 
 
 def warm_up() -> float:
-    """Fuse a scan into small 2-D and 3-D maps of both models and plan on one; the seconds taken."""
+    """Fuse a scan into small 2-D and 3-D maps of both models and plan in every state space; the seconds taken."""
     started = time.perf_counter()
     scan = LaserScan(pose=(1.0, 1.0, 0.0), angle_min=-1.0, angle_increment=0.1, ranges=np.full(21, 0.7),
                      range_min=0.05, range_max=5.0)
@@ -28,9 +28,7 @@ def warm_up() -> float:
         solid = model(GridSpec(origin=(0.0, 0.0, 0.0), size=(2.0, 2.0, 2.0), resolution=0.1), SensorModel())
         solid.integrate_batch([cloud])
         solid.risk()
-    field = RiskField(flat.risk(), 0.1, (0.0, 0.0), observed=flat.observed())
-    for planner in ("grid", "RRTConnect"):
-        plan(field, (1.1, 1.0), (1.4, 1.1), planner=planner, time_limit=0.2, robot_radius=0.0, seed=1)
+    planning.warm_up()
     return time.perf_counter() - started
 
 
