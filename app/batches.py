@@ -9,7 +9,9 @@ Errors name the field (``scans[2].pose``) and say what to fix.
 from __future__ import annotations
 
 import io
+import json
 import math
+import struct
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
@@ -251,51 +253,88 @@ def from_binary(body: bytes, params: Mapping[str, float | None], dims: int, limi
 
 # ---------------------------------------------------------------- storage codec
 
-_LASER_SCALARS = 8  # x, y, theta, angle_min, angle_increment, range_min, range_max, registration_sigma
+#: A stored batch: this magic, a little-endian uint32 header length, a JSON header, then per scan its
+#: float64 scalars and its values, raw little-endian. Batches stored before it are ``.npz`` files
+#: (they start with ``PK``, the zip magic) and still decode.
+_MAGIC = b"FRB\x01"
+_HEADER_LENGTH = struct.Struct("<I")
+_VALUE_DTYPES = {"<f4": np.dtype("<f4"), "<f8": np.dtype("<f8")}
 
 
 def _compact(values: np.ndarray) -> np.ndarray:
-    """float32 when that loses nothing (binary uploads, float32 drivers), else float64."""
-    as32 = values.astype(np.float32)
-    return as32 if np.array_equal(as32.astype(np.float64), values, equal_nan=True) else values
+    """float32 when that loses nothing (binary uploads, float32 drivers), else float64 (little-endian)."""
+    as32 = values.astype("<f4")
+    # exact iff every value comes back from float32 unchanged; NaN stays NaN through the round trip
+    back = as32.astype(np.float64)
+    exact = bool(np.logical_or(back == values, np.isnan(values)).all())
+    return as32 if exact else values.astype("<f8", copy=False)
+
+
+def _parts(scan: Scan) -> tuple[str, np.ndarray, np.ndarray]:
+    if isinstance(scan, LaserScan):
+        scalars = [*scan.pose, scan.angle_min, scan.angle_increment, scan.range_min, scan.range_max,
+                   scan.registration_sigma]
+        return "laser", np.array(scalars, dtype="<f8"), _compact(scan.ranges)
+    return "cloud", np.array([*scan.origin, scan.range_max, scan.registration_sigma], dtype="<f8"), _compact(scan.points)
 
 
 def encode(scans: Sequence[Scan]) -> bytes:
-    """A validated batch as an ``.npz`` blob that :func:`decode` turns back into equal scans."""
-    arrays: dict[str, np.ndarray] = {"kinds": np.array(["laser" if isinstance(s, LaserScan) else "cloud" for s in scans])}
-    for i, scan in enumerate(scans):
-        if isinstance(scan, LaserScan):
-            arrays[f"s{i}_scalars"] = np.array(
-                [*scan.pose, scan.angle_min, scan.angle_increment, scan.range_min, scan.range_max,
-                 scan.registration_sigma], dtype=np.float64,
-            )
-            arrays[f"s{i}_values"] = _compact(scan.ranges)
-        else:
-            arrays[f"s{i}_scalars"] = np.array([*scan.origin, scan.range_max, scan.registration_sigma], dtype=np.float64)
-            arrays[f"s{i}_values"] = _compact(scan.points)
-    out = io.BytesIO()
-    np.savez(out, allow_pickle=False, **arrays)
-    return out.getvalue()
+    """A validated batch as bytes that :func:`decode` turns back into equal scans (bit for bit).
+
+    Framed raw arrays rather than an ``.npz``: writing a zip archive cost more than parsing the
+    request (it ran for every batch, on the event loop for small bodies).
+    """
+    parts = [_parts(scan) for scan in scans]
+    header = json.dumps({"scans": [
+        {"kind": kind, "scalars": int(scalars.size), "dtype": values.dtype.str, "shape": list(values.shape)}
+        for kind, scalars, values in parts
+    ]}).encode()
+    chunks = [_MAGIC, _HEADER_LENGTH.pack(len(header)), header]
+    for _, scalars, values in parts:
+        chunks.append(scalars.tobytes())
+        chunks.append(np.ascontiguousarray(values).tobytes())
+    return b"".join(chunks)
+
+
+def _scan(kind: str, scalars: list[float], values: np.ndarray) -> Scan:
+    if kind == "laser":
+        x, y, theta, angle_min, increment, range_min, range_max, reg = scalars
+        return LaserScan(pose=(x, y, theta), angle_min=angle_min, angle_increment=increment, ranges=values,
+                         range_min=range_min, range_max=range_max, registration_sigma=reg,
+                         max_rays=max(values.size, 1))
+    *origin, range_max, reg = scalars
+    return PointCloud(points=values, origin=tuple(origin), range_max=range_max, registration_sigma=reg,
+                      max_rays=max(values.shape[0], 1))
 
 
 def decode(payload: bytes) -> list[Scan]:
-    """The scans of an :func:`encode` blob (bit-identical arrays, so fusion replays exactly)."""
+    """The scans of an :func:`encode` blob, or of a batch stored as ``.npz`` by an earlier version."""
+    if not payload.startswith(_MAGIC):
+        return _decode_npz(payload)
+    offset = len(_MAGIC)
+    (length,) = _HEADER_LENGTH.unpack_from(payload, offset)
+    offset += _HEADER_LENGTH.size
+    header = json.loads(payload[offset:offset + length])
+    offset += length
+    scans: list[Scan] = []
+    for item in header["scans"]:
+        scalars = np.frombuffer(payload, dtype="<f8", count=int(item["scalars"]), offset=offset)
+        offset += scalars.nbytes
+        dtype = _VALUE_DTYPES[item["dtype"]]
+        shape = tuple(int(n) for n in item["shape"])
+        values = np.frombuffer(payload, dtype=dtype, count=math.prod(shape), offset=offset).reshape(shape)
+        offset += values.nbytes
+        scans.append(_scan(str(item["kind"]), scalars.tolist(), values.astype(np.float64)))
+    if offset != len(payload):
+        raise ValueError(f"stored batch has {len(payload) - offset} bytes after its last scan")
+    return scans
+
+
+def _decode_npz(payload: bytes) -> list[Scan]:
     with np.load(io.BytesIO(payload), allow_pickle=False) as archive:
         kinds = [str(k) for k in archive["kinds"]]
-        scans: list[Scan] = []
-        for i, kind in enumerate(kinds):
-            scalars = archive[f"s{i}_scalars"]
-            values = archive[f"s{i}_values"].astype(np.float64)
-            if kind == "laser":
-                x, y, theta, angle_min, increment, range_min, range_max, reg = scalars.tolist()
-                scans.append(LaserScan(pose=(x, y, theta), angle_min=angle_min, angle_increment=increment,
-                                       ranges=values, range_min=range_min, range_max=range_max,
-                                       registration_sigma=reg, max_rays=max(values.size, 1)))
-            else:
-                *origin, range_max, reg = scalars.tolist()
-                scans.append(PointCloud(points=values, origin=tuple(origin), range_max=range_max,
-                                        registration_sigma=reg, max_rays=max(values.shape[0], 1)))
-    return scans
+        return [_scan(kind, archive[f"s{i}_scalars"].tolist(), archive[f"s{i}_values"].astype(np.float64))
+                for i, kind in enumerate(kinds)]
 
 
 # ---------------------------------------------------------------- the last scan, for the web page

@@ -43,6 +43,11 @@ class Settings(BaseSettings):
     plan_workers: int = Field(2, ge=1, le=64, description="Planner worker processes.")
     plan_queue: int = Field(8, ge=1, description="Plans waiting for a worker before 503 answers.")
     plan_warmup: bool = Field(True, description="Start the planner processes at startup, not at the first plan.")
+    native_planning: bool = Field(
+        True,
+        description="Run the planners' validity, motion and cost callbacks as compiled code inside OMPL "
+        "(checked at first use, Python fallback with a warning); false: always the Python callbacks.",
+    )
     fusion_threads: int = Field(2, ge=1, le=64, description="Threads that fuse scans (different maps in parallel).")
     snapshot_every: int = Field(200, ge=1, description="Snapshot a map after this many batches since the last.")
     graceful_timeout_s: float = Field(

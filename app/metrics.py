@@ -31,8 +31,13 @@ class Metrics:
             buckets=_LATENCY_BUCKETS, registry=r,
         )
         self.commit_seconds = Histogram(
-            "fuzzyrisk_batch_commit_duration_seconds", "Time to make one batch durable (fsync)",
+            "fuzzyrisk_batch_commit_duration_seconds",
+            "Time to make one batch durable: the wait for the writer thread, and its transaction (fsync)",
             buckets=_LATENCY_BUCKETS, registry=r,
+        )
+        self.commit_groups = Histogram(
+            "fuzzyrisk_batch_commit_group_size", "Batches made durable by one transaction (group commit)",
+            buckets=(1, 2, 3, 4, 6, 8, 12, 16, 32, 64), registry=r,
         )
         self.plan_seconds = Histogram(
             "fuzzyrisk_plan_duration_seconds", "Time to answer a plan, queueing included", ["planner", "outcome"],

@@ -25,9 +25,19 @@ LOG = logging.getLogger("fuzzyrisk.plans")
 T = TypeVar("T")
 
 
+def _init_worker(native: bool) -> None:
+    """In each new worker: use the compiled planner callbacks (``planning/native.py``) or not, and
+    compile or load every kernel now, so that no plan waits for it."""
+    import planning
+    from planning import native as compiled
+
+    compiled.set_enabled(native)
+    compiled.prepare()
+    planning.warm_up()
+
+
 def _warm() -> None:
-    """Import the planner stack in a fresh worker so the first plan does not pay for it."""
-    import planning  # noqa: F401
+    """Start a worker (its initializer warms the planner stack up) so the first plan does not pay for it."""
 
 
 def _number(value: Any) -> float | None:
@@ -83,9 +93,10 @@ def _context() -> multiprocessing.context.BaseContext:
 class PlanPool:
     """At most ``workers`` plans run at once; up to ``queue`` more wait; beyond that, 503."""
 
-    def __init__(self, *, workers: int, queue: int) -> None:
+    def __init__(self, *, workers: int, queue: int, native: bool = True) -> None:
         self._workers = workers
         self._queue = queue
+        self._native = native
         self._waiting = 0
         self._running = asyncio.Semaphore(workers)
         self._executor: concurrent.futures.ProcessPoolExecutor | None = None
@@ -103,7 +114,9 @@ class PlanPool:
     def _ensure(self) -> concurrent.futures.ProcessPoolExecutor:
         if self._executor is None:
             # creating the executor starts no process; submit() does
-            self._executor = concurrent.futures.ProcessPoolExecutor(self._workers, mp_context=_context())
+            self._executor = concurrent.futures.ProcessPoolExecutor(
+                self._workers, mp_context=_context(), initializer=_init_worker, initargs=(self._native,)
+            )
         return self._executor
 
     def _restart(self, broken: concurrent.futures.ProcessPoolExecutor) -> None:

@@ -240,6 +240,40 @@ class ScanBatch(BaseModel):
     scans: Annotated[list[ScanIn], Field(min_length=1)]
 
 
+#: Query parameters of a binary scan upload (``POST /maps/{name}/scans``).
+SCAN_QUERY_FIELDS = (
+    "x", "y", "z", "theta", "qx", "qy", "qz", "qw", "angle_min", "angle_increment", "range_min", "range_max",
+    "registration_sigma",
+)
+SCAN_QUERY_DOC = "binary uploads only; see the description"
+
+
+class ScanQuery(BaseModel):
+    """The query of ``POST /maps/{name}/scans``: pose and scan parameters of a binary upload.
+
+    Validated with the body (off the event loop for a big body) rather than as 13 separate
+    FastAPI query parameters, whose per-request resolution cost more than the rest of the
+    route; the errors are FastAPI's (``loc: ["query", name]``) and so is the OpenAPI entry
+    (``app.routes.scans``). Unknown parameters are ignored, as FastAPI does.
+    """
+
+    model_config = ConfigDict(extra="ignore")
+
+    x: FiniteFloat | None = None
+    y: FiniteFloat | None = None
+    z: FiniteFloat | None = None
+    theta: FiniteFloat | None = None
+    qx: FiniteFloat | None = None
+    qy: FiniteFloat | None = None
+    qz: FiniteFloat | None = None
+    qw: FiniteFloat | None = None
+    angle_min: FiniteFloat | None = None
+    angle_increment: FiniteFloat | None = None
+    range_min: FiniteFloat | None = None
+    range_max: FiniteFloat | None = None
+    registration_sigma: FiniteFloat | None = None
+
+
 class BatchResult(BaseModel):
     """What one accepted batch did; ``version`` is the map's version after it."""
 

@@ -1,29 +1,38 @@
 """The service's domain functions: the only bridge from HTTP to ``fuzzyocc`` and ``planning``.
 
-Concurrency: each map has two orderings.
+Concurrency: each map has these orderings.
 
-* ``turns`` (writers: batches, delete, the final snapshot): a batch takes a ticket
-  the moment it arrives, is parsed and validated in a parsing thread with no lock
-  held (so batch k+1 parses while batch k fuses), then waits for its ticket's turn.
-  Batches are therefore committed and applied in arrival order, whatever order
-  their parsing finishes in; a batch refused by validation gives its turn up.
+* ``line`` (writers: batches, delete, the final snapshot): a batch takes a ticket
+  the moment it arrives, is parsed and validated with no lock held (so batch k+1
+  parses while batch k fuses; in a parsing thread, or on the event loop when the
+  body is small: ``INLINE_PARSE_BYTES``), then passes two stages in ticket
+  order: *commit* (made durable) and *apply* (fused into the map). Batch k+1 may
+  commit while batch k is still fusing, so the fsync is off the map's critical
+  path; both stages still go in arrival order, whatever order parsing finishes in.
+  A batch refused by validation gives its turns up. Delete and the final snapshot
+  wait for both stages (every earlier batch committed and applied).
 * ``apply_lock`` (short): held while the map object is used, i.e. while a batch is
   applied, while a snapshot copies the arrays (compression and the write happen
-  after, holding the turn only) and while a reader (risk, query, plan) copies. A
-  reader waits for at most the batch being applied, never behind the queued ones,
+  after, holding the apply turn only) and while a reader (risk, query, plan) copies.
+  A reader waits for at most the batch being applied, never behind the queued ones,
   and never sees a half-applied batch or a version that does not match the arrays.
 
-The CPU work runs off the event loop: parsing, validation and fusion in a thread
-pool (numpy and numba release the GIL), plans in worker processes. Different
-maps proceed in parallel.
+The CPU work runs off the event loop: parsing and validation of big bodies in
+parsing threads, fusion in the fusion threads (numpy and numba release the GIL), commits in one
+writer thread (``app.committer``: batches queued meanwhile, from any map, share a
+transaction), plans in worker processes. Different maps proceed in parallel.
 
 Durability: a batch is parsed and validated completely, then committed (fsync)
 with the version it brings the map to, then applied, then acknowledged. A store
 that cannot take the commit (full disk, read-only directory) raises
-``StorageUnavailable`` before anything is applied. A snapshot is only an
-optimisation of restarts (the batch log already holds every acknowledged batch),
-so a failed snapshot is logged, counted and retried later, never answered as an
-error.
+``StorageUnavailable`` before anything is applied. Once parsed, a batch is
+committed and applied even if its request is cancelled (a client gone away): a
+batch committed but not applied would make the map differ from its replay. A batch
+that cannot be applied after its commit (a bug, memory) is removed from the log and
+answered 500; a later batch, committed meanwhile, keeps its version, so the map's
+version then skips one number. A snapshot is only an optimisation of restarts (the
+batch log already holds every acknowledged batch), so a failed snapshot is logged,
+counted and retried later, never answered as an error.
 """
 
 from __future__ import annotations
@@ -43,6 +52,7 @@ from fastapi.exceptions import RequestValidationError
 from pydantic import ValidationError
 
 from app import batches, exports
+from app.committer import GroupCommitter
 from app.config import Settings
 from app.errors import Conflict, Invalid, NotFound, PlanRejected, TooLarge, UnsupportedMediaType
 from app.metrics import Metrics
@@ -58,9 +68,10 @@ from app.schemas import (
     RiskGridJSON,
     RiskValues,
     ScanBatch,
+    ScanQuery,
     SensorIn,
 )
-from app.storage import NameTaken, Storage, StoredMap
+from app.storage import BatchRecord, NameTaken, Storage, StoredMap
 from fuzzyocc import BayesMap, FuzzyMap, GridSpec, SensorModel
 from planning.planners import planner_spec
 
@@ -74,6 +85,10 @@ MAX_JSON_CELLS = 4_000_000
 MAX_PNG_PIXELS = 64_000_000
 #: Grace added to a plan's time limit before its worker is presumed stuck: setup, dilation, dense check.
 PLAN_GRACE_S = 20.0
+#: Bodies up to this size are parsed on the event loop rather than in a parsing thread: their parse
+#: (pydantic holds the GIL either way, so the loop waits for it wherever it runs) takes well under a
+#: millisecond, less than the two thread switches of a trip through the parsing pool.
+INLINE_PARSE_BYTES = 128 * 1024
 
 
 def _now() -> str:
@@ -123,7 +138,12 @@ class Turns:
             del self._waiters[ticket]
 
     def done(self, ticket: int) -> None:
-        """Give the turn up (a ticket finished early, e.g. a refused batch, is skipped when its turn comes)."""
+        """Give the turn up (a ticket finished early, e.g. a refused batch, is skipped when its turn comes).
+
+        Idempotent: a ticket given up again is ignored.
+        """
+        if ticket < self._serving or ticket in self._finished:
+            return
         self._finished.add(ticket)
         while self._serving in self._finished:
             self._finished.discard(self._serving)
@@ -131,6 +151,34 @@ class Turns:
         waiter = self._waiters.get(self._serving)
         if waiter is not None and not waiter.done():
             waiter.set_result(None)
+
+
+class Line:
+    """A map's writers in arrival order through two stages, each passed in ticket order: commit, then apply.
+
+    A ticket enters a stage once every earlier ticket has left it. A batch leaves the commit
+    stage as soon as it is durable, so the next batch's fsync overlaps this one's fusion.
+    ``done`` leaves both stages (``finally``: whatever happened to the holder).
+    """
+
+    def __init__(self) -> None:
+        self.commit = Turns()
+        self.apply = Turns()
+
+    def take(self) -> int:
+        ticket = self.commit.take()
+        if self.apply.take() != ticket:  # both are only ever taken here, together
+            raise RuntimeError("commit and apply tickets out of step")
+        return ticket
+
+    async def wait_all(self, ticket: int) -> None:
+        """Return once every earlier ticket has left both stages (the map is this holder's alone)."""
+        await self.commit.wait(ticket)
+        await self.apply.wait(ticket)
+
+    def done(self, ticket: int) -> None:
+        self.commit.done(ticket)
+        self.apply.done(ticket)
 
 
 @dataclass
@@ -143,8 +191,10 @@ class MapEntry:
     snapshot_version: int
     scans_fused: int
     updated: str
-    turns: Turns = field(default_factory=Turns)
+    line: Line = field(default_factory=Line)
     apply_lock: asyncio.Lock = field(default_factory=asyncio.Lock)
+    #: version of the last batch committed (``version`` is that of the last one applied: readers see that)
+    committed: int = 0
     #: the last scan fused; its view for the web page is built when first asked for
     last_scan: batches.Scan | None = None
     last_view: batches.ScanView | None = None
@@ -225,6 +275,7 @@ def _restore(stored: StoredMap) -> MapEntry:
         entry.version = version
         entry.last_scan = scans[-1]
     entry.scans_fused = built.scans_fused
+    entry.committed = entry.version
     return entry
 
 
@@ -241,7 +292,10 @@ class MapService:
         # parsing has its own threads: a burst of queued batches must not put its parsing ahead of
         # the commit and fusion of the batch whose turn it is, nor ahead of readers' copies
         self._parsers = ThreadPoolExecutor(settings.fusion_threads, thread_name_prefix="parse")
-        self._plans = PlanPool(workers=settings.plan_workers, queue=settings.plan_queue)
+        self._committer = GroupCommitter(storage, metrics)
+        self._plans = PlanPool(
+            workers=settings.plan_workers, queue=settings.plan_queue, native=settings.native_planning
+        )
         self._limits = batches.Limits(max_scans=settings.max_scans_per_batch, max_rays=settings.max_rays_per_scan)
 
     async def _run(self, fn: Callable[..., T], *args: Any) -> T:
@@ -271,13 +325,14 @@ class MapService:
     async def stop(self) -> None:
         """Wait for batches in flight, snapshot every map with unsnapshotted batches, release everything."""
         for entry in list(self._maps.values()):
-            ticket = entry.turns.take()
+            ticket = entry.line.take()
             try:
-                await entry.turns.wait(ticket)
+                await entry.line.wait_all(ticket)
                 if not entry.deleted and entry.version > entry.snapshot_version:
                     await self._snapshot(entry)
             finally:
-                entry.turns.done(ticket)
+                entry.line.done(ticket)
+        self._committer.shutdown()
         self._plans.shutdown()
         self._parsers.shutdown(wait=True)
         self._threads.shutdown(wait=True)
@@ -286,7 +341,7 @@ class MapService:
     async def _snapshot(self, entry: MapEntry) -> None:
         """Store the map's arrays and drop the batches they cover; a failure is logged and counted only.
 
-        The caller holds the map's turn (no batch can change the map meanwhile). Nothing is lost
+        The caller holds the map's apply turn (no batch can change the map meanwhile). Nothing is lost
         when this fails: the batches since the last snapshot stay in the log and are replayed at start.
         """
         async with entry.apply_lock:  # readers wait for the copy only, not for deflate and fsync
@@ -358,21 +413,27 @@ class MapService:
     async def delete_map(self, name: str) -> None:
         """Remove a map and its stored rows (after the batches that arrived before, if any)."""
         entry = self._entry(name)
-        ticket = entry.turns.take()
+        ticket = entry.line.take()
         try:
-            await entry.turns.wait(ticket)
+            await entry.line.wait_all(ticket)
             if entry.deleted:
                 raise NotFound(f"no map named {name!r}")
             await self._run(self.storage.delete_map, name)
             entry.deleted = True
             del self._maps[name]
         finally:
-            entry.turns.done(ticket)
+            entry.line.done(ticket)
         self.metrics.maps.set(len(self._maps))
 
     # ---------------------------------------------------------------- scans
 
-    def _parse(self, body: bytes, content_type: str, params: Mapping[str, float | None], dims: int) -> list[batches.Scan]:
+    def _parse(self, body: bytes, content_type: str, query: Mapping[str, str], dims: int) -> list[batches.Scan]:
+        # the query first, as FastAPI checks query parameters before the route reads a body
+        try:
+            params = ScanQuery.model_validate(dict(query)).model_dump()
+        except ValidationError as exc:
+            errors = [{**e, "loc": ("query", *e["loc"])} for e in exc.errors(include_url=False)]
+            raise RequestValidationError(errors) from None
         media = content_type.split(";")[0].strip().lower()
         if media in batches.BINARY_TYPES:
             return batches.from_binary(body, params, dims, self._limits)
@@ -389,20 +450,17 @@ class MapService:
         return batches.from_json(batch, dims, self._limits)
 
     def _prepare(
-        self, entry: MapEntry, body: bytes, content_type: str, params: Mapping[str, float | None]
+        self, entry: MapEntry, body: bytes, content_type: str, query: Mapping[str, str]
     ) -> tuple[list[batches.Scan], bytes]:
-        """Parse, validate and encode a batch (in a fusion thread, no lock held: it touches no map state)."""
-        scans = self._parse(body, content_type, params, entry.spec.ndim)
+        """Parse, validate (query and body) and encode a batch (no lock held: it touches no map state).
+
+        In a parsing thread, or on the event loop for a small body (``INLINE_PARSE_BYTES``).
+        """
+        scans = self._parse(body, content_type, query, entry.spec.ndim)
         return scans, batches.encode(scans)
 
-    def _commit(self, entry: MapEntry, version: int, payload: bytes, updated: str) -> None:
-        """Make the batch durable (in a fusion thread; the caller holds the map's turn)."""
-        started = time.perf_counter()
-        self.storage.append_batch(entry.name, version, payload, updated)
-        self.metrics.commit_seconds.observe(time.perf_counter() - started)
-
     def _apply(self, entry: MapEntry, version: int, scans: list[batches.Scan]) -> BatchResult:
-        """Fuse a committed batch (in a fusion thread; the caller holds the turn and the apply lock)."""
+        """Fuse a committed batch (in a fusion thread; the caller holds the apply turn and the apply lock)."""
         started = time.perf_counter()
         try:
             stats = entry.map.integrate_batch(scans)
@@ -418,28 +476,51 @@ class MapService:
         return BatchResult(scans_fused=stats.scans, rays=stats.rays, cells_updated=stats.cells_updated, version=version)
 
     async def add_scans(
-        self, name: str, *, body: bytes, content_type: str, params: Mapping[str, float | None]
+        self, name: str, *, body: bytes, content_type: str, query: Mapping[str, str]
     ) -> BatchResult:
         """Fuse one batch (JSON ``ScanBatch`` or one binary scan) into a map, durably, all or nothing.
 
         Batches to one map are committed and applied in the order they arrived here.
         """
         entry = self._entry(name)
-        ticket = entry.turns.take()  # before any await: this fixes the batch's place in line
+        ticket = entry.line.take()  # before any await: this fixes the batch's place in line
         try:
-            try:
-                scans, payload = await self._run_parser(self._prepare, entry, body, content_type, params)
-            except (Invalid, TooLarge, RequestValidationError, UnsupportedMediaType) as exc:
+            if len(body) <= INLINE_PARSE_BYTES:
+                scans, payload = self._prepare(entry, body, content_type, query)
+            else:
+                scans, payload = await self._run_parser(self._prepare, entry, body, content_type, query)
+        except BaseException as exc:
+            entry.line.done(ticket)
+            if isinstance(exc, (Invalid, TooLarge, RequestValidationError, UnsupportedMediaType)):
                 self.metrics.batches_rejected.labels(type(exc).__name__).inc()
-                raise
-            await entry.turns.wait(ticket)
+            raise
+        # the task owns the ticket from here; shielded, so that a cancelled request cannot leave its
+        # batch committed but not applied
+        writing = asyncio.ensure_future(self._write(entry, ticket, scans, payload))
+        writing.add_done_callback(_retrieve)
+        return await asyncio.shield(writing)
+
+    async def _write(self, entry: MapEntry, ticket: int, scans: list[batches.Scan], payload: bytes) -> BatchResult:
+        """Commit, then apply, a parsed batch in its turns; gives both turns up when done, whatever happens."""
+        try:
+            await entry.line.commit.wait(ticket)
             if entry.deleted:
-                raise NotFound(f"no map named {name!r}")
-            version, updated = entry.version + 1, _now()
-            # StorageUnavailable from here leaves the map untouched: nothing is applied before the commit
-            await self._run(self._commit, entry, version, payload, updated)
+                raise NotFound(f"no map named {entry.name!r}")
+            version, updated = entry.committed + 1, _now()
+            # StorageUnavailable here leaves the map untouched: nothing is applied before the commit
+            await asyncio.wrap_future(self._committer.append(BatchRecord(entry.name, version, payload, updated)))
+            entry.committed = version
+            entry.line.commit.done(ticket)  # the next batch may commit while this one waits for its fusion
+            await entry.line.apply.wait(ticket)
             async with entry.apply_lock:
-                result = await self._run(self._apply, entry, version, scans)
+                try:
+                    result = await self._run(self._apply, entry, version, scans)
+                except BaseException:
+                    # _apply removed the batch from the log; its version is reused unless a later batch
+                    # already took the next one (any batch committing now carries a higher version)
+                    if entry.committed == version:
+                        entry.committed = version - 1
+                    raise
                 # assigned here, on the event loop and under the apply lock, so that a reader and
                 # MapInfo never pair the new arrays with the old version (or mix two versions)
                 entry.version, entry.scans_fused, entry.updated = result.version, entry.map.scans_fused, updated
@@ -448,7 +529,7 @@ class MapService:
                 await self._snapshot(entry)
             return result
         finally:
-            entry.turns.done(ticket)
+            entry.line.done(ticket)
 
     async def last_scan(self, name: str) -> LastScan:
         """Beam ends of the last scan fused; the view is built at the first request, not per batch."""
@@ -611,6 +692,13 @@ class MapService:
             planner_spec(request.planner)  # lists the planners that work
         except ValueError as exc:
             raise Invalid(str(exc)) from None
+
+
+def _retrieve(task: asyncio.Future[Any]) -> None:
+    """Mark a shielded task's exception as seen: its request may have been cancelled, and the error
+    reached the client (or nobody) through the shield, not through this task."""
+    if not task.cancelled():
+        task.exception()
 
 
 def _check_band(z_min: float | None, z_max: float | None) -> None:

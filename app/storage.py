@@ -16,7 +16,8 @@ import sqlite3
 import threading
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Protocol
+from collections.abc import Sequence
+from typing import Any, NamedTuple, Protocol
 
 
 class NameTaken(Exception):
@@ -39,6 +40,15 @@ class StoredMap:
     batches: list[tuple[int, bytes]] = field(default_factory=list)  # (version, payload), ascending
 
 
+class BatchRecord(NamedTuple):
+    """One batch to append: the map, the version it brings the map to, its payload, the map's new ``updated``."""
+
+    name: str
+    version: int
+    payload: bytes
+    updated: str
+
+
 class Storage(Protocol):
     """What the service needs from a store; another backend (a shared database) can replace SQLite."""
 
@@ -57,6 +67,9 @@ class Storage(Protocol):
         Every write method raises ``StorageUnavailable`` when the store cannot take the write;
         the store is then exactly as it was before the call.
         """
+
+    def append_batches(self, batches: Sequence[BatchRecord]) -> None:
+        """Durably store several batches (of any maps) in one transaction: all of them or none."""
 
     def discard_batch(self, name: str, version: int) -> None:
         """Forget a batch that could not be applied (it was never acknowledged)."""
@@ -158,12 +171,15 @@ class SqliteStorage:
         self._write([("DELETE FROM maps WHERE name = ?", (name,))])
 
     def append_batch(self, name: str, version: int, payload: bytes, updated: str) -> None:
-        self._write(
-            [
-                ("INSERT INTO batches (map, seq, payload) VALUES (?, ?, ?)", (name, version, payload)),
-                ("UPDATE maps SET updated = ? WHERE name = ?", (updated, name)),
-            ]
-        )
+        self.append_batches([BatchRecord(name, version, payload, updated)])
+
+    def append_batches(self, batches: Sequence[BatchRecord]) -> None:
+        # one transaction, so one fsync of the WAL however many batches (group commit)
+        statements: list[tuple[str, tuple[Any, ...]]] = []
+        for b in batches:
+            statements.append(("INSERT INTO batches (map, seq, payload) VALUES (?, ?, ?)", (b.name, b.version, b.payload)))
+            statements.append(("UPDATE maps SET updated = ? WHERE name = ?", (b.updated, b.name)))
+        self._write(statements)
 
     def discard_batch(self, name: str, version: int) -> None:
         self._write([("DELETE FROM batches WHERE map = ? AND seq = ?", (name, version))])

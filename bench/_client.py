@@ -6,12 +6,15 @@
   ray-box ranges, 1080 beams over 270 degrees) with their scans pre-encoded as request bodies
   (JSON batches and binary float32 uploads), and the same scans as ``fuzzyocc.LaserScan`` for
   in-process replay. Ranges are float32 values, so JSON, binary and replay fuse identical numbers.
+* :class:`LeanClient`: one keep-alive HTTP/1.1 connection for a simulated robot's uploads, far
+  cheaper in CPU than httpx (the load generator shares the machine with the server it measures).
 * :func:`health_prober`: ``GET /health`` latencies from a separate process (the clients' own
   GIL must not be what is measured).
 """
 
 from __future__ import annotations
 
+import http.client
 import json
 import math
 import multiprocessing
@@ -27,6 +30,7 @@ from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
+from urllib.parse import urlencode, urlsplit
 
 import httpx
 import numpy as np
@@ -239,6 +243,44 @@ class Batch:
 
     def laser_scans(self) -> list[LaserScan]:
         return [s.laser_scan() for s in self.scans]
+
+    def target(self, name: str) -> str:
+        """Path and query of this batch's upload to map ``name``."""
+        return f"/maps/{name}/scans" + (f"?{urlencode(self.params)}" if self.params is not None else "")
+
+
+class LeanClient:
+    """One keep-alive HTTP/1.1 connection (``http.client``) that posts scan batches: a robot of the load bench.
+
+    The load generator runs on the machine it measures, so its own CPU is taken from the server:
+    a batch posted through httpx costs the client about 0.9 ms of CPU, through this about 0.2 ms
+    (an idle machine, 1080-beam binary scans). Any error closes the connection; the next request
+    opens a new one.
+    """
+
+    def __init__(self, base_url: str, timeout: float = 60.0) -> None:
+        url = urlsplit(base_url)
+        self._conn = http.client.HTTPConnection(url.hostname or "127.0.0.1", url.port or 80, timeout=timeout)
+
+    def post(self, name: str, batch: Batch) -> int:
+        """POST the batch to map ``name``; the status code (``OSError`` / ``HTTPException`` on a broken connection)."""
+        try:
+            self._conn.request("POST", batch.target(name), body=batch.body, headers={"Content-Type": batch.content_type})
+            response = self._conn.getresponse()
+            response.read()
+            return response.status
+        except (OSError, http.client.HTTPException):
+            self._conn.close()
+            raise
+
+    def close(self) -> None:
+        self._conn.close()
+
+    def __enter__(self) -> LeanClient:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
 
 
 def make_batch(scans: Sequence[Scan], binary: bool) -> Batch:

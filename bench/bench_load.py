@@ -1,12 +1,16 @@
 """The service under load on loopback: scan throughput against in-process fusion, plan and /health latency.
 
-    python -m bench.bench_load [--quick] [--robots N] [--seconds S] [--py-spy DIR]   (from the repository root)
+    python -m bench.bench_load [--quick] [--robots N] [--seconds S] [--client lean|httpx] [--py-spy DIR]
+                                                                                    (from the repository root)
 
 N simulated robots in one 20 m x 20 m room (``bench.bench_fusion.planar_scene``: 1080-beam
 LaserScans over 270 degrees, 0.05 m maps of 420 x 420 cells) each stream their scans into their
 own map and into one shared map. Even robots send JSON batches of ``--batch`` scans, odd robots
 the binary upload (raw float32 ranges, one scan per request). The server is ``python -m app``
 in a subprocess with its default fusion threads and planner workers, on a temporary data dir.
+The robots post through one keep-alive ``http.client`` connection each (``--client lean``), as
+cheap in CPU as an HTTP client gets in Python: they share the machine with the server, and a
+robot does not run there (``--client httpx`` posts through httpx, about 4 times the client CPU).
 
 Phases (``--seconds`` each; A and B alternate in ``--rounds`` short rounds so that other work on
 a shared machine hits both alike):
@@ -14,7 +18,9 @@ a shared machine hits both alike):
 P   over HTTP, plans alone (the planner's own latency, for comparison);
 A   in process: the same batches (same sizes, same map sizes, same order per robot) fused by
     ``integrate_batch`` through a pool of as many threads as the server's fusion pool, each
-    robot waiting for its batch like an HTTP client does, the shared map behind a lock;
+    robot waiting for its batch like an HTTP client does, the shared map behind a lock that a
+    robot takes before it hands the batch to the pool (as the service's turns are waited for on
+    its event loop, never in a fusion thread);
 B   over HTTP, scans only;                        -> ratio B / A (target >= 0.80)
 C   over HTTP, scans and one client planning back to back on the shared map (no seed: a
     seeded plan is bounded by iterations, not time)  -> plan p99 <= time_limit + 100 ms.
@@ -26,13 +32,16 @@ the rest. The run is bounded: each phase stops at its time or after ``--max-requ
 from __future__ import annotations
 
 import argparse
+import http.client
 import os
 import shutil
 import subprocess
 import sys
 import threading
 import time
+from collections.abc import Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -45,6 +54,7 @@ from bench._client import (
     Batch,
     Fleet,
     HealthProber,
+    LeanClient,
     ServerProcess,
     machine,
     new_map,
@@ -118,6 +128,7 @@ _SCRAPED = {
     "commit": ("fuzzyrisk_batch_commit_duration_seconds", {}),
     "fusion": ("fuzzyrisk_fusion_duration_seconds", {}),
     "plans": ("fuzzyrisk_plan_duration_seconds", {}),
+    "group": ("fuzzyrisk_batch_commit_group_size", {}),  # batches per transaction, not seconds
 }
 
 
@@ -156,16 +167,13 @@ def _delta(after: dict[str, tuple[float, float]], before: dict[str, tuple[float,
 def run_in_process(work: Workload, seconds: float, max_requests: int, name: str) -> PhaseResult:
     """Fuse the workload's batches in this process as the server would, for ``seconds``."""
     maps = {m: new_map(work.fleet.spec) for m in work.maps}
-    lock = threading.Lock()  # the shared map takes one batch at a time, as the service's per-map lock does
+    lock = threading.Lock()  # the shared map takes one batch at a time, as the service's turns do
     pool = ThreadPoolExecutor(FUSION_THREADS)
     counts = [0] * len(work.jobs)
     deadline = time.perf_counter() + seconds
 
     def fuse(map_name: str, batch: Batch) -> int:
         scans = batch.laser_scans()  # the server builds LaserScans from each body too
-        if map_name == SHARED:
-            with lock:
-                return maps[map_name].integrate_batch(scans).scans
         return maps[map_name].integrate_batch(scans).scans
 
     def robot(r: int) -> None:
@@ -173,7 +181,13 @@ def run_in_process(work: Workload, seconds: float, max_requests: int, name: str)
         i = 0
         while time.perf_counter() < deadline and i < max_requests:
             map_name, batch = jobs[i % len(jobs)]
-            counts[r] += pool.submit(fuse, map_name, batch).result()
+            if map_name == SHARED:
+                # the wait for the shared map happens here, in the robot's thread, as the service waits
+                # for a turn on its event loop: a fusion thread never sits blocked on the lock
+                with lock:
+                    counts[r] += pool.submit(fuse, map_name, batch).result()
+            else:
+                counts[r] += pool.submit(fuse, map_name, batch).result()
             i += 1
 
     t0 = time.perf_counter()
@@ -190,13 +204,40 @@ def run_in_process(work: Workload, seconds: float, max_requests: int, name: str)
 # ---------------------------------------------------------------- over HTTP
 
 
+@contextmanager
+def robot_client(url: str, kind: str) -> Iterator[Callable[[str, Batch], bool]]:
+    """A robot's upload function, ``post(map name, batch) -> answered 200``, over its own connection."""
+    if kind == "lean":
+        with LeanClient(url, timeout=60.0) as lean:
+
+            def post_lean(map_name: str, batch: Batch) -> bool:
+                try:
+                    return lean.post(map_name, batch) == 200
+                except (OSError, http.client.HTTPException):
+                    return False
+
+            yield post_lean
+        return
+    with httpx.Client(base_url=url, timeout=60.0) as pooled:
+
+        def post_httpx(map_name: str, batch: Batch) -> bool:
+            try:
+                return batch.post(pooled, map_name).status_code == 200
+            except httpx.HTTPError:
+                return False
+
+        yield post_httpx
+
+
 def run_http(server: ServerProcess, work: Workload, seconds: float, max_requests: int, name: str,
-             plan_body: dict[str, Any] | None, *, robots: bool = True, seeded: bool = False) -> PhaseResult:
+             plan_body: dict[str, Any] | None, *, robots: bool = True, seeded: bool = False,
+             client: str = "lean") -> PhaseResult:
     """Stream the workload to the server for ``seconds`` (and plan back to back if ``plan_body``).
 
     ``robots=False``: plans only (the planner's own latency, for comparison). ``seeded``: plans carry
     a seed, which bounds them by iterations instead of wall time (planning.query), so they take
-    longer than ``time_limit`` when the CPU is shared.
+    longer than ``time_limit`` when the CPU is shared. ``client``: the robots' HTTP client, ``lean``
+    (:class:`bench._client.LeanClient`) or ``httpx``.
     """
     result = PhaseResult(name, seconds)
     lock = threading.Lock()
@@ -205,16 +246,12 @@ def run_http(server: ServerProcess, work: Workload, seconds: float, max_requests
 
     def robot(r: int) -> None:
         jobs = work.jobs[r]
-        with httpx.Client(base_url=server.url, timeout=60.0) as client:
+        with robot_client(server.url, client) as post:
             i = 0
             while time.perf_counter() < deadline and i < max_requests:
                 map_name, batch = jobs[i % len(jobs)]
                 t0 = time.perf_counter()
-                try:
-                    response = batch.post(client, map_name)
-                    ok = response.status_code == 200
-                except httpx.HTTPError:
-                    ok = False
+                ok = post(map_name, batch)
                 dt = time.perf_counter() - t0
                 with lock:
                     if ok:
@@ -226,7 +263,7 @@ def run_http(server: ServerProcess, work: Workload, seconds: float, max_requests
 
     def planner() -> None:
         assert plan_body is not None
-        with httpx.Client(base_url=server.url, timeout=120.0) as client:
+        with httpx.Client(base_url=server.url, timeout=120.0) as planning:
             k = 0
             while not stop.is_set():
                 points = work.fleet.free_points
@@ -236,7 +273,7 @@ def run_http(server: ServerProcess, work: Workload, seconds: float, max_requests
                     body["seed"] = k
                 t0 = time.perf_counter()
                 try:
-                    response = client.post(f"/maps/{SHARED}/plan", json=body)
+                    response = planning.post(f"/maps/{SHARED}/plan", json=body)
                     status = str(response.status_code)
                     if response.status_code == 200:
                         status = response.json()["status"]
@@ -296,8 +333,9 @@ class ResourceSampler:
         self._stop.set()
         self._thread.join()
 
-    def summary(self, start: float, end: float) -> str:
-        rows = [s for s in self.samples if start <= s[0] < end]
+    def summary(self, windows: list[tuple[float, float]]) -> str:
+        """Means and maxima over the samples taken inside ``windows`` (wall-clock spans)."""
+        rows = [s for s in self.samples if any(start <= s[0] < end for start, end in windows)]
         if not rows:
             return "no samples"
         cpu = [r[1] for r in rows]
@@ -339,6 +377,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seeded", action="store_true",
                         help="plans carry a seed (bounded by iterations, not wall time: see planning.query)")
     parser.add_argument("--seed", type=int, default=5, help="of the simulated room and robots")
+    parser.add_argument("--client", choices=("lean", "httpx"), default="lean",
+                        help="the robots' HTTP client (see the docstring)")
     parser.add_argument("--py-spy", type=Path, default=None,
                         help="record py-spy (raw collapsed stacks) of the server during B and C into this directory")
     args = parser.parse_args(argv)
@@ -351,7 +391,7 @@ def main(argv: list[str] | None = None) -> int:
     work = Workload.build(fleet, args.batch)
     print(f"{robots} robots, 1080-beam scans; even robots: JSON batches of {args.batch}, odd robots: binary, "
           f"1 scan a request; every batch goes to the robot's map and to '{SHARED}'; maps {fleet.spec.shape} "
-          f"cells at {fleet.spec.resolution} m; phases of {seconds:.0f} s")
+          f"cells at {fleet.spec.resolution} m; phases of {seconds:.0f} s; robots post through {args.client}")
     plan_body = {"planner": args.planner, "time_limit": args.time_limit, "state_space": "R2", "robot_radius": 0.2,
                  "max_risk": 0.6, "risk_weight": 1.0, "allow_unknown": True}
 
@@ -393,11 +433,11 @@ def main(argv: list[str] | None = None) -> int:
         for r in range(rounds):
             a_parts.append(run_in_process(work, part, args.max_requests, f"A{r + 1}"))
             before = scrape(server)
-            b_parts.append(run_http(server, work, part, args.max_requests, f"B{r + 1}", None))
+            b_parts.append(run_http(server, work, part, args.max_requests, f"B{r + 1}", None, client=args.client))
             server_ms["B"].append(_delta(scrape(server), before))
         before = scrape(server)
         c = run_http(server, work, seconds, args.max_requests, "C HTTP scans + plans", plan_body,
-                     seeded=args.seeded)
+                     seeded=args.seeded, client=args.client)
         server_ms["C"].append(_delta(scrape(server), before))
         c.windows.append((c.started, c.ended))
         health, health_failures = prober.stop()
@@ -439,12 +479,12 @@ def main(argv: list[str] | None = None) -> int:
     for phase, rows in server_ms.items():
         mean = {k: float(np.mean([r[k] for r in rows])) for k in rows[0]}  # NaN where nothing was observed
         print(f"server's own timings during {phase}, mean ms per scan request: answer {mean['scan_requests']:.1f} = "
-              f"disk commit {mean['commit']:.1f} + fusion {mean['fusion']:.1f} + the rest (lock wait, parse, "
-              f"encode, last-scan view, framework) {mean['scan_requests'] - mean['commit'] - mean['fusion']:.1f}"
-              + (f"; plan answer {mean['plans']:.0f}" if phase == "C" else ""))
-    b_windows = b.windows
-    print(f"\nresources during B: {sampler.summary(b_windows[0][0], b_windows[-1][1])} (includes the A rounds between)")
-    print(f"resources during C: {sampler.summary(c.started, c.ended)}")
+              f"disk commit {mean['commit']:.1f} + fusion {mean['fusion']:.1f} + the rest (turn wait, parse, "
+              f"encode, framework) {mean['scan_requests'] - mean['commit'] - mean['fusion']:.1f}; a commit of a "
+              f"batch queued behind another overlaps that one's fusion; {mean['group'] / 1000:.2f} batches per "
+              f"commit transaction" + (f"; plan answer {mean['plans']:.0f}" if phase == "C" else ""))
+    print(f"\nresources during B: {sampler.summary(b.windows)} (its rounds only, not the A rounds between)")
+    print(f"resources during C: {sampler.summary([(c.started, c.ended)])}")
 
     ratio = b.rate / inproc if inproc else 0.0
     plan_p99 = percentile(c.plans, 99)

@@ -2,14 +2,13 @@
 
 from __future__ import annotations
 
-from typing import Annotated, Any
+from typing import Any
 
-from fastapi import APIRouter, Query, Request
-from pydantic import FiniteFloat
+from fastapi import APIRouter, Request
 
 from app.batches import BINARY_TYPES
 from app.deps import MapNamePath, ServiceDep
-from app.schemas import EXAMPLE_CLOUD, EXAMPLE_LASER, BatchResult, LastScan
+from app.schemas import EXAMPLE_CLOUD, EXAMPLE_LASER, SCAN_QUERY_DOC, SCAN_QUERY_FIELDS, BatchResult, LastScan
 
 router = APIRouter(prefix="/maps", tags=["scans"])
 
@@ -49,7 +48,16 @@ _BODY: dict[str, Any] = {
     }
 }
 
-Coordinate = Annotated[FiniteFloat | None, Query(description="binary uploads only; see the description")]
+# The query (app.schemas.ScanQuery) is validated with the body by the service; documented here as
+# FastAPI documents an optional float query parameter.
+_BODY["parameters"] = [
+    {
+        "name": field, "in": "query", "required": False, "description": SCAN_QUERY_DOC,
+        "schema": {"anyOf": [{"type": "number"}, {"type": "null"}], "description": SCAN_QUERY_DOC,
+                   "title": field.replace("_", " ").title()},
+    }
+    for field in SCAN_QUERY_FIELDS
+]
 
 
 @router.post(
@@ -62,33 +70,11 @@ Coordinate = Annotated[FiniteFloat | None, Query(description="binary uploads onl
         415: {"description": "a Content-Type other than JSON or the binary types"},
     },
 )
-async def post_scans(
-    name: MapNamePath,
-    request: Request,
-    service: ServiceDep,
-    x: Coordinate = None,
-    y: Coordinate = None,
-    z: Coordinate = None,
-    theta: Coordinate = None,
-    qx: Coordinate = None,
-    qy: Coordinate = None,
-    qz: Coordinate = None,
-    qw: Coordinate = None,
-    angle_min: Coordinate = None,
-    angle_increment: Coordinate = None,
-    range_min: Coordinate = None,
-    range_max: Coordinate = None,
-    registration_sigma: Coordinate = None,
-) -> BatchResult:
+async def post_scans(name: MapNamePath, request: Request, service: ServiceDep) -> BatchResult:
     """Fuse a batch of scans into the map."""
-    params = {
-        "x": x, "y": y, "z": z, "theta": theta, "qx": qx, "qy": qy, "qz": qz, "qw": qw,
-        "angle_min": angle_min, "angle_increment": angle_increment, "range_min": range_min,
-        "range_max": range_max, "registration_sigma": registration_sigma,
-    }
     body = await request.body()
     return await service.add_scans(
-        name, body=body, content_type=request.headers.get("content-type", ""), params=params
+        name, body=body, content_type=request.headers.get("content-type", ""), query=request.query_params
     )
 
 

@@ -7,6 +7,7 @@ import math
 import os
 import time
 
+import numpy as np
 import pytest
 
 from app.errors import Unavailable
@@ -55,3 +56,28 @@ def test_plans_beyond_workers_and_queue_are_refused_at_once() -> None:
             pool.shutdown()
 
     asyncio.run(scenario())
+
+
+@pytest.mark.parametrize("native", [True, False])
+def test_workers_use_the_compiled_planner_callbacks_unless_configured_not_to(native: bool) -> None:
+    from planning import native as compiled
+
+    from app.planworker import run_plan
+
+    risk = np.zeros((40, 40), np.float32)
+    params = {"start": [0.3, 0.3], "goal": [1.7, 1.7], "planner": "RRTstar", "time_limit": 0.2, "seed": 1}
+
+    async def scenario() -> dict[str, str]:
+        pool = PlanPool(workers=1, queue=1, native=native)
+        try:
+            answer = await pool.run(run_plan, 30.0, risk, np.ones_like(risk, bool), 0.05, (0.0, 0.0), params)
+            assert answer["result"]["status"] == "exact", answer
+            return await pool.run(compiled.status, 30.0)  # the same (only) worker, after its plan
+        finally:
+            pool.shutdown()
+
+    status = asyncio.run(scenario())
+    if native:  # the worker's warm-up checked every space the compiled callbacks cover
+        assert status == {f"{kind} {space}": "native" for kind in compiled.KINDS for space in compiled.SPACES}
+    else:
+        assert status == {}  # never tried

@@ -1,0 +1,417 @@
+"""The write path of a scan batch: group commit, commit pipelined with fusion, query checks, inline parsing.
+
+What must hold whatever the timing: each batch of a map is committed and applied in arrival
+order, a batch is on disk before its 200, readers never see part of a batch, and the map is
+bit for bit an in-process fusion of the batches it acknowledged.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import io
+import sqlite3
+import threading
+import time
+from collections.abc import Sequence
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+from fastapi.testclient import TestClient
+
+from app import services
+from app.committer import GroupCommitter
+from app.config import Settings
+from app.main import create_app
+from app.metrics import Metrics
+from app.schemas import MapCreate, ScanBatch
+from app.services import MapService
+from app.storage import BatchRecord, SqliteStorage, StorageUnavailable
+from fuzzyocc import FuzzyMap, GridSpec, LaserScan, SensorModel
+
+
+def _rows(data_dir: Path) -> list[tuple[str, int]]:
+    with sqlite3.connect(data_dir / "fuzzyrisk.sqlite3") as db:
+        return db.execute("SELECT map, seq FROM batches ORDER BY map, seq").fetchall()
+
+
+def _bodies(kit: Any, n: int) -> list[dict[str, Any]]:
+    return [{"scans": [kit.laser(x=0.1 * k, y=-0.2 * k, theta=0.3 * k, wall=2.05 + 0.1 * k)]} for k in range(n)]
+
+
+def _replay(kit: Any, bodies: Sequence[dict[str, Any]]) -> bytes:
+    """The risk of a fresh in-process map fed these batches one call each, in this order."""
+    spec = kit.MAP_2D
+    fresh = FuzzyMap(GridSpec(origin=spec["origin"], size=spec["size"], resolution=spec["resolution"]),
+                     SensorModel(**spec["sensor"]))
+    for body in bodies:
+        batch = ScanBatch.model_validate(body)
+        fresh.integrate_batch([
+            LaserScan(pose=(s.pose.x, s.pose.y, s.pose.theta), angle_min=s.angle_min,  # type: ignore[union-attr]
+                      angle_increment=s.angle_increment, ranges=np.array(s.ranges, dtype=np.float64),  # type: ignore[union-attr]
+                      range_min=s.range_min, range_max=s.range_max)  # type: ignore[union-attr]
+            for s in batch.scans
+        ])
+    return np.ascontiguousarray(fresh.risk()).tobytes()
+
+
+class _SlowFusion:
+    """Patches ``FuzzyMap.integrate_batch``: the first call waits until ``release`` (and may fail)."""
+
+    def __init__(self, monkeypatch: pytest.MonkeyPatch, *, fail_first: bool = False) -> None:
+        self.entered = threading.Event()
+        self.release = threading.Event()
+        self.calls = 0
+        original = FuzzyMap.integrate_batch
+
+        def integrate(map_: FuzzyMap, scans: Any) -> Any:
+            self.calls += 1
+            if self.calls == 1:
+                self.entered.set()
+                assert self.release.wait(30)
+                if fail_first:
+                    raise MemoryError("simulated")
+            return original(map_, scans)
+
+        monkeypatch.setattr(FuzzyMap, "integrate_batch", integrate)
+
+
+def _wait_for(condition: Any, timeout_s: float = 10.0) -> None:
+    deadline = time.monotonic() + timeout_s
+    while not condition():
+        assert time.monotonic() < deadline, "timed out"
+        time.sleep(0.005)
+
+
+# ---------------------------------------------------------------- group commit
+
+
+class _RecordingStorage:
+    """Storage stand-in: records each transaction; the first waits for ``gate``; ``bad`` names fail."""
+
+    def __init__(self, bad: set[str] = frozenset()) -> None:  # type: ignore[assignment]
+        self.transactions: list[list[BatchRecord]] = []
+        self.gate = threading.Event()
+        self.bad = bad
+
+    def append_batches(self, batches: Sequence[BatchRecord]) -> None:
+        if not self.transactions:
+            assert self.gate.wait(10)
+        if any(b.name in self.bad for b in batches):
+            raise StorageUnavailable("database or disk is full")
+        self.transactions.append(list(batches))
+
+
+def test_batches_waiting_for_the_writer_share_one_transaction() -> None:
+    storage = _RecordingStorage()
+    committer = GroupCommitter(storage, Metrics())  # type: ignore[arg-type]
+    first = committer.append(BatchRecord("a", 1, b"1", "t"))
+    time.sleep(0.05)  # the writer is now inside the first transaction, held at the gate
+    waiting = [committer.append(BatchRecord(name, 1, name.encode(), "t")) for name in "bcd"]
+    storage.gate.set()
+    for future in [first, *waiting]:
+        future.result(timeout=10)
+    committer.shutdown()
+    assert [[b.name for b in t] for t in storage.transactions] == [["a"], ["b", "c", "d"]]
+
+
+def test_a_failed_group_is_retried_batch_by_batch_so_one_bad_batch_fails_alone() -> None:
+    storage = _RecordingStorage(bad={"c"})
+    committer = GroupCommitter(storage, Metrics())  # type: ignore[arg-type]
+    first = committer.append(BatchRecord("a", 1, b"1", "t"))
+    time.sleep(0.05)
+    waiting = {name: committer.append(BatchRecord(name, 1, b"x", "t")) for name in "bcd"}
+    storage.gate.set()
+    first.result(timeout=10)
+    waiting["b"].result(timeout=10)
+    waiting["d"].result(timeout=10)
+    with pytest.raises(StorageUnavailable):
+        waiting["c"].result(timeout=10)
+    committer.shutdown()
+    assert [[b.name for b in t] for t in storage.transactions] == [["a"], ["b"], ["d"]]
+
+
+def test_a_group_commit_is_one_sqlite_transaction(tmp_path: Path) -> None:
+    storage = SqliteStorage(tmp_path / "db.sqlite3")
+    for name in ("m", "n"):
+        storage.create_map(name, {"name": name}, "t0")
+    storage.append_batches([BatchRecord("m", 1, b"a", "t1"), BatchRecord("n", 1, b"b", "t1"),
+                            BatchRecord("m", 2, b"c", "t2")])
+    with pytest.raises(sqlite3.IntegrityError):  # m/2 is taken: the whole group is refused
+        storage.append_batches([BatchRecord("n", 2, b"d", "t3"), BatchRecord("m", 2, b"e", "t3")])
+    stored = {m.name: m.batches for m in storage.load_all()}
+    storage.close()
+    assert stored == {"m": [(1, b"a"), (2, b"c")], "n": [(1, b"b")]}
+
+
+def test_concurrent_batches_to_several_maps_are_grouped_and_all_durable(make_client: Any, make_settings: Any,
+                                                                         kit: Any) -> None:
+    client = make_client()
+    names = [f"m{i}" for i in range(4)]
+    for name in names:
+        assert client.post("/maps", json={**kit.MAP_2D, "name": name}).status_code == 201
+    bodies = _bodies(kit, 6)
+
+    def stream(name: str) -> list[int]:
+        return [client.post(f"/maps/{name}/scans", json=body).json()["version"] for body in bodies]
+
+    with ThreadPoolExecutor(len(names)) as pool:
+        versions = list(pool.map(stream, names))
+    assert versions == [list(range(1, len(bodies) + 1))] * len(names)
+    assert _rows(make_settings().data_dir) == [(name, v) for name in names for v in range(1, len(bodies) + 1)]
+    expected = _replay(kit, bodies)
+    assert all(kit.risk_npy(client, name).tobytes() == expected for name in names)
+
+
+# ---------------------------------------------------------------- commit pipelined with fusion
+
+
+def test_the_next_batch_commits_while_the_previous_one_fuses(make_settings: Any, kit: Any,
+                                                            monkeypatch: pytest.MonkeyPatch) -> None:
+    settings = make_settings()
+    slow = _SlowFusion(monkeypatch)
+    bodies = _bodies(kit, 3)
+    with TestClient(create_app(settings)) as client, ThreadPoolExecutor(3) as pool:
+        client.post("/maps", json=kit.MAP_2D)
+        first = pool.submit(client.post, "/maps/lab/scans", json=bodies[0])
+        assert slow.entered.wait(10)
+        later = []
+        for k, body in enumerate(bodies[1:], start=2):
+            later.append(pool.submit(client.post, "/maps/lab/scans", json=body))
+            # batch 1 is still fusing, and the next ones go on disk one after the other
+            _wait_for(lambda k=k: _rows(settings.data_dir) == [("lab", v) for v in range(1, k + 1)])
+        assert kit.version(client, "lab") == 0  # readers see none of them yet
+        assert not first.done() and not any(f.done() for f in later)
+        slow.release.set()
+        assert [f.result().json()["version"] for f in [first, *later]] == [1, 2, 3]
+        assert kit.risk_npy(client, "lab").tobytes() == _replay(kit, bodies)
+
+
+def test_a_batch_failing_in_fusion_after_the_next_committed_leaves_a_version_gap_and_loses_nothing(
+    make_settings: Any, kit: Any, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    settings = make_settings()
+    slow = _SlowFusion(monkeypatch, fail_first=True)
+    failing, following = _bodies(kit, 2)
+    with TestClient(create_app(settings), raise_server_exceptions=False) as client, ThreadPoolExecutor(2) as pool:
+        client.post("/maps", json=kit.MAP_2D)
+        first = pool.submit(client.post, "/maps/lab/scans", json=failing)
+        assert slow.entered.wait(10)
+        second = pool.submit(client.post, "/maps/lab/scans", json=following)
+        _wait_for(lambda: _rows(settings.data_dir) == [("lab", 1), ("lab", 2)])
+        slow.release.set()
+        assert first.result().status_code == 500
+        assert second.result().json()["version"] == 2  # committed as 2 before batch 1 failed: it keeps it
+        assert _rows(settings.data_dir) == [("lab", 2)]  # the failed batch is gone from the log
+        risk = kit.risk_npy(client, "lab").tobytes()
+        assert risk == _replay(kit, [following])
+        assert client.post("/maps/lab/scans", json=following).json()["version"] == 3
+    monkeypatch.undo()
+    with TestClient(create_app(settings)) as again:  # the replay gives the same map
+        assert kit.version(again, "lab") == 3
+        assert kit.risk_npy(again, "lab").tobytes() == _replay(kit, [following, following])
+
+
+def test_a_request_cancelled_after_parsing_is_still_committed_and_applied(
+    tmp_path: Path, kit: Any, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Cancelling the request (a client gone away) must not leave its batch on disk but not in the map."""
+    slow = _SlowFusion(monkeypatch)
+    body = _bodies(kit, 1)[0]
+
+    async def scenario() -> tuple[int, int]:
+        settings = Settings(data_dir=tmp_path / "data", plan_warmup=False, plan_workers=1)
+        service = MapService(settings, SqliteStorage(settings.database_path), Metrics())
+        await service.start()
+        await service.create_map(MapCreate(**kit.MAP_2D))
+        request = asyncio.ensure_future(service.add_scans(
+            "lab", body=ScanBatch.model_validate(body).model_dump_json().encode(), content_type="application/json",
+            query={},
+        ))
+        await asyncio.get_running_loop().run_in_executor(None, slow.entered.wait, 10)
+        request.cancel()
+        await asyncio.sleep(0.05)
+        slow.release.set()
+        with pytest.raises(asyncio.CancelledError):
+            await request
+        await service.stop()  # waits for the batch in flight, then snapshots it
+        storage = SqliteStorage(settings.database_path)
+        stored = storage.load_all()
+        storage.close()
+        return service.get_map("lab").version, stored[0].snapshot_version
+
+    assert asyncio.run(scenario()) == (1, 1)
+
+
+def test_readers_never_see_a_committed_batch_before_it_is_applied(make_settings: Any, kit: Any,
+                                                                 monkeypatch: pytest.MonkeyPatch) -> None:
+    slow = _SlowFusion(monkeypatch)
+    with TestClient(create_app(make_settings())) as client, ThreadPoolExecutor(1) as pool:
+        client.post("/maps", json=kit.MAP_2D)
+        before = kit.risk_npy(client, "lab").tobytes()
+        pending = pool.submit(client.post, "/maps/lab/scans", json=_bodies(kit, 1)[0])
+        assert slow.entered.wait(10)
+        info = client.get("/maps/lab").json()
+        assert (info["version"], info["scans_fused"]) == (0, 0)
+        slow.release.set()
+        assert pending.result().json()["version"] == 1
+        assert kit.risk_npy(client, "lab").tobytes() != before
+
+
+# ---------------------------------------------------------------- the query and the parse
+
+
+RAW_QUERY = {"x": 0, "y": 0, "theta": 0, "angle_min": -0.7, "angle_increment": 0.02, "range_min": 0.1,
+             "range_max": 10}
+RAW = {"content-type": "application/octet-stream"}
+
+
+def _raw_ranges() -> bytes:
+    return np.full(70, 2.5, dtype="<f4").tobytes()
+
+
+@pytest.mark.parametrize(("value", "error"), [("nan", "finite_number"), ("-inf", "finite_number"),
+                                              ("abc", "float_parsing"), ("", "float_parsing")])
+def test_query_parameters_are_refused_as_fastapi_refuses_them(lab: TestClient, kit: Any, value: str,
+                                                              error: str) -> None:
+    response = lab.post("/maps/lab/scans", params={**RAW_QUERY, "theta": value}, content=_raw_ranges(), headers=RAW)
+    assert response.status_code == 422
+    assert response.json() == {"detail": [{"type": error, "loc": ["query", "theta"], "msg": response.json()["detail"][0]["msg"],
+                                           "input": value}]}
+    assert kit.version(lab, "lab") == 0
+
+
+def test_the_query_is_checked_before_the_content_type_and_for_json_too(lab: TestClient, kit: Any) -> None:
+    text = lab.post("/maps/lab/scans", params={"qx": "nan"}, content=b"x", headers={"content-type": "text/plain"})
+    assert text.status_code == 422 and text.json()["detail"][0]["loc"] == ["query", "qx"]
+    assert lab.post("/maps/lab/scans", content=b"x", headers={"content-type": "text/plain"}).status_code == 415
+    body = _bodies(kit, 1)[0]
+    assert lab.post("/maps/lab/scans", params={"x": "inf"}, json=body).status_code == 422
+    assert lab.post("/maps/lab/scans", params={"unknown": "nan"}, json=body).json()["version"] == 1
+
+
+def test_the_scan_query_is_documented_as_before(client: TestClient) -> None:
+    params = client.get("/openapi.json").json()["paths"]["/maps/{name}/scans"]["post"]["parameters"]
+    assert [p["name"] for p in params] == ["name", "x", "y", "z", "theta", "qx", "qy", "qz", "qw", "angle_min",
+                                           "angle_increment", "range_min", "range_max", "registration_sigma"]
+    assert params[10] == {
+        "name": "angle_increment", "in": "query", "required": False,
+        "description": "binary uploads only; see the description",
+        "schema": {"anyOf": [{"type": "number"}, {"type": "null"}], "title": "Angle Increment",
+                   "description": "binary uploads only; see the description"},
+    }
+
+
+def test_bodies_parsed_on_the_loop_or_in_a_thread_fuse_the_same(make_client: Any, kit: Any,
+                                                               monkeypatch: pytest.MonkeyPatch) -> None:
+    big = {"scans": [kit.laser(beams=4000, wall=2.0 + 0.1 * k) for k in range(4)]}
+    small = _bodies(kit, 1)[0]
+    assert len(ScanBatch.model_validate(big).model_dump_json()) > services.INLINE_PARSE_BYTES
+    risks = []
+    for inline_bytes in (services.INLINE_PARSE_BYTES, 0):  # default; then every body through a thread
+        monkeypatch.setattr(services, "INLINE_PARSE_BYTES", inline_bytes)
+        client = make_client()
+        name = f"lab{inline_bytes}"
+        client.post("/maps", json={**kit.MAP_2D, "name": name})
+        assert client.post(f"/maps/{name}/scans", json=small).status_code == 200
+        assert client.post(f"/maps/{name}/scans", json=big).status_code == 200
+        assert client.post(f"/maps/{name}/scans", json={"scans": [{**kit.laser(), "angle_increment": 0}]}
+                           ).status_code == 422
+        assert client.post(f"/maps/{name}/scans", params=RAW_QUERY, content=_raw_ranges(), headers=RAW
+                           ).json()["version"] == 3
+        risks.append(kit.risk_npy(client, name).tobytes())
+    assert risks[0] == risks[1]
+
+
+# ---------------------------------------------------------------- the stored form of a batch
+
+
+def _legacy_npz(scans: Sequence[Any]) -> bytes:
+    """A batch as the service stored it before the framed format (``.npz``): old databases hold these."""
+    arrays: dict[str, np.ndarray] = {"kinds": np.array(["laser" if isinstance(s, LaserScan) else "cloud" for s in scans])}
+    for i, scan in enumerate(scans):
+        if isinstance(scan, LaserScan):
+            arrays[f"s{i}_scalars"] = np.array([*scan.pose, scan.angle_min, scan.angle_increment, scan.range_min,
+                                                scan.range_max, scan.registration_sigma], dtype=np.float64)
+            arrays[f"s{i}_values"] = scan.ranges.astype(np.float32)
+        else:
+            arrays[f"s{i}_scalars"] = np.array([*scan.origin, scan.range_max, scan.registration_sigma], dtype=np.float64)
+            arrays[f"s{i}_values"] = scan.points
+    out = io.BytesIO()
+    np.savez(out, allow_pickle=False, **arrays)
+    return out.getvalue()
+
+
+def _mixed_scans() -> list[Any]:
+    from fuzzyocc import PointCloud
+
+    rng = np.random.default_rng(3)
+    exact32 = rng.uniform(0.2, 9.0, 500).astype(np.float32).astype(np.float64)
+    wide = rng.uniform(0.2, 9.0, 300)  # float64 values float32 cannot hold: kept as float64
+    wide[[3, 7, 11]] = [np.nan, np.inf, -np.inf]
+    exact32[[5, 9]] = [np.nan, np.inf]
+    return [
+        LaserScan(pose=(0.1, -0.2, 0.3), angle_min=-1.2, angle_increment=0.004, ranges=exact32, range_min=0.1,
+                  range_max=8.0, registration_sigma=0.01),
+        LaserScan(pose=(1.0 / 3.0, 0.0, -2.0), angle_min=-0.6, angle_increment=0.004, ranges=wide, range_min=0.05,
+                  range_max=30.0),
+        PointCloud(points=rng.uniform(-3, 3, (40, 2)), origin=(0.5, 0.25), range_max=6.0),
+    ]
+
+
+def _same_scans(a: Sequence[Any], b: Sequence[Any]) -> bool:
+    for x, y in zip(a, b, strict=True):
+        if type(x) is not type(y):
+            return False
+        if isinstance(x, LaserScan):
+            def fields(s: LaserScan) -> tuple[Any, ...]:
+                return (tuple(s.pose), s.angle_min, s.angle_increment, s.range_min, s.range_max, s.registration_sigma)
+
+            if fields(x) != fields(y):
+                return False
+            if x.ranges.tobytes() != y.ranges.tobytes() or y.ranges.dtype != np.float64:
+                return False
+        else:
+            if (tuple(x.origin), x.range_max, x.registration_sigma) != (tuple(y.origin), y.range_max, y.registration_sigma):
+                return False
+            if x.points.tobytes() != y.points.tobytes():
+                return False
+    return True
+
+
+def test_a_stored_batch_decodes_to_the_same_scans_bit_for_bit() -> None:
+    from app import batches
+
+    scans = _mixed_scans()
+    payload = batches.encode(scans)
+    assert payload.startswith(b"FRB\x01")
+    assert _same_scans(scans, batches.decode(payload))
+    assert len(payload) < 500 * 4 + 300 * 8 + 40 * 2 * 8 + 1000  # float32 where that loses nothing
+    with pytest.raises(ValueError, match="after its last scan"):
+        batches.decode(payload + b"\0")
+
+
+def test_batches_stored_as_npz_by_earlier_versions_still_decode_and_replay(make_settings: Any, kit: Any) -> None:
+    from app import batches
+
+    legacy = [_mixed_scans()[0], _mixed_scans()[2]]  # the old encoder stored laser ranges as float32
+    assert _same_scans(legacy, batches.decode(_legacy_npz(legacy)))
+    settings = make_settings()
+    bodies = _bodies(kit, 3)
+    with TestClient(create_app(settings)) as client:
+        client.post("/maps", json=kit.MAP_2D)
+    # the map's batches as an earlier version stored them: .npz payloads
+    storage = SqliteStorage(settings.database_path)
+    for version, body in enumerate(bodies, start=1):
+        old = [LaserScan(pose=(s["pose"]["x"], s["pose"]["y"], s["pose"]["theta"]), angle_min=s["angle_min"],
+                         angle_increment=s["angle_increment"], ranges=np.array(s["ranges"], dtype=np.float64),
+                         range_min=s["range_min"], range_max=s["range_max"]) for s in body["scans"]]
+        storage.append_batch("lab", version, _legacy_npz(old), "2026-01-01T00:00:00.000+00:00")
+    storage.close()
+    with TestClient(create_app(settings)) as again:
+        assert kit.version(again, "lab") == 3
+        assert kit.risk_npy(again, "lab").tobytes() == _replay(kit, bodies)
+        assert again.post("/maps/lab/scans", json=bodies[0]).json()["version"] == 4  # new batches: new format
+    assert _rows(settings.data_dir) == []  # the graceful stop snapshotted all of them
