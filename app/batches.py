@@ -263,11 +263,12 @@ _VALUE_DTYPES = {"<f4": np.dtype("<f4"), "<f8": np.dtype("<f8")}
 
 def _compact(values: np.ndarray) -> np.ndarray:
     """float32 when that loses nothing (binary uploads, float32 drivers), else float64 (little-endian)."""
-    as32 = values.astype("<f4")
-    # exact iff every value comes back from float32 unchanged; NaN stays NaN through the round trip
-    back = as32.astype(np.float64)
-    exact = bool(np.logical_or(back == values, np.isnan(values)).all())
-    return as32 if exact else values.astype("<f8", copy=False)
+    values = np.asarray(values, dtype="<f8")
+    with np.errstate(over="ignore", invalid="ignore"):  # too big for float32: then not exact anyway
+        as32 = values.astype("<f4")
+    # exact iff every value's bits come back from float32 unchanged (NaN payloads and -0.0 included)
+    exact = bool(np.array_equal(as32.astype("<f8").view(np.uint64), values.view(np.uint64)))
+    return as32 if exact else values
 
 
 def _parts(scan: Scan) -> tuple[str, np.ndarray, np.ndarray]:
@@ -307,26 +308,54 @@ def _scan(kind: str, scalars: list[float], values: np.ndarray) -> Scan:
                       max_rays=max(values.shape[0], 1))
 
 
+class CorruptBatch(ValueError):
+    """A stored batch whose bytes do not decode (the message says where)."""
+
+
+_SCALARS = {"laser": (8,), "cloud": (4, 5)}  # laser: pose, angles, ranges, sigma; cloud: origin (2 or 3), max, sigma
+
+
 def decode(payload: bytes) -> list[Scan]:
-    """The scans of an :func:`encode` blob, or of a batch stored as ``.npz`` by an earlier version."""
-    if not payload.startswith(_MAGIC):
-        return _decode_npz(payload)
+    """The scans of an :func:`encode` blob, or of a batch stored as ``.npz`` by an earlier version.
+
+    Raises :class:`CorruptBatch` for bytes that are not such a blob, never reading past them.
+    """
+    try:
+        if not payload.startswith(_MAGIC):
+            return _decode_npz(payload)
+        return _decode_framed(payload)
+    except CorruptBatch:
+        raise
+    except Exception as exc:  # noqa: BLE001 - any failure to decode is corruption, named as such
+        raise CorruptBatch(f"stored batch does not decode: {type(exc).__name__}: {exc}") from exc
+
+
+def _take(payload: bytes, offset: int, dtype: np.dtype, count: int) -> np.ndarray:
+    if count < 0 or offset + count * dtype.itemsize > len(payload):
+        raise CorruptBatch(f"stored batch is truncated or its header is wrong ({count} values at byte {offset})")
+    return np.frombuffer(payload, dtype=dtype, count=count, offset=offset)
+
+
+def _decode_framed(payload: bytes) -> list[Scan]:
     offset = len(_MAGIC)
     (length,) = _HEADER_LENGTH.unpack_from(payload, offset)
     offset += _HEADER_LENGTH.size
+    if offset + length > len(payload):
+        raise CorruptBatch("stored batch is truncated inside its header")
     header = json.loads(payload[offset:offset + length])
     offset += length
     scans: list[Scan] = []
     for item in header["scans"]:
-        scalars = np.frombuffer(payload, dtype="<f8", count=int(item["scalars"]), offset=offset)
+        kind, count, shape = str(item["kind"]), int(item["scalars"]), tuple(int(n) for n in item["shape"])
+        if count not in _SCALARS.get(kind, ()) or any(n < 0 for n in shape) or len(shape) != (1 if kind == "laser" else 2):
+            raise CorruptBatch(f"stored batch has a malformed scan header: {item!r}")
+        scalars = _take(payload, offset, np.dtype("<f8"), count)
         offset += scalars.nbytes
-        dtype = _VALUE_DTYPES[item["dtype"]]
-        shape = tuple(int(n) for n in item["shape"])
-        values = np.frombuffer(payload, dtype=dtype, count=math.prod(shape), offset=offset).reshape(shape)
+        values = _take(payload, offset, _VALUE_DTYPES[item["dtype"]], math.prod(shape)).reshape(shape)
         offset += values.nbytes
-        scans.append(_scan(str(item["kind"]), scalars.tolist(), values.astype(np.float64)))
+        scans.append(_scan(kind, scalars.tolist(), values.astype(np.float64)))
     if offset != len(payload):
-        raise ValueError(f"stored batch has {len(payload) - offset} bytes after its last scan")
+        raise CorruptBatch(f"stored batch has {len(payload) - offset} bytes after its last scan")
     return scans
 
 

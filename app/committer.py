@@ -41,15 +41,18 @@ class GroupCommitter:
         self._metrics = metrics
         self._lock = threading.Lock()
         self._pending: list[_Pending] = []
+        self._closed = False
         self._writer = ThreadPoolExecutor(1, thread_name_prefix="commit")
 
     def append(self, record: BatchRecord) -> Future[None]:
         """Queue a batch; the future resolves once it is on disk, or fails (``StorageUnavailable``: nothing stored)."""
         item = _Pending(record)
         with self._lock:
+            if self._closed:
+                raise RuntimeError("the committer is shut down")
             self._pending.append(item)
-        # one flush per batch queued: a flush takes everything pending, so later ones may find nothing
-        self._writer.submit(self._flush)
+            # one flush per batch queued: a flush takes everything pending, so later ones may find nothing
+            self._writer.submit(self._flush)
         return item.future
 
     def _flush(self) -> None:
@@ -58,18 +61,24 @@ class GroupCommitter:
         # a future cancelled before it was written is dropped (its batch is not written); the rest can no
         # longer be cancelled, so each is resolved exactly once below
         group = [item for item in group if item.future.set_running_or_notify_cancel()]
-        if not group:
-            return
         try:
-            self._storage.append_batches([item.record for item in group])
-        except BaseException as exc:
-            if len(group) == 1:
-                group[0].future.set_exception(exc)
+            if not group:
                 return
+            try:
+                self._storage.append_batches([item.record for item in group])
+            except BaseException as exc:
+                if len(group) == 1:
+                    group[0].future.set_exception(exc)
+                    return
+                for item in group:
+                    self._commit_alone(item)
+                return
+            self._resolve(group)
+        finally:
+            # whatever went wrong above, no writer may wait forever (it holds its map's commit turn)
             for item in group:
-                self._commit_alone(item)
-            return
-        self._resolve(group)
+                if not item.future.done():
+                    item.future.set_exception(RuntimeError("the batch's commit ended without an answer"))
 
     def _commit_alone(self, item: _Pending) -> None:
         try:
@@ -81,11 +90,14 @@ class GroupCommitter:
 
     def _resolve(self, group: list[_Pending]) -> None:
         now = time.perf_counter()
+        for item in group:
+            item.future.set_result(None)
         self._metrics.commit_groups.observe(len(group))
         for item in group:
             self._metrics.commit_seconds.observe(now - item.queued)
-            item.future.set_result(None)
 
     def shutdown(self) -> None:
         """Write what is queued, then stop the writer."""
+        with self._lock:
+            self._closed = True
         self._writer.shutdown(wait=True)

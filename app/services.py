@@ -29,8 +29,8 @@ that cannot take the commit (full disk, read-only directory) raises
 committed and applied even if its request is cancelled (a client gone away): a
 batch committed but not applied would make the map differ from its replay. A batch
 that cannot be applied after its commit (a bug, memory) is removed from the log and
-answered 500; a later batch, committed meanwhile, keeps its version, so the map's
-version then skips one number. A snapshot is only an optimisation of restarts (the
+answered 500; its version is not reused (a later batch may have committed with
+the next one meanwhile), so the map's version then skips one number. A snapshot is only an optimisation of restarts (the
 batch log already holds every acknowledged batch), so a failed snapshot is logged,
 counted and retried later, never answered as an error.
 """
@@ -71,7 +71,7 @@ from app.schemas import (
     ScanQuery,
     SensorIn,
 )
-from app.storage import BatchRecord, NameTaken, Storage, StoredMap
+from app.storage import BatchRecord, NameTaken, Storage, StorageUnavailable, StoredMap
 from fuzzyocc import BayesMap, FuzzyMap, GridSpec, SensorModel
 from planning.planners import planner_spec
 
@@ -265,7 +265,12 @@ def _restore(stored: StoredMap) -> MapEntry:
         dict(stored.meta), built, stored.snapshot_version, stored.snapshot_version, built.scans_fused, stored.updated
     )
     for version, payload in stored.batches:
-        scans = batches.decode(payload)
+        try:
+            scans = batches.decode(payload)
+        except batches.CorruptBatch as exc:
+            # an acknowledged batch: never dropped silently; the service refuses to start and says where
+            raise RuntimeError(f"map {entry.name!r}: stored batch {version} is corrupt ({exc}); the database "
+                               f"needs repair (restore a backup, or delete that row to drop the batch)") from exc
         try:
             built.integrate_batch(scans)
         except ValueError:
@@ -275,7 +280,8 @@ def _restore(stored: StoredMap) -> MapEntry:
         entry.version = version
         entry.last_scan = scans[-1]
     entry.scans_fused = built.scans_fused
-    entry.committed = entry.version
+    # the next batch takes a version above every stored one, replayed or skipped
+    entry.committed = max([entry.version, *(version for version, _ in stored.batches)])
     return entry
 
 
@@ -414,13 +420,20 @@ class MapService:
         """Remove a map and its stored rows (after the batches that arrived before, if any)."""
         entry = self._entry(name)
         ticket = entry.line.take()
+        # shielded as a batch's write is: a cancelled request must not leave the rows deleted
+        # and the map still served
+        deleting = asyncio.ensure_future(self._delete(entry, ticket))
+        deleting.add_done_callback(_retrieve)
+        await asyncio.shield(deleting)
+
+    async def _delete(self, entry: MapEntry, ticket: int) -> None:
         try:
             await entry.line.wait_all(ticket)
             if entry.deleted:
-                raise NotFound(f"no map named {name!r}")
-            await self._run(self.storage.delete_map, name)
+                raise NotFound(f"no map named {entry.name!r}")
+            await self._run(self.storage.delete_map, entry.name)
             entry.deleted = True
-            del self._maps[name]
+            del self._maps[entry.name]
         finally:
             entry.line.done(ticket)
         self.metrics.maps.set(len(self._maps))
@@ -466,7 +479,11 @@ class MapService:
             stats = entry.map.integrate_batch(scans)
         except BaseException:
             # never acknowledged: it must not come back at the next start
-            self.storage.discard_batch(entry.name, version)
+            try:
+                self.storage.discard_batch(entry.name, version)
+            except StorageUnavailable:
+                LOG.exception("map %s: batch %d failed to apply and could not be removed from the log; "
+                              "a start before the next snapshot will replay it", entry.name, version)
             raise
         model = entry.meta["model"]
         self.metrics.fusion_seconds.labels(model).observe(time.perf_counter() - started)
@@ -513,14 +530,10 @@ class MapService:
             entry.line.commit.done(ticket)  # the next batch may commit while this one waits for its fusion
             await entry.line.apply.wait(ticket)
             async with entry.apply_lock:
-                try:
-                    result = await self._run(self._apply, entry, version, scans)
-                except BaseException:
-                    # _apply removed the batch from the log; its version is reused unless a later batch
-                    # already took the next one (any batch committing now carries a higher version)
-                    if entry.committed == version:
-                        entry.committed = version - 1
-                    raise
+                # a batch that fails here keeps its version taken (the map's version skips it): a
+                # later batch may have committed with the next one meanwhile, and should its
+                # removal from the log have failed too, the row is still there under this version
+                result = await self._run(self._apply, entry, version, scans)
                 # assigned here, on the event loop and under the apply lock, so that a reader and
                 # MapInfo never pair the new arrays with the old version (or mix two versions)
                 entry.version, entry.scans_fused, entry.updated = result.version, entry.map.scans_fused, updated

@@ -10,6 +10,7 @@ from __future__ import annotations
 import asyncio
 import io
 import sqlite3
+import struct
 import threading
 import time
 from collections.abc import Sequence
@@ -415,3 +416,59 @@ def test_batches_stored_as_npz_by_earlier_versions_still_decode_and_replay(make_
         assert kit.risk_npy(again, "lab").tobytes() == _replay(kit, bodies)
         assert again.post("/maps/lab/scans", json=bodies[0]).json()["version"] == 4  # new batches: new format
     assert _rows(settings.data_dir) == []  # the graceful stop snapshotted all of them
+
+
+def test_a_stored_batch_keeps_every_bit_of_odd_floats() -> None:
+    from app import batches
+
+    ranges = np.array([1.5, -0.0, 5e-324, 1e300, np.inf, np.nan, np.nan])
+    ranges.view(np.uint64)[6] = 0x7FF8000000000001  # a NaN with payload bits float32 cannot hold
+    scan = LaserScan(pose=(0.0, 0.0, 0.0), angle_min=0.0, angle_increment=0.01, ranges=ranges, range_min=0.1,
+                     range_max=8.0)
+    (back,) = batches.decode(batches.encode([scan]))
+    assert back.ranges.view(np.uint64).tolist() == ranges.view(np.uint64).tolist()
+
+
+def test_a_corrupt_stored_batch_is_named_as_such_and_never_read_past_its_end() -> None:
+    from app import batches
+
+    payload = batches.encode(_mixed_scans())
+    for cut in range(len(payload)):  # truncated anywhere
+        with pytest.raises(batches.CorruptBatch):
+            batches.decode(payload[:cut])
+    header_end = payload.index(b"]}") + 2
+    for bad, good in [(b'"shape": [-1]', b'"shape": [500]'), (b'"scalars": -1', b'"scalars": 8'),
+                      (b'"kind": "sonar"', b'"kind": "laser"')]:
+        forged = payload[:header_end].replace(good, bad, 1)
+        assert forged != payload[:header_end]
+        length = len(forged) - len(payload[:8])
+        forged = payload[:4] + struct.pack("<I", length) + forged[8:] + payload[header_end:]
+        with pytest.raises(batches.CorruptBatch):
+            batches.decode(forged)
+
+
+def test_a_batch_whose_removal_from_the_log_fails_after_its_fusion_failed_does_not_block_the_next(
+    make_settings: Any, kit: Any, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    settings = make_settings()
+    failing, following = _bodies(kit, 2)
+    with TestClient(create_app(settings), raise_server_exceptions=False) as client:
+        client.post("/maps", json=kit.MAP_2D)
+        slow = _SlowFusion(monkeypatch, fail_first=True)
+        slow.release.set()
+
+        def refuse(self: SqliteStorage, name: str, version: int) -> None:
+            raise StorageUnavailable("disk I/O error")
+
+        monkeypatch.setattr(SqliteStorage, "discard_batch", refuse)
+        assert client.post("/maps/lab/scans", json=failing).status_code == 500
+        assert _rows(settings.data_dir) == [("lab", 1)]  # still in the log: its version stays taken
+        answer = client.post("/maps/lab/scans", json=following)
+        assert answer.status_code == 200, answer.text
+        assert answer.json()["version"] == 2
+    monkeypatch.undo()
+    # the graceful stop snapshotted the map as it was served, which supersedes the row left in the log
+    with TestClient(create_app(settings)) as again:
+        assert kit.version(again, "lab") == 2
+        assert kit.risk_npy(again, "lab").tobytes() == _replay(kit, [following])
+        assert again.post("/maps/lab/scans", json=following).json()["version"] == 3
