@@ -48,6 +48,9 @@ class Settings(BaseSettings):
         description="Run the planners' validity, motion and cost callbacks as compiled code inside OMPL "
         "(checked at first use, Python fallback with a warning); false: always the Python callbacks.",
     )
+    max_pending_batches: int = Field(
+        32, ge=1, description="Scan batches one map may hold in line (parsed, committing or fusing) before 503."
+    )
     fusion_threads: int = Field(2, ge=1, le=64, description="Threads that fuse scans (different maps in parallel).")
     snapshot_every: int = Field(200, ge=1, description="Snapshot a map after this many batches since the last.")
     graceful_timeout_s: float = Field(

@@ -24,7 +24,7 @@ class Metrics:
         self.rays = Counter("fuzzyrisk_rays", "Beams (ranges or points) fused", ["model"], registry=r)
         self.cells_updated = Counter("fuzzyrisk_cells_updated", "Cell updates made by fusion", ["model"], registry=r)
         self.batches_rejected = Counter(
-            "fuzzyrisk_batches_rejected", "Scan batches refused (4xx)", ["reason"], registry=r
+            "fuzzyrisk_batches_rejected", "Scan batches refused (4xx, or 503 for a full line)", ["reason"], registry=r
         )
         self.fusion_seconds = Histogram(
             "fuzzyrisk_fusion_duration_seconds", "Time to fuse one batch (excluding the disk commit)", ["model"],

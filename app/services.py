@@ -54,7 +54,7 @@ from pydantic import ValidationError
 from app import batches, exports
 from app.committer import GroupCommitter
 from app.config import Settings
-from app.errors import Conflict, Invalid, NotFound, PlanRejected, TooLarge, UnsupportedMediaType
+from app.errors import Conflict, Invalid, NotFound, PlanRejected, TooLarge, Unavailable, UnsupportedMediaType
 from app.metrics import Metrics
 from app.planworker import PlanPool, run_plan
 from app.schemas import (
@@ -126,6 +126,11 @@ class Turns:
         self._next += 1
         return ticket
 
+    @property
+    def outstanding(self) -> int:
+        """Tickets taken and not yet done."""
+        return self._next - self._serving - len(self._finished)
+
     async def wait(self, ticket: int) -> None:
         """Return once every earlier ticket is done."""
         if ticket == self._serving:
@@ -164,6 +169,11 @@ class Line:
     def __init__(self) -> None:
         self.commit = Turns()
         self.apply = Turns()
+
+    @property
+    def outstanding(self) -> int:
+        """Holders in line: taken, not yet out of the apply stage."""
+        return self.apply.outstanding
 
     def take(self) -> int:
         ticket = self.commit.take()
@@ -492,6 +502,26 @@ class MapService:
         self.metrics.cells_updated.labels(model).inc(stats.cells_updated)
         return BatchResult(scans_fused=stats.scans, rays=stats.rays, cells_updated=stats.cells_updated, version=version)
 
+    def admit_batch(self, name: str) -> None:
+        """Refuse (503, ``Retry-After``) a batch for a map that already holds its limit of batches in line.
+
+        Called before the body is read (an early, cheap answer) and again by ``add_scans`` as the
+        batch takes its place in line (uploads read side by side all passed the first check), so
+        a client streaming faster than its map fuses is told to slow down instead of piling
+        parsed scans up in memory, and other maps are unaffected.
+        """
+        self._admit(self._entry(name))
+
+    def _admit(self, entry: MapEntry) -> None:
+        waiting = entry.line.outstanding
+        if waiting >= self.settings.max_pending_batches:
+            self.metrics.batches_rejected.labels("Backlog").inc()
+            raise Unavailable(
+                f"map {entry.name!r} already has {waiting} batches in line; slow down and retry "
+                "(FUZZYRISK_MAX_PENDING_BATCHES)",
+                headers={"Retry-After": "1"},
+            )
+
     async def add_scans(
         self, name: str, *, body: bytes, content_type: str, query: Mapping[str, str]
     ) -> BatchResult:
@@ -500,6 +530,8 @@ class MapService:
         Batches to one map are committed and applied in the order they arrived here.
         """
         entry = self._entry(name)
+        # no await between the check and the take: together they are atomic on the event loop
+        self._admit(entry)
         ticket = entry.line.take()  # before any await: this fixes the batch's place in line
         try:
             if len(body) <= INLINE_PARSE_BYTES:

@@ -11,8 +11,8 @@ import time
 
 import numpy as np
 
-from fuzzyocc import BayesMap, FuzzyMap, GridSpec, LaserScan, PointCloud, SensorModel
 import planning
+from fuzzyocc import BayesMap, FuzzyMap, GridSpec, LaserScan, PointCloud, SensorModel
 
 
 def warm_up() -> float:

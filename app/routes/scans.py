@@ -68,10 +68,13 @@ _BODY["parameters"] = [
         404: {"description": "no map of that name"},
         413: {"description": "body, batch or scan larger than the configured limits"},
         415: {"description": "a Content-Type other than JSON or the binary types"},
+        503: {"description": "the map already holds FUZZYRISK_MAX_PENDING_BATCHES batches in line, or the "
+                             "data directory is full or read-only (see Retry-After)"},
     },
 )
 async def post_scans(name: MapNamePath, request: Request, service: ServiceDep) -> BatchResult:
     """Fuse a batch of scans into the map."""
+    service.admit_batch(name)
     body = await request.body()
     return await service.add_scans(
         name, body=body, content_type=request.headers.get("content-type", ""), query=request.query_params

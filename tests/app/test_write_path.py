@@ -472,3 +472,28 @@ def test_a_batch_whose_removal_from_the_log_fails_after_its_fusion_failed_does_n
         assert kit.version(again, "lab") == 2
         assert kit.risk_npy(again, "lab").tobytes() == _replay(kit, [following])
         assert again.post("/maps/lab/scans", json=following).json()["version"] == 3
+
+
+def test_a_map_with_a_full_line_refuses_more_batches_with_503_and_other_maps_go_on(
+    make_settings: Any, kit: Any, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    settings = make_settings(max_pending_batches=2)
+    slow = _SlowFusion(monkeypatch)
+    bodies = _bodies(kit, 3)
+    with TestClient(create_app(settings)) as client, ThreadPoolExecutor(2) as pool:
+        client.post("/maps", json=kit.MAP_2D)
+        client.post("/maps", json={**kit.MAP_2D, "name": "other"})
+        first = pool.submit(client.post, "/maps/lab/scans", json=bodies[0])
+        assert slow.entered.wait(10)
+        second = pool.submit(client.post, "/maps/lab/scans", json=bodies[1])
+        _wait_for(lambda: _rows(settings.data_dir) == [("lab", 1), ("lab", 2)])
+        refused = client.post("/maps/lab/scans", json=bodies[2])
+        assert refused.status_code == 503 and refused.headers["Retry-After"] == "1"
+        assert "FUZZYRISK_MAX_PENDING_BATCHES" in refused.json()["detail"]
+        assert _rows(settings.data_dir) == [("lab", 1), ("lab", 2)]  # nothing of it was stored
+        # another map's line is its own
+        assert client.post("/maps/other/scans", json=bodies[2]).json()["version"] == 1
+        slow.release.set()
+        assert [f.result().json()["version"] for f in (first, second)] == [1, 2]
+        assert client.post("/maps/lab/scans", json=bodies[2]).json()["version"] == 3  # room again
+        assert kit.risk_npy(client, "lab").tobytes() == _replay(kit, bodies)
