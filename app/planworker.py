@@ -31,6 +31,9 @@ def _init_worker(native: bool) -> None:
     import planning
     from planning import native as compiled
 
+    # OMPL's plain-text warnings would break the service's one-JSON-object-a-line logs; what they
+    # warn about comes back in each result (status, message) or is documented (planning/README.md)
+    planning.quiet_ompl()
     compiled.set_enabled(native)
     compiled.prepare()
     planning.warm_up()

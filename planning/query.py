@@ -352,6 +352,15 @@ def plan(
         )
 
 
+def quiet_ompl(quiet: bool = True) -> None:
+    """Let OMPL print errors only (``quiet``), or warnings and errors too (the default at import).
+
+    OMPL writes its messages as plain text on stderr, and its output handler cannot be
+    replaced from Python; a service that logs structured lines may want them quiet.
+    """
+    ou.setLogLevel(ou.LOG_ERROR if quiet else ou.LOG_WARN)
+
+
 def warm_up(state_spaces: str | Iterable[str] = tuple(STATE_SPACES)) -> float:
     """Compile, or load from numba's on-disk cache, the kernels that plans in these spaces run.
 

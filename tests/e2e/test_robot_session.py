@@ -3,6 +3,7 @@ restart (gracefully and with kill -9) and get the same risk back, byte for byte.
 
 from __future__ import annotations
 
+import json
 from typing import Any
 
 import httpx
@@ -78,3 +79,20 @@ def test_restarts_serve_the_same_risk_bytes(start_server: Any, world: Any) -> No
     with server.client() as http:
         assert http.get("/maps/hall").json()["version"] == info["version"] + 1
         assert _risk_bytes(http) == after
+
+
+def test_the_server_log_stays_one_json_object_a_line_through_a_dubins_rrtstar_plan(start_server: Any,
+                                                                                   world: Any) -> None:
+    # OMPL warns in plain text about RRTstar on the asymmetric Dubins space (planning/README.md)
+    server = start_server(FUZZYRISK_PLAN_WARMUP="true")
+    with server.client() as http:
+        _map_the_hall(http, world)
+        request = {"start": [2.0, 1.5, 0.0], "goal": [8.0, 4.5, 1.57], "planner": "RRTstar", "time_limit": 1.0,
+                   "state_space": "Dubins", "turning_radius": 0.5, "robot_radius": ROBOT_RADIUS}
+        response = http.post("/maps/hall/plan", json=request)
+        assert response.status_code == 200 and response.json()["status"] == "exact", response.text
+    server.terminate()  # every worker's output is flushed once the service is gone
+    lines = [line for line in server.log().splitlines() if line.strip()]
+    assert len(lines) > 5
+    for line in lines:
+        assert isinstance(json.loads(line), dict), line
