@@ -8,6 +8,7 @@ the top row, x to the right, as a Nav2 PGM does.
 from __future__ import annotations
 
 import io
+import time
 import zipfile
 from typing import Literal
 
@@ -15,8 +16,12 @@ import numpy as np
 import yaml
 from PIL import Image, PngImagePlugin
 
-#: Nav2 map_saver's defaults, written into every exported YAML unless asked otherwise.
-NAV2_OCCUPIED_THRESH = 0.65
+#: Thresholds of every occupancy export (Nav2 YAML and image, OccupancyGrid) unless asked otherwise.
+#: Free below map_saver's 0.25 (a cell scanned free once reads about 0.17). Occupied above 0.6,
+#: the planner's default ``max_risk``: what a default plan refuses to enter, Nav2 sees as
+#: occupied. map_saver's 0.65 would leave a wall seen once (risk about 0.63; the fuzzy risk of
+#: a surface peaks near 0.84, never 1, as a centroid) unknown, and Nav2 plans through unknown.
+NAV2_OCCUPIED_THRESH = 0.6
 NAV2_FREE_THRESH = 0.25
 
 #: Never-observed cells in the PNG: a grey-blue that is not on the risk scale, hatched when scale >= 4.
@@ -116,19 +121,26 @@ def occupancy_data(
     risk: np.ndarray,
     observed: np.ndarray,
     *,
-    mode: Literal["probability", "trinary"] = "probability",
+    mode: Literal["trinary", "scale", "probability"] = "trinary",
     free_thresh: float = NAV2_FREE_THRESH,
     occupied_thresh: float = NAV2_OCCUPIED_THRESH,
 ) -> np.ndarray:
     """``nav_msgs/OccupancyGrid.data``: int8, ``data[j * width + i]``, -1 for never-observed cells.
 
-    ``probability``: ``round(100 * risk)``; ``trinary``: 100 above ``occupied_thresh``,
-    0 below ``free_thresh``, -1 between (Nav2's trinary reading).
+    As Nav2's map_server reads a map image in each mode: ``trinary`` 100 above
+    ``occupied_thresh``, 0 below ``free_thresh``, -1 between; ``scale`` 100 above, 0 below, and
+    ``rint(100 * (risk - free) / (occupied - free))`` between. ``probability``: the raw
+    ``round(100 * risk)``, for tools of one's own: no cell reaches 100, so a costmap with
+    Nav2's defaults (lethal at 100) would see none of it as lethal.
     """
     if mode == "probability":
         values = np.rint(np.clip(risk, 0.0, 1.0) * 100.0).astype(np.int8)
     else:
-        values = np.full(risk.shape, -1, dtype=np.int8)
+        if mode == "trinary":
+            values = np.full(risk.shape, -1, dtype=np.int8)
+        else:
+            graded = (np.asarray(risk, np.float64) - free_thresh) / (occupied_thresh - free_thresh) * 100.0
+            values = np.rint(np.clip(graded, 0.0, 100.0)).astype(np.int8)
         values[risk > occupied_thresh] = 100
         values[risk < free_thresh] = 0
     values[~observed] = -1
@@ -206,6 +218,11 @@ def nav2_zip(
     }
     buffer = io.BytesIO()
     with zipfile.ZipFile(buffer, "w", compression=zipfile.ZIP_DEFLATED) as archive:
-        archive.writestr("map.yaml", yaml.safe_dump(meta, sort_keys=False, default_flow_style=None))
-        archive.writestr(image_name, image)
+        for name, content in (("map.yaml", yaml.safe_dump(meta, sort_keys=False, default_flow_style=None).encode()),
+                              (image_name, image)):
+            entry = zipfile.ZipInfo(name, date_time=time.localtime()[:6])
+            entry.compress_type = zipfile.ZIP_DEFLATED
+            # rw-r--r--: map_server often runs as another user than the one who unzips
+            entry.external_attr = (0o100644 & 0xFFFF) << 16
+            archive.writestr(entry, content)
     return buffer.getvalue()

@@ -14,7 +14,7 @@ from app.deps import require_api_key
 from app.errors import install_error_handlers
 from app.metrics import Metrics
 from app.middleware import BodyLimitMiddleware, ObserveMiddleware
-from app.routes import maps, plans, risk, scans, system, ui
+from app.routes import docs, maps, plans, risk, scans, system, ui
 from app.schemas import RiskGridJSON, ScanBatch
 from app.services import MapService
 from app.storage import SqliteStorage
@@ -56,7 +56,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             # uvicorn has waited for requests in flight (SIGTERM): snapshot and close
             await service.stop()
 
-    app = FastAPI(title="fuzzyrisk", version="0.1.0", description=DESCRIPTION, lifespan=lifespan)
+    # docs_url and redoc_url off: app/routes/docs.py serves both pages without a CDN
+    app = FastAPI(title="fuzzyrisk", version="0.1.0", description=DESCRIPTION, lifespan=lifespan,
+                  docs_url=None, redoc_url=None)
     app.state.settings = settings
     app.state.metrics = metrics
     install_error_handlers(app)
@@ -68,5 +70,6 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     for module in (maps, scans, risk, plans):
         app.include_router(module.router, dependencies=protected)
     app.include_router(ui.router)  # the web page (app/routes/ui.py): its files need no key
+    app.include_router(docs.router)  # /docs and /redoc with their files (no CDN), no key
     app.openapi = lambda: _openapi_with_body_schemas(app)  # type: ignore[method-assign]
     return app

@@ -79,6 +79,7 @@ def run_plan(
             "cost": _number(result.cost),
             "planning_time": float(result.planning_time),
             "message": str(result.message),
+            "error_code": str(result.error_code) or None,
         }
     }
 

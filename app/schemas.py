@@ -353,6 +353,12 @@ class PlanResult(BaseModel):
     state_space: str
     planning_time: float
     message: str = Field("", description="empty, or why the status is not exact")
+    error_code: Literal["TIMEOUT", "NO_VALID_PATH"] | None = Field(
+        None,
+        description="null when status is exact; else Nav2's ComputePathToPose name for why not: TIMEOUT (a "
+        "sampling planner's time limit ended the search before it reached the goal) or NO_VALID_PATH (the grid "
+        "planner's complete search found no path, or no candidate path passed verification)",
+    )
     version: int = Field(description="the map version planned on")
 
 

@@ -663,8 +663,7 @@ class MapService:
         free_thresh: float, occupied_thresh: float, z_min: float | None, z_max: float | None,
     ) -> bytes:
         _check_band(z_min, z_max)
-        if not 0.0 <= free_thresh < occupied_thresh <= 1.0:
-            raise Invalid(f"need 0 <= free_thresh < occupied_thresh <= 1, got {free_thresh} and {occupied_thresh}")
+        _check_thresholds(free_thresh, occupied_thresh)
         grid = await self.read_grid(name)
 
         def render() -> bytes:
@@ -677,14 +676,17 @@ class MapService:
         return await self._run(render)
 
     async def occupancy_grid(
-        self, name: str, *, mode: Literal["probability", "trinary"], z_min: float | None, z_max: float | None
+        self, name: str, *, mode: Literal["trinary", "scale", "probability"], free_thresh: float,
+        occupied_thresh: float, z_min: float | None, z_max: float | None,
     ) -> OccupancyGrid:
         _check_band(z_min, z_max)
+        _check_thresholds(free_thresh, occupied_thresh)
         grid = await self.read_grid(name)
 
         def render() -> OccupancyGrid:
             risk, observed = grid.planar(z_min, z_max)
-            data = exports.occupancy_data(risk, observed, mode=mode)
+            data = exports.occupancy_data(risk, observed, mode=mode, free_thresh=free_thresh,
+                                          occupied_thresh=occupied_thresh)
             now = time.time()
             stamp = {"sec": int(now), "nanosec": int((now % 1.0) * 1e9)}
             return OccupancyGrid.model_validate({
@@ -744,6 +746,11 @@ def _retrieve(task: asyncio.Future[Any]) -> None:
     reached the client (or nobody) through the shield, not through this task."""
     if not task.cancelled():
         task.exception()
+
+
+def _check_thresholds(free_thresh: float, occupied_thresh: float) -> None:
+    if not 0.0 <= free_thresh < occupied_thresh <= 1.0:
+        raise Invalid(f"need 0 <= free_thresh < occupied_thresh <= 1, got {free_thresh} and {occupied_thresh}")
 
 
 def _check_band(z_min: float | None, z_max: float | None) -> None:

@@ -48,8 +48,10 @@ from planning.planners import GRID, PlannerSpec, planner_spec
 from planning.result import (
     GOAL_OCCUPIED,
     GOAL_OUTSIDE_MAP,
+    NO_VALID_PATH,
     START_OCCUPIED,
     START_OUTSIDE_MAP,
+    TIMEOUT,
     PlanError,
     PlanResult,
 )
@@ -421,12 +423,13 @@ def _result(
     message: str = "",
     iterations: int = 0,
     first_solution_time: float | None = None,
+    error_code: str = "",
 ) -> PlanResult:
     if status == "none" or path is None or measure_points is None:
         nan = math.nan
         empty = np.zeros((0, sspec.state_dim))
         return PlanResult("none", empty, nan, nan, nan, nan, planner, sspec.name,
-                          time.perf_counter() - t0, message, iterations, nan)  # fmt: skip
+                          time.perf_counter() - t0, message, iterations, nan, error_code)  # fmt: skip
     m = grid.evaluate(measure_points[:, : grid.ndim])
     if m.length > 0:
         mean = m.integral / m.length
@@ -445,6 +448,7 @@ def _result(
         message,
         iterations,
         first_solution_time if first_solution_time is not None else time.perf_counter() - t0,
+        error_code,
     )
 
 
@@ -459,10 +463,12 @@ def _plan_grid(
         short = points
     path = _interpolate_straight(short, grid.resolution)
     if not grid.evaluate(path).valid:  # cannot happen: every cell of every segment was checked
-        return _result(grid, sspec, GRID, "none", None, None, t0, "grid path failed verification")
+        return _result(grid, sspec, GRID, "none", None, None, t0, "grid path failed verification",
+                       error_code=NO_VALID_PATH)
     status = "exact" if found.reached else "approximate"
     message = "" if found.reached else "goal unreachable: path to the reachable cell nearest the goal"
-    return _result(grid, sspec, GRID, status, path, path, t0, message)
+    return _result(grid, sspec, GRID, status, path, path, t0, message,
+                   error_code="" if found.reached else NO_VALID_PATH)
 
 
 def _plan_ompl(
@@ -524,10 +530,13 @@ def _plan_ompl(
             label = "exact"
         elif kind in (ob.PlannerStatus.EXACT_SOLUTION, ob.PlannerStatus.APPROXIMATE_SOLUTION) and pdef.hasSolution():
             label = "approximate"
-            notes.append(f"goal not reached: the path ends {pdef.getSolutionDifference():.3g} from the goal region")
+            unit = " m" if sspec.name in ("R2", "R3") else " (in the state space's distance)"
+            notes.append(f"goal not reached: the path ends {pdef.getSolutionDifference():.3g}{unit} from the goal region")
         else:
             notes.append(f"no path found ({status.asString()})")
-            return _result(grid, sspec, pspec.name, "none", None, None, t0, "; ".join(notes), iterations)
+            code = TIMEOUT if kind == ob.PlannerStatus.TIMEOUT else NO_VALID_PATH
+            return _result(grid, sspec, pspec.name, "none", None, None, t0, "; ".join(notes), iterations,
+                           error_code=code)
         first = counter.first_solution if counter.first_solution is not None else solved_at
 
         # simplify with the risk objective; keep whichever candidate is cheapest and verifies
@@ -546,9 +555,11 @@ def _plan_ompl(
         best = _pick(grid, space, sspec, [simplified, raw], pdef if label == "exact" else None, goal)
         if best is None:
             notes.append("every candidate path crossed an invalid cell between the planner's checks")
-            return _result(grid, sspec, pspec.name, "none", None, None, t0, "; ".join(notes), iterations)
+            return _result(grid, sspec, pspec.name, "none", None, None, t0, "; ".join(notes), iterations,
+                           error_code=NO_VALID_PATH)
         path, fine = best
-        return _result(grid, sspec, pspec.name, label, path, fine, t0, "; ".join(notes), iterations, first)
+        return _result(grid, sspec, pspec.name, label, path, fine, t0, "; ".join(notes), iterations, first,
+                       error_code="" if label == "exact" else TIMEOUT)
     finally:
         space.close()  # the compiled objective's table goes back to its pool
 

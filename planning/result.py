@@ -15,6 +15,9 @@ GOAL_OUTSIDE_MAP = "GOAL_OUTSIDE_MAP"
 START_OCCUPIED = "START_OCCUPIED"
 GOAL_OCCUPIED = "GOAL_OCCUPIED"
 PLAN_ERROR_CODES = (START_OUTSIDE_MAP, GOAL_OUTSIDE_MAP, START_OCCUPIED, GOAL_OCCUPIED)
+# ... and those of a plan that ran but did not reach the goal (PlanResult.error_code)
+TIMEOUT = "TIMEOUT"
+NO_VALID_PATH = "NO_VALID_PATH"
 
 
 class PlanError(Exception):
@@ -74,6 +77,11 @@ class PlanResult:
     first_solution_time : float
         Seconds from the start of ``plan`` until the planner first held a path to the goal
         region (or its approximation); NaN when status is "none".
+    error_code : str
+        Empty when status is "exact"; otherwise Nav2's ComputePathToPose name for why not:
+        "TIMEOUT" (a sampling planner's time limit ended the search before it reached the
+        goal) or "NO_VALID_PATH" (the grid planner's complete search found none, or no
+        candidate path passed verification).
     """
 
     status: Status
@@ -88,3 +96,4 @@ class PlanResult:
     message: str = ""
     iterations: int = 0
     first_solution_time: float = float("nan")
+    error_code: str = ""

@@ -81,16 +81,23 @@ async def query_risk(name: MapNamePath, body: RiskQuery, service: ServiceDep) ->
 async def occupancy_grid(
     name: MapNamePath,
     service: ServiceDep,
-    mode: Literal["probability", "trinary"] = "probability",
+    mode: Literal["trinary", "scale", "probability"] = "trinary",
+    free_thresh: Threshold = NAV2_FREE_THRESH,
+    occupied_thresh: Threshold = NAV2_OCCUPIED_THRESH,
     z_min: ZBand = None,
     z_max: ZBand = None,
 ) -> OccupancyGrid:
     """The map as a ``nav_msgs/OccupancyGrid`` (frame ``map``): ``data[j * width + i]``, -1 unknown.
 
-    ``probability``: ``round(100 * risk)``; ``trinary``: 100 above 0.65, 0 below 0.25, else -1.
-    A 3-D map is projected over ``[z_min, z_max]`` as octomap_server's projected map.
+    The grid map_server would publish from ``export/nav2`` with the same mode and thresholds:
+    ``trinary`` (the default, as map_server's): 100 above ``occupied_thresh`` (0.6, the planner's
+    default ``max_risk``), 0 below ``free_thresh`` (0.25), else -1; ``scale``: 100 above, 0 below,
+    graded 0..100 between. ``probability``: raw ``round(100 * risk)``; never 100, so not for a
+    costmap with Nav2's defaults. A 3-D map is projected over ``[z_min, z_max]`` as
+    octomap_server's projected map.
     """
-    return await service.occupancy_grid(name, mode=mode, z_min=z_min, z_max=z_max)
+    return await service.occupancy_grid(name, mode=mode, free_thresh=free_thresh, occupied_thresh=occupied_thresh,
+                                        z_min=z_min, z_max=z_max)
 
 
 @router.get(

@@ -101,9 +101,11 @@ def test_occupancy_grid_is_row_major_from_the_origin_cell(scanned: TestClient) -
         i, j = _cell(x, y)
         return data[j * info["width"] + i]
 
-    assert at(3.05, 0.0) > 65 and 0 <= at(1.0, 0.0) < 25 and at(4.9, -4.9) == -1 and at(-2.0, 2.95) > 65
-    trinary = scanned.get("/maps/lab/occupancy_grid", params={"mode": "trinary"}).json()["data"]
-    assert set(trinary) <= {-1, 0, 100}
+    # trinary by default, as map_server publishes: the walls are lethal to a costmap with Nav2's defaults
+    assert set(data) <= {-1, 0, 100}
+    assert at(3.05, 0.0) == 100 and at(1.0, 0.0) == 0 and at(4.9, -4.9) == -1 and at(-2.0, 2.95) == 100
+    raw = scanned.get("/maps/lab/occupancy_grid", params={"mode": "probability"}).json()["data"]
+    assert 60 < raw[data.index(100)] < 100 and all(-1 <= v < 100 for v in raw)
 
 
 # ---------------------------------------------------------------- Nav2 map_server, read back faithfully
@@ -173,7 +175,7 @@ def _export(client: TestClient, **params: str) -> tuple[dict[str, Any], np.ndarr
 def test_nav2_yaml_has_the_map_geometry_and_thresholds(scanned: TestClient) -> None:
     meta, data = _export(scanned)
     assert meta == {"image": "map.pgm", "mode": "trinary", "resolution": 0.1, "origin": [-5.0, -5.0, 0.0],
-                    "negate": 0, "occupied_thresh": 0.65, "free_thresh": 0.25}
+                    "negate": 0, "occupied_thresh": 0.6, "free_thresh": 0.25}
     assert data.size == 100 * 100
 
 
@@ -182,7 +184,7 @@ def test_trinary_export_reads_back_as_our_free_occupied_and_unknown(scanned: Tes
     risk, observed = _grid(scanned)
     _, data = _export(scanned, mode="trinary", format=image_format)
     expected = np.full(risk.shape, -1)
-    expected[observed & (risk > 0.65)] = 100
+    expected[observed & (risk > 0.6)] = 100
     expected[observed & (risk < 0.25)] = 0
     flat = expected.T.reshape(-1)  # data[j * width + i]
     assert np.array_equal(data, flat)
@@ -195,20 +197,36 @@ def test_scale_png_export_keeps_the_grades_and_the_unknown(scanned: TestClient) 
     risk, observed = _grid(scanned)
     meta, data = _export(scanned, mode="scale", format="png")
     assert meta["mode"] == "scale" and meta["image"] == "map.png"
-    cost = np.where(risk > 0.65, 100, np.where(risk < 0.25, 0, np.rint((risk - 0.25) / 0.4 * 100)))
+    cost = np.where(risk > 0.6, 100, np.where(risk < 0.25, 0, np.rint((risk - 0.25) / 0.35 * 100)))
     expected = np.where(observed, cost, -1).T.reshape(-1)
-    near_threshold = (np.minimum(abs(risk - 0.25), abs(risk - 0.65)) < 0.004).T.reshape(-1)
+    near_threshold = (np.minimum(abs(risk - 0.25), abs(risk - 0.6)) < 0.004).T.reshape(-1)
     differs = np.abs(data - expected) > 1
     assert not (differs & ~near_threshold).any()
     assert ((data > 0) & (data < 100)).any()  # graded cells survive
     assert (data[~observed.T.reshape(-1)] == -1).all()
 
 
+def test_the_scale_occupancy_grid_is_what_map_server_reads_from_the_scale_export(scanned: TestClient) -> None:
+    _, exported = _export(scanned, mode="scale", format="png", free_thresh="0.2", occupied_thresh="0.7")
+    grid = scanned.get("/maps/lab/occupancy_grid",
+                       params={"mode": "scale", "free_thresh": 0.2, "occupied_thresh": 0.7}).json()["data"]
+    # the PNG holds the risk in 8 bits: one grade of difference at most
+    assert np.abs(np.asarray(grid) - exported).max() <= 1 and ((exported > 0) & (exported < 100)).any()
+    bad = scanned.get("/maps/lab/occupancy_grid", params={"free_thresh": 0.7, "occupied_thresh": 0.2})
+    assert bad.status_code == 422 and "free_thresh" in bad.text
+
+
+def test_exported_files_are_readable_by_another_user_after_unzip(scanned: TestClient) -> None:
+    with zipfile.ZipFile(io.BytesIO(scanned.get("/maps/lab/export/nav2").content)) as archive:
+        modes = {info.filename: (info.external_attr >> 16) & 0o777 for info in archive.infolist()}
+    assert modes == {"map.yaml": 0o644, "map.pgm": 0o644}
+
+
 def test_scale_pgm_export_writes_unknown_as_risk_one_half(scanned: TestClient) -> None:
     _, observed = _grid(scanned)
     _, data = _export(scanned, mode="scale", format="pgm")
     unknown_cost = data[~observed.T.reshape(-1)]
-    assert set(np.unique(unknown_cost).tolist()) == {round((127 / 255 - 0.25) / 0.4 * 100)}
+    assert set(np.unique(unknown_cost).tolist()) == {round((127 / 255 - 0.25) / 0.35 * 100)}
 
 
 def test_custom_thresholds_are_written_and_used(scanned: TestClient) -> None:
@@ -239,7 +257,7 @@ def test_a_3d_map_projects_like_octomap_servers_projected_map(hall: TestClient) 
     full = hall.get("/maps/hall/occupancy_grid").json()
     assert (full["info"]["width"], full["info"]["height"]) == (40, 40)
     i, j = int((2.5 + 4.0) / 0.2), int((0.0 + 4.0) / 0.2)  # the wall's column at x = 2.5, y = 0
-    assert full["data"][j * 40 + i] > 65
+    assert full["data"][j * 40 + i] == 100
     above = hall.get("/maps/hall/occupancy_grid", params={"z_min": 2.5, "z_max": 3.0}).json()
     assert set(above["data"]) == {-1}  # nothing was seen up there
     png = Image.open(io.BytesIO(hall.get("/maps/hall/risk", params={"format": "png", "z_max": 1.2}).content))

@@ -48,6 +48,7 @@ def test_a_plan_answers_the_plan_result_contract(planner: TestClient) -> None:
     result = response.json()
     assert set(result) >= {"status", "path", "length", "max_risk", "mean_risk", "cost", "planner", "planning_time"}
     assert result["status"] == "exact" and result["planner"] == "RRTConnect" and result["state_space"] == "R2"
+    assert result["error_code"] is None
     path = np.asarray(result["path"])
     assert path.shape[1] == 2 and np.allclose(path[0], [-1.5, 0.0]) and np.linalg.norm(path[-1] - [2.0, 0.5]) <= 0.11
     steps = np.linalg.norm(np.diff(path, axis=0), axis=1)
@@ -84,6 +85,15 @@ def test_an_unusable_start_or_goal_answers_its_nav2_code(planner: TestClient, bo
     assert response.status_code == 422
     detail = response.json()["detail"]
     assert detail["code"] == code and detail["message"]
+
+
+def test_a_plan_out_of_time_answers_200_with_nav2s_timeout(planner: TestClient) -> None:
+    # behind the wall: the way round its end is far longer than a millisecond of sampling finds
+    response = _plan(planner, planner="RRTstar", goal=[4.5, 0.0], time_limit=0.001, seed=None)
+    assert response.status_code == 200, response.text
+    result = response.json()
+    assert result["status"] in ("approximate", "none") and result["error_code"] == "TIMEOUT", result
+    assert result["message"]  # says how far from the goal, or that no path was found
 
 
 @pytest.mark.parametrize(

@@ -13,6 +13,7 @@ import re
 import shutil
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import httpx
 import numpy as np
@@ -293,3 +294,25 @@ def test_page_asks_for_the_api_key_once_and_then_works(tmp_path: Path, browser: 
         context.close()
     finally:
         srv.stop()
+
+
+def test_the_api_docs_render_with_no_network_beyond_the_service(server: Server, page: Page) -> None:
+    """An offline robot's network: anything not served by the service itself is refused."""
+    outside: list[tuple[str, str]] = []
+
+    def only_the_service(route: Any) -> None:
+        if route.request.url.startswith(server.url):
+            route.continue_()
+        else:
+            outside.append((route.request.resource_type, route.request.url))
+            route.abort()
+
+    page.route("**/*", only_the_service)
+    page.goto(server.url + "/docs")
+    expect(page.locator(".opblock-summary-path", has_text="/maps/{name}/plan")).to_be_visible(timeout=20_000)
+    assert outside == []
+    page.goto(server.url + "/redoc")
+    expect(page.get_by_role("heading", name="fuzzyrisk (0.1.0)")).to_be_visible(timeout=20_000)
+    expect(page.get_by_text("Post Scans").first).to_be_attached()
+    # ReDoc's footer links its maker's logo from their CDN: cosmetic, the only thing allowed to miss
+    assert [kind for kind, _ in outside] in ([], ["image"]), outside
