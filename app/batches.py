@@ -84,19 +84,21 @@ def point_cloud(
     dims: int, limits: Limits,
 ) -> PointCloud:
     """A validated map-frame ``PointCloud`` from sensor-frame points and the sensor pose."""
+    # the pose first: a 3-D cloud sent to a 2-D map is a wrong map, not wrong points
+    if dims == 3 and not isinstance(pose, Pose3D):
+        raise Invalid(f"{name}.pose must be {{position: [x, y, z], orientation: [qx, qy, qz, qw]}} on a 3-D map")
+    if dims == 2 and not isinstance(pose, Pose2D):
+        raise Invalid(f"{name}.pose must be {{x, y, theta}} on a 2-D map (a 3-D pose and (N, 3) points need a "
+                      "map created with dimensions 3)")
     if points_sensor.ndim != 2 or points_sensor.shape[1] != dims:
         raise Invalid(f"{name}.points must have shape (N, {dims}) for this {dims}-D map, got {points_sensor.shape}")
     _check_rays(f"{name}.points", points_sensor.shape[0], limits)
     points_sensor = _finite_rows(points_sensor)
     try:
-        if dims == 3:
-            if not isinstance(pose, Pose3D):
-                raise Invalid(f"{name}.pose must be {{position: [x, y, z], orientation: [qx, qy, qz, qw]}} on a 3-D map")
+        if isinstance(pose, Pose3D):
             return PointCloud.from_sensor_frame(
                 points_sensor, pose.position, pose.orientation, range_max, registration_sigma
             )
-        if not isinstance(pose, Pose2D):
-            raise Invalid(f"{name}.pose must be {{x, y, theta}} on a 2-D map")
         return PointCloud(
             points=_planar_to_map(points_sensor, pose), origin=(pose.x, pose.y), range_max=range_max,
             registration_sigma=registration_sigma, max_rays=limits.max_rays,

@@ -132,12 +132,14 @@ class MapInfo(BaseModel):
     dimensions: int
     resolution: float
     origin: list[float]
-    size: list[float]
+    size: list[float] = Field(description="extent as built, shape x resolution (the requested size rounded up "
+                              "to whole cells), metres: the map covers origin .. origin + size")
     shape: list[int] = Field(description="cells along x, y(, z)")
     model: Literal["fuzzy", "bayes"]
     sensor: SensorIn
     scans_fused: int
-    version: int = Field(description="number of scan batches applied; grows by one per accepted batch")
+    version: int = Field(description="grows with every accepted scan batch: by one, except after a batch that "
+                         "failed inside the service after it was stored (its number is not reused)")
     created: datetime
     updated: datetime
 

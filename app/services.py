@@ -227,7 +227,7 @@ class MapEntry:
             dimensions=spec.ndim,
             resolution=spec.resolution,
             origin=list(spec.origin),
-            size=list(spec.size),
+            size=[float(f"{n * spec.resolution:.12g}") for n in spec.shape],  # as built: whole cells
             shape=list(spec.shape),
             model=self.meta["model"],
             sensor=SensorIn(**self.meta["sensor"]),

@@ -125,12 +125,12 @@ class LaserScan:
         set_(self, "pose", _finite_tuple("pose", self.pose, 3))
         set_(self, "angle_min", _finite_scalar("angle_min", self.angle_min))
         inc = _finite_scalar("angle_increment", self.angle_increment)
-        if inc == 0.0:
-            raise ValueError("angle_increment must be non-zero")
         set_(self, "angle_increment", inc)
         ranges = _float_array("ranges", self.ranges)
         if ranges.ndim != 1:
             raise ValueError(f"ranges must be a 1-D array, got shape {ranges.shape}")
+        if inc == 0.0 and ranges.size > 1:  # one beam (a single-point rangefinder) has no increment
+            raise ValueError("angle_increment must be non-zero for more than one range")
         _check_count("ranges", ranges.size, self.max_rays)
         set_(self, "ranges", _readonly(ranges))
         rmin = _finite_scalar("range_min", self.range_min, minimum=0.0)

@@ -112,3 +112,12 @@ def test_a_map_above_the_cell_limit_is_refused_with_the_setting_named(make_clien
 
 def test_a_bad_name_in_the_path_answers_422(client: TestClient) -> None:
     assert client.get("/maps/bad name!").status_code == 422
+
+
+def test_a_size_that_is_not_whole_cells_is_rounded_up_and_reported_as_built(client: TestClient) -> None:
+    info = client.post("/maps", json={"name": "odd", "resolution": 0.07, "origin": [0.0, 0.0], "size": [1.0, 0.3]})
+    assert info.status_code == 201, info.text
+    assert info.json()["shape"] == [15, 5] and info.json()["size"] == [1.05, 0.35]
+    inside = client.post("/maps/odd/risk/query", json={"points": [[1.04, 0.34]]})
+    outside = client.post("/maps/odd/risk/query", json={"points": [[1.06, 0.1]]})
+    assert inside.status_code == 200 and outside.status_code == 422

@@ -300,3 +300,21 @@ def test_last_scan_is_thinned_to_4096_beams(lab: TestClient, kit: Any) -> None:
     lab.post("/maps/lab/scans", json={"scans": [kit.laser(beams=10_000)]})
     last = lab.get("/maps/lab/scans/last").json()
     assert 2048 < len(last["endpoints"]) <= 4096 and len(last["hit"]) == len(last["endpoints"])
+
+
+def test_a_3d_cloud_sent_to_a_2d_map_is_told_it_needs_a_3d_map(lab: TestClient) -> None:
+    cloud = {"pose": {"position": [0.0, 0.0, 1.0], "orientation": [0, 0, 0, 1]}, "points": [[1.0, 0.0, 0.0]],
+             "range_max": 5.0}
+    answer = lab.post("/maps/lab/scans", json={"scans": [cloud]})
+    assert answer.status_code == 422 and "dimensions 3" in answer.text and "{x, y, theta}" in answer.text
+    assert lab.get("/maps/lab").json()["version"] == 0
+
+
+def test_a_single_beam_rangefinder_needs_no_angle_increment(lab: TestClient, kit: Any) -> None:
+    beam = {**kit.laser(ranges=[2.0]), "angle_min": 0.0, "angle_increment": 0.0}
+    assert lab.post("/maps/lab/scans", json={"scans": [beam]}).json()["version"] == 1
+    risk = lab.post("/maps/lab/risk/query", json={"points": [[1.0, 0.0], [2.05, 0.0]]}).json()["risk"]
+    assert risk[0] < 0.25 and risk[1] > 0.6  # free before the hit, occupied at it
+    two = {**kit.laser(ranges=[2.0, 2.0]), "angle_increment": 0.0}
+    answer = lab.post("/maps/lab/scans", json={"scans": [two]})
+    assert answer.status_code == 422 and "angle_increment" in answer.text
