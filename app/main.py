@@ -56,9 +56,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             # uvicorn has waited for requests in flight (SIGTERM): snapshot and close
             await service.stop()
 
-    # docs_url and redoc_url off: app/routes/docs.py serves both pages without a CDN
+    # FastAPI's own schema and docs routes off: app/routes/docs.py serves them (pages without a CDN)
     app = FastAPI(title="fuzzyrisk", version="0.1.0", description=DESCRIPTION, lifespan=lifespan,
-                  docs_url=None, redoc_url=None)
+                  openapi_url=None, docs_url=None, redoc_url=None)
     app.state.settings = settings
     app.state.metrics = metrics
     install_error_handlers(app)

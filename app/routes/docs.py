@@ -1,8 +1,9 @@
-"""`/docs` (Swagger UI) and `/redoc` from files installed with the service: no CDN.
+"""`/openapi.json`, `/docs` (Swagger UI) and `/redoc` from files installed with the service: no CDN.
 
 FastAPI's own pages load their JavaScript from a CDN, so on a robot's offline network they
 stay blank. The files come from the ``fastapi-offline`` package (Swagger UI 5, ReDoc); they
-are served by explicit routes over a fixed list, as the operator page's are.
+are served by explicit routes over a fixed list, as the operator page's are. The schema is a
+route of ours too, so that its requests are counted under their route like every other.
 """
 
 from __future__ import annotations
@@ -12,7 +13,7 @@ from pathlib import Path
 import fastapi_offline
 from fastapi import APIRouter, HTTPException, Request
 from fastapi.openapi.docs import get_redoc_html, get_swagger_ui_html
-from fastapi.responses import FileResponse, HTMLResponse
+from fastapi.responses import FileResponse, HTMLResponse, JSONResponse
 
 ASSETS_DIR = Path(fastapi_offline.__file__).resolve().parent / "static"
 ASSETS_URL = "/docs-assets"
@@ -28,6 +29,12 @@ router = APIRouter(include_in_schema=False)
 
 def _root(request: Request) -> str:
     return str(request.scope.get("root_path", ""))
+
+
+@router.get("/openapi.json")
+def openapi(request: Request) -> JSONResponse:
+    """The OpenAPI 3.1 description of the API (``app.main`` adds the raw-body schemas)."""
+    return JSONResponse(request.app.openapi())
 
 
 @router.get("/docs")

@@ -86,6 +86,11 @@ def test_docs_are_served_with_the_binary_upload_documented(client: TestClient) -
     assert "ScanBatch" in spec["components"]["schemas"] and "LaserScanIn" in spec["components"]["schemas"]
     params = {p["name"] for p in spec["paths"]["/maps/{name}/scans"]["post"]["parameters"]}
     assert {"x", "y", "z", "theta", "qx", "qw", "angle_min", "range_max"} <= params
+    assert client.get("/redoc").status_code == 200 and "/docs-assets/redoc.standalone.js" in client.get("/redoc").text
+    assert client.get("/docs-assets/swagger-ui-bundle.js").status_code == 200
+    assert client.get("/docs-assets/..%2Fcore.py").status_code == 404  # a fixed list of files, nothing else
+    metrics = client.get("/metrics").text
+    assert _metric(metrics, 'fuzzyrisk_http_requests_total{method="GET",route="/openapi.json",status="200"}') == 1
 
 
 def test_every_documented_example_works_when_pasted(client: TestClient) -> None:
