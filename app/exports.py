@@ -127,22 +127,26 @@ def occupancy_data(
 ) -> np.ndarray:
     """``nav_msgs/OccupancyGrid.data``: int8, ``data[j * width + i]``, -1 for never-observed cells.
 
-    As Nav2's map_server reads a map image in each mode: ``trinary`` 100 above
-    ``occupied_thresh``, 0 below ``free_thresh``, -1 between; ``scale`` 100 above, 0 below, and
-    ``rint(100 * (risk - free) / (occupied - free))`` between. ``probability``: the raw
+    As Nav2's map_server reads the ``nav2_zip`` image of the same mode: ``trinary`` 100 above
+    ``occupied_thresh``, 0 below ``free_thresh``, -1 between; ``scale`` (the PNG) 100 above, 0
+    below, ``rint(100 * (occ - free) / (occupied - free))`` between, ``occ`` being the risk as
+    the image's 8-bit grey holds it. ``probability``: the raw
     ``round(100 * risk)``, for tools of one's own: no cell reaches 100, so a costmap with
     Nav2's defaults (lethal at 100) would see none of it as lethal.
     """
     if mode == "probability":
         values = np.rint(np.clip(risk, 0.0, 1.0) * 100.0).astype(np.int8)
-    else:
-        if mode == "trinary":
-            values = np.full(risk.shape, -1, dtype=np.int8)
-        else:
-            graded = (np.asarray(risk, np.float64) - free_thresh) / (occupied_thresh - free_thresh) * 100.0
-            values = np.rint(np.clip(graded, 0.0, 100.0)).astype(np.int8)
+    elif mode == "trinary":
+        values = np.full(risk.shape, -1, dtype=np.int8)
         values[risk > occupied_thresh] = 100
         values[risk < free_thresh] = 0
+    else:
+        # graded from the 8-bit grey the scale image holds, as map_server reads it (map_io.cpp)
+        occ = 1.0 - np.rint(255.0 * (1.0 - np.clip(risk, 0.0, 1.0))) / 255.0
+        graded = np.rint((occ - free_thresh) / (occupied_thresh - free_thresh) * 100.0)
+        values = np.clip(graded, 0.0, 100.0).astype(np.int8)
+        values[occ > occupied_thresh] = 100
+        values[occ < free_thresh] = 0
     values[~observed] = -1
     # row-major from the origin cell: j (y) is the slow axis
     return np.ascontiguousarray(values.T).reshape(-1)
@@ -159,7 +163,7 @@ def nav2_pixels(
     """Grey levels (uint8, image rows) and an opacity mask that Nav2's map_server reads back as our map.
 
     Nav2 reads ``occ = (255 - p) / 255`` (negate 0). ``trinary``: occupied (risk above
-    ``occupied_thresh``) is 0, free (below ``free_thresh``) is 254, the rest is the grey whose
+    ``occupied_thresh``) is 0, free (below ``free_thresh``) is 255, the rest is the grey whose
     ``occ`` lies midway between the thresholds, so it reads back as unknown. (map_saver's 205
     reads back as *free* under its own free_thresh 0.25: 50/255 = 0.196.) ``scale``:
     ``p = round(255 * (1 - risk))``; never-observed cells are transparent (Nav2's unknown in
@@ -169,7 +173,7 @@ def nav2_pixels(
         unknown_grey = round(255.0 * (1.0 - 0.5 * (free_thresh + occupied_thresh)))
         grey = np.full(risk.shape, unknown_grey, dtype=np.uint8)
         grey[(risk > occupied_thresh) & observed] = 0
-        grey[(risk < free_thresh) & observed] = 254
+        grey[(risk < free_thresh) & observed] = 255  # occ 0: free under any free_thresh > 0
     else:
         shown = np.where(observed, np.clip(risk, 0.0, 1.0), np.float32(0.5))
         grey = np.rint(255.0 * (1.0 - shown)).astype(np.uint8)

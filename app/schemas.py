@@ -358,7 +358,8 @@ class PlanResult(BaseModel):
     error_code: Literal["TIMEOUT", "NO_VALID_PATH"] | None = Field(
         None,
         description="null when status is exact; else Nav2's ComputePathToPose name for why not: TIMEOUT (a "
-        "sampling planner's time limit ended the search before it reached the goal) or NO_VALID_PATH (the grid "
+        "sampling planner's time limit, or a seeded plan's iteration budget, ended the search before it reached the "
+        "goal) or NO_VALID_PATH (the grid "
         "planner's complete search found no path, or no candidate path passed verification)",
     )
     version: int = Field(description="the map version planned on")

@@ -54,7 +54,15 @@ from pydantic import ValidationError
 from app import batches, exports
 from app.committer import GroupCommitter
 from app.config import Settings
-from app.errors import Conflict, Invalid, NotFound, PlanRejected, TooLarge, Unavailable, UnsupportedMediaType
+from app.errors import (
+    Conflict,
+    Invalid,
+    NotFound,
+    PlanRejected,
+    TooLarge,
+    Unavailable,
+    UnsupportedMediaType,
+)
 from app.metrics import Metrics
 from app.planworker import PlanPool, run_plan
 from app.schemas import (
@@ -749,8 +757,10 @@ def _retrieve(task: asyncio.Future[Any]) -> None:
 
 
 def _check_thresholds(free_thresh: float, occupied_thresh: float) -> None:
-    if not 0.0 <= free_thresh < occupied_thresh <= 1.0:
-        raise Invalid(f"need 0 <= free_thresh < occupied_thresh <= 1, got {free_thresh} and {occupied_thresh}")
+    # an 8-bit map image needs a grey strictly between the thresholds for "unknown"
+    if not (0.0 <= free_thresh and free_thresh + 0.01 <= occupied_thresh <= 1.0):
+        raise Invalid(f"need 0 <= free_thresh, free_thresh + 0.01 <= occupied_thresh <= 1, got {free_thresh} and "
+                      f"{occupied_thresh}")
 
 
 def _check_band(z_min: float | None, z_max: float | None) -> None:

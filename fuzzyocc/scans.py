@@ -98,7 +98,8 @@ class LaserScan:
     angle_min : float
         Angle of beam 0 in the sensor frame, radians.
     angle_increment : float
-        Angle between consecutive beams, radians, non-zero (negative for a clockwise scan).
+        Angle between consecutive beams, radians (negative for a clockwise scan); non-zero
+        unless the scan has a single range.
     ranges : (N,) array_like of float
         Readings, metres; may hold +inf, -inf and NaN (REP 117, see the module doc).
     range_min, range_max : float

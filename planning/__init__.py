@@ -10,8 +10,8 @@ Knows nothing of fuzzy labels or HTTP: a risk grid in, a path out.
 """
 
 from planning.field import RiskField
-from planning.query import plan, quiet_ompl, warm_up
 from planning.planners import available_planners
+from planning.query import plan, quiet_ompl, warm_up
 from planning.result import PLAN_ERROR_CODES, PlanError, PlanResult
 from planning.spaces import STATE_SPACES
 

@@ -79,8 +79,8 @@ class PlanResult:
         region (or its approximation); NaN when status is "none".
     error_code : str
         Empty when status is "exact"; otherwise Nav2's ComputePathToPose name for why not:
-        "TIMEOUT" (a sampling planner's time limit ended the search before it reached the
-        goal) or "NO_VALID_PATH" (the grid planner's complete search found none, or no
+        "TIMEOUT" (a sampling planner's time limit, or a seeded plan's iteration budget, ended
+        the search before it reached the goal) or "NO_VALID_PATH" (the grid planner's complete search found none, or no
         candidate path passed verification).
     """
 

@@ -28,13 +28,22 @@ router = APIRouter(include_in_schema=False)
 
 
 def _root(request: Request) -> str:
-    return str(request.scope.get("root_path", ""))
+    return str(request.scope.get("root_path", "")).rstrip("/")
 
 
 @router.get("/openapi.json")
 def openapi(request: Request) -> JSONResponse:
-    """The OpenAPI 3.1 description of the API (``app.main`` adds the raw-body schemas)."""
-    return JSONResponse(request.app.openapi())
+    """The OpenAPI 3.1 description of the API (``app.main`` adds the raw-body schemas).
+
+    Behind a path prefix (``root_path``), the prefix is the first server, as FastAPI's own
+    route does, so that "Try it out" in ``/docs`` calls the prefixed URLs.
+    """
+    schema = request.app.openapi()
+    root = _root(request)
+    servers = list(schema.get("servers", []))
+    if root and root not in [s.get("url") for s in servers]:
+        schema = {**schema, "servers": [{"url": root}, *servers]}  # a copy: the cached schema stays as it is
+    return JSONResponse(schema)
 
 
 @router.get("/docs")

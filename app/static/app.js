@@ -126,7 +126,7 @@
 
   const fmt = (v, digits = 2) => (typeof v === "number" && Number.isFinite(v) ? v.toFixed(digits) : "?");
 
-  // a map size as typed at creation: 4 not 4.000, 0.35 not 0.4
+  // a map size without trailing zeros: 4 not 4.000, 0.35 not 0.4
   const fmtLength = (v) => String(Number(v.toFixed(3)));
 
   function coordDigits() {

@@ -210,10 +210,10 @@ def test_the_scale_occupancy_grid_is_what_map_server_reads_from_the_scale_export
     _, exported = _export(scanned, mode="scale", format="png", free_thresh="0.2", occupied_thresh="0.7")
     grid = scanned.get("/maps/lab/occupancy_grid",
                        params={"mode": "scale", "free_thresh": 0.2, "occupied_thresh": 0.7}).json()["data"]
-    # the PNG holds the risk in 8 bits: one grade of difference at most
-    assert np.abs(np.asarray(grid) - exported).max() <= 1 and ((exported > 0) & (exported < 100)).any()
-    bad = scanned.get("/maps/lab/occupancy_grid", params={"free_thresh": 0.7, "occupied_thresh": 0.2})
-    assert bad.status_code == 422 and "free_thresh" in bad.text
+    assert np.array_equal(np.asarray(grid), exported) and ((exported > 0) & (exported < 100)).any()
+    for free, occupied in [(0.7, 0.2), (0.5, 0.505)]:  # crossed, or too close for an 8-bit unknown grey
+        bad = scanned.get("/maps/lab/occupancy_grid", params={"free_thresh": free, "occupied_thresh": occupied})
+        assert bad.status_code == 422 and "free_thresh" in bad.text
 
 
 def test_exported_files_are_readable_by_another_user_after_unzip(scanned: TestClient) -> None:

@@ -13,6 +13,7 @@ from fastapi.testclient import TestClient
 from app.__main__ import main as cli_main
 from app.config import Settings
 from app.logs import JsonFormatter, KeyValueFormatter
+from app.main import create_app
 
 
 def test_settings_come_from_fuzzyrisk_variables(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
@@ -112,3 +113,11 @@ def test_the_readme_documents_every_setting() -> None:
     readme = (Path(__file__).resolve().parents[2] / "README.md").read_text()
     for name in Settings.model_fields:
         assert f"`FUZZYRISK_{name.upper()}`" in readme, name
+
+
+def test_behind_a_path_prefix_the_schema_names_the_prefix_as_its_server(make_settings: Any) -> None:
+    with TestClient(create_app(make_settings()), root_path="/fz") as prefixed:
+        spec = prefixed.get("/openapi.json").json()
+        assert spec["servers"][0] == {"url": "/fz"}
+        assert "/fz/openapi.json" in prefixed.get("/docs").text
+        assert "servers" not in prefixed.app.openapi()  # the cached schema is not changed
