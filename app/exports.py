@@ -117,6 +117,11 @@ def npy_bytes(array: np.ndarray) -> bytes:
     return out.getvalue()
 
 
+def _scale_grey(risk: np.ndarray) -> np.ndarray:
+    """The grey ``round(255 * (1 - risk))`` of a scale-mode image (float, 0..255)."""
+    return np.rint(255.0 * (1.0 - np.clip(risk, 0.0, 1.0)))
+
+
 def occupancy_data(
     risk: np.ndarray,
     observed: np.ndarray,
@@ -142,7 +147,7 @@ def occupancy_data(
         values[risk < free_thresh] = 0
     else:
         # graded from the 8-bit grey the scale image holds, as map_server reads it (map_io.cpp)
-        occ = 1.0 - np.rint(255.0 * (1.0 - np.clip(risk, 0.0, 1.0))) / 255.0
+        occ = 1.0 - _scale_grey(risk) / 255.0
         graded = np.rint((occ - free_thresh) / (occupied_thresh - free_thresh) * 100.0)
         values = np.clip(graded, 0.0, 100.0).astype(np.int8)
         values[occ > occupied_thresh] = 100
@@ -175,8 +180,7 @@ def nav2_pixels(
         grey[(risk > occupied_thresh) & observed] = 0
         grey[(risk < free_thresh) & observed] = 255  # occ 0: free under any free_thresh > 0
     else:
-        shown = np.where(observed, np.clip(risk, 0.0, 1.0), np.float32(0.5))
-        grey = np.rint(255.0 * (1.0 - shown)).astype(np.uint8)
+        grey = _scale_grey(np.where(observed, risk, np.float32(0.5))).astype(np.uint8)
     return _image_rows(grey), _image_rows(observed)
 
 

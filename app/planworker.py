@@ -35,8 +35,7 @@ def _init_worker(native: bool) -> None:
     # warn about comes back in each result (status, message) or is documented (planning/README.md)
     planning.quiet_ompl()
     compiled.set_enabled(native)
-    compiled.prepare()
-    planning.warm_up()
+    planning.warm_up()  # its plans load (or compile) the compiled callbacks too
 
 
 def _warm() -> None:

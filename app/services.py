@@ -41,7 +41,7 @@ import asyncio
 import io
 import logging
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Coroutine, Mapping
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
@@ -440,9 +440,7 @@ class MapService:
         ticket = entry.line.take()
         # shielded as a batch's write is: a cancelled request must not leave the rows deleted
         # and the map still served
-        deleting = asyncio.ensure_future(self._delete(entry, ticket))
-        deleting.add_done_callback(_retrieve)
-        await asyncio.shield(deleting)
+        await _shielded(self._delete(entry, ticket))
 
     async def _delete(self, entry: MapEntry, ticket: int) -> None:
         try:
@@ -553,9 +551,7 @@ class MapService:
             raise
         # the task owns the ticket from here; shielded, so that a cancelled request cannot leave its
         # batch committed but not applied
-        writing = asyncio.ensure_future(self._write(entry, ticket, scans, payload))
-        writing.add_done_callback(_retrieve)
-        return await asyncio.shield(writing)
+        return await _shielded(self._write(entry, ticket, scans, payload))
 
     async def _write(self, entry: MapEntry, ticket: int, scans: list[batches.Scan], payload: bytes) -> BatchResult:
         """Commit, then apply, a parsed batch in its turns; gives both turns up when done, whatever happens."""
@@ -747,6 +743,13 @@ class MapService:
             planner_spec(request.planner)  # lists the planners that work
         except ValueError as exc:
             raise Invalid(str(exc)) from None
+
+
+async def _shielded(work: Coroutine[Any, Any, T]) -> T:
+    """Run ``work`` to its end even if the awaiting request is cancelled (a client gone away)."""
+    task = asyncio.ensure_future(work)
+    task.add_done_callback(_retrieve)
+    return await asyncio.shield(task)
 
 
 def _retrieve(task: asyncio.Future[Any]) -> None:

@@ -109,21 +109,6 @@ def set_enabled(enabled: bool, kinds: Iterable[str] = KINDS) -> None:
         (_enabled.add if enabled else _enabled.discard)(kind)
 
 
-def prepare() -> None:
-    """Load the compiled functions and OMPL's library now rather than in the first plan.
-
-    Never raises: what cannot be loaded shows later as the Python fallback and its warning.
-    """
-    if not _enabled:
-        return
-    try:
-        import planning._native_kernels  # noqa: F401 - loads (or compiles) every cfunc
-
-        _symbol(_CLASSES["N4ompl4base28AllValidStateValidityCheckerE"][0] or "")
-    except RuntimeError:
-        pass
-
-
 def status() -> dict[str, str]:
     """Per "kind space" checked so far (e.g. "objective R2"): "native", or why Python is used."""
     with _lock:
