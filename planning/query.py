@@ -405,8 +405,10 @@ def _warm_space(sspec: SpaceSpec) -> None:
     for planner in planners:
         for allow_unknown in (True, False):
             try:
+                # unseeded: OMPL's seed is process-wide, and a warm-up must not fix the RNG of the
+                # process's later unseeded plans
                 plan(field, start, goal, planner=planner, state_space=sspec.name, time_limit=10.0,
-                     robot_radius=0.1, allow_unknown=allow_unknown, seed=1,
+                     robot_radius=0.1, allow_unknown=allow_unknown,
                      turning_radius=0.3 if sspec.curved else None)
             except Exception:  # noqa: BLE001 - reported by the real plan, not here
                 log.warning("warm-up plan in %s with %s failed", sspec.name, planner, exc_info=True)
