@@ -19,9 +19,13 @@ from pydantic import (
     Discriminator,
     Field,
     FiniteFloat,
+    PlainValidator,
     Tag,
     model_validator,
 )
+
+from app import engines
+from fuzzyocc.presets import PRESETS
 
 NAME_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$"
 _NAME_RE = re.compile(NAME_PATTERN)
@@ -50,6 +54,30 @@ EXAMPLE_MAP = {
     "size": [16.0, 10.0],
     "model": "fuzzy",
     "sensor": {"range_sigma": 0.03, "registration_sigma": 0.0},
+    "engine": "paper",
+}
+#: The smallest useful engine: empty, unknown, occupied (Table 1 cut down to three labels).
+EXAMPLE_ENGINE = {
+    "labels": ["EMP", "UNK", "OCC"],
+    "unknown": "UNK",
+    "input_mfs": {
+        "EMP": {"type": "left_shoulder", "top_end": -2.0, "zero_at": 0.0},
+        "OCC": {"type": "triangle", "left": -2.0, "peak": 0.0, "right": 1.5},
+        "UNK": {"type": "right_shoulder", "zero_at": 0.0, "top_start": 1.5},
+    },
+    "output_mfs": {
+        "EMP": {"type": "left_shoulder", "top_end": 0.0, "zero_at": 0.5},
+        "UNK": {"type": "triangle", "left": 0.0, "peak": 0.5, "right": 1.0},
+        "OCC": {"type": "right_shoulder", "zero_at": 0.5, "top_start": 1.0},
+    },
+    "rules": {
+        "EMP": {"EMP": "EMP", "UNK": "EMP", "OCC": "UNK"},
+        "UNK": {"EMP": "EMP", "UNK": "UNK", "OCC": "OCC"},
+        "OCC": {"EMP": "UNK", "UNK": "OCC", "OCC": "OCC"},
+    },
+    "and_op": "min",
+    "or_op": "max",
+    "normalize": False,
 }
 EXAMPLE_MAP_3D = {
     "name": "hall3d",
@@ -86,6 +114,105 @@ EXAMPLE_PLAN = {
     "seed": 1,
 }
 
+# ---------------------------------------------------------------- fuzzy engines
+# These models document the object form of ``MapCreate.engine`` in the OpenAPI document;
+# the request is checked by ``engines.parse`` (``fuzzyocc.engine_spec``), whose messages name
+# the bad field by its path (``engine.input_mfs.PO.peak must be a finite number``).
+
+LabelName = Annotated[str, Field(min_length=1, max_length=engines.MAX_NAME_CHARS)]
+
+
+class TriangleIn(BaseModel):
+    """0 at ``left``, 1 at ``peak``, 0 at ``right``; ``left < peak < right``."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    type: Literal["triangle"]
+    left: FiniteFloat
+    peak: FiniteFloat
+    right: FiniteFloat
+
+
+class TrapezoidIn(BaseModel):
+    """0 at ``a``, 1 from ``b`` to ``c``, 0 at ``d``; ``a < b <= c < d``."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    type: Literal["trapezoid"]
+    a: FiniteFloat
+    b: FiniteFloat
+    c: FiniteFloat
+    d: FiniteFloat
+
+
+class LeftShoulderIn(BaseModel):
+    """1 up to ``top_end``, 0 from ``zero_at``; ``top_end < zero_at``."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    type: Literal["left_shoulder"]
+    top_end: FiniteFloat
+    zero_at: FiniteFloat
+
+
+class RightShoulderIn(BaseModel):
+    """0 up to ``zero_at``, 1 from ``top_start``; ``zero_at < top_start``."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    type: Literal["right_shoulder"]
+    zero_at: FiniteFloat
+    top_start: FiniteFloat
+
+
+MembershipIn = Annotated[TriangleIn | TrapezoidIn | LeftShoulderIn | RightShoulderIn, Field(discriminator="type")]
+LabelMap = Annotated[dict[LabelName, MembershipIn], Field(min_length=2, max_length=engines.MAX_LABELS)]
+
+
+class EngineDefinition(BaseModel):
+    """A fuzzy engine (``fuzzyocc.FuzzyEngine``): labels, membership functions, rule table, operators."""
+
+    model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [EXAMPLE_ENGINE]})
+
+    labels: Annotated[list[LabelName], Field(min_length=2, max_length=engines.MAX_LABELS)] = Field(
+        description="state and output labels in increasing order of risk"
+    )
+    unknown: LabelName = Field(description="the label of unknown space (a new cell); alone it defuzzifies to 0.5")
+    input_mfs: LabelMap = Field(
+        description="per label, on the distance from the measured surface in sigmas (negative: in front); together "
+        "they cover the whole axis, and far behind the surface only the unknown label is active, at 1"
+    )
+    output_mfs: LabelMap = Field(
+        description="per label, on the risk axis [0, 1], which they cover; each label alone defuzzifies above "
+        "the one before it; at most two positive at any risk"
+    )
+    rules: dict[LabelName, dict[LabelName, LabelName]] = Field(
+        description="rules[current][new]: the label concluded from the cell's current label and the new "
+        "measurement's; rules[x][unknown] must be x"
+    )
+    and_op: Literal["min", "product"] = "min"
+    or_op: Literal["max", "probsum"] = "max"
+    normalize: bool | None = Field(None, description="rescale each fused state to a largest activation of 1; "
+                                   "null: when and_op is product")
+
+
+EnginePreset = Literal[tuple(PRESETS)]  # type: ignore[valid-type]
+
+#: ``MapCreate.engine``: validated (and built) by ``engines.parse``, documented as a preset or an EngineDefinition.
+EngineField = Annotated[
+    engines.EngineChoice | None,
+    PlainValidator(engines.parse, json_schema_input_type=EnginePreset | EngineDefinition | None),
+]
+
+
+class EngineInfo(BaseModel):
+    """A fuzzy map's engine."""
+
+    preset: str | None = Field(description="the preset the engine equals, or null")
+    definition: dict[str, Any] = Field(description="the engine in full, as an EngineDefinition (the form "
+                                       "POST /maps takes)")
+
+
 # ---------------------------------------------------------------- maps
 
 
@@ -113,6 +240,9 @@ class MapCreate(BaseModel):
     )
     model: Literal["fuzzy", "bayes"] = "fuzzy"
     sensor: SensorIn = Field(default_factory=SensorIn)
+    engine: EngineField = Field(
+        None, description="fuzzy maps: a preset name, or an EngineDefinition; left out: the default preset"
+    )
 
     @model_validator(mode="after")
     def _dimensions_agree(self) -> MapCreate:
@@ -122,6 +252,12 @@ class MapCreate(BaseModel):
         if len(self.size) != dims:
             raise ValueError(f"size has {len(self.size)} values but origin has {dims}")
         self.dimensions = dims  # type: ignore[assignment]
+        return self
+
+    @model_validator(mode="after")
+    def _engine_is_fuzzy(self) -> MapCreate:
+        if self.engine is not None and self.model != "fuzzy":
+            raise ValueError(f"engine applies to fuzzy maps only; a {self.model} map has none: leave engine out")
         return self
 
 
@@ -137,6 +273,7 @@ class MapInfo(BaseModel):
     shape: list[int] = Field(description="cells along x, y(, z)")
     model: Literal["fuzzy", "bayes"]
     sensor: SensorIn
+    engine: EngineInfo | None = Field(description="the fuzzy engine; null for a bayes map")
     scans_fused: int
     version: int = Field(description="grows with every accepted scan batch: by one, except after a batch that "
                          "failed inside the service after it was stored (its number is not reused)")

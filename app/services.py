@@ -38,6 +38,7 @@ counted and retried later, never answered as an error.
 from __future__ import annotations
 
 import asyncio
+import functools
 import io
 import logging
 import time
@@ -51,7 +52,7 @@ import numpy as np
 from fastapi.exceptions import RequestValidationError
 from pydantic import ValidationError
 
-from app import batches, exports
+from app import batches, engines, exports
 from app.committer import GroupCommitter
 from app.config import Settings
 from app.errors import (
@@ -67,6 +68,7 @@ from app.metrics import Metrics
 from app.planworker import PlanPool, run_plan
 from app.schemas import (
     BatchResult,
+    EngineInfo,
     LastScan,
     MapCreate,
     MapInfo,
@@ -228,6 +230,13 @@ class MapEntry:
     def spec(self) -> GridSpec:
         return self.map.spec
 
+    @functools.cached_property
+    def engine_info(self) -> EngineInfo | None:
+        """The fuzzy engine as ``MapInfo`` shows it (once: a map's engine never changes)."""
+        if not isinstance(self.map, FuzzyMap):
+            return None
+        return EngineInfo(**engines.describe(self.map.engine))
+
     def info(self) -> MapInfo:
         spec = self.spec
         return MapInfo(
@@ -239,6 +248,7 @@ class MapEntry:
             shape=list(spec.shape),
             model=self.meta["model"],
             sensor=SensorIn(**self.meta["sensor"]),
+            engine=self.engine_info,
             scans_fused=self.scans_fused,
             version=self.version,
             created=self.meta["created"],
@@ -266,19 +276,28 @@ class GridSnapshot:
 
 
 def _build_map(meta: Mapping[str, Any], *, max_cells: int) -> OccupancyMap:
+    """An empty map as ``meta`` describes it (a new map is built from its meta too: what is stored is what runs)."""
     spec = GridSpec(origin=meta["origin"], size=meta["size"], resolution=meta["resolution"], max_cells=max_cells)
     sensor = SensorModel(**meta["sensor"])
-    return FuzzyMap(spec, sensor) if meta["model"] == "fuzzy" else BayesMap(spec, sensor)
+    if meta["model"] == "fuzzy":
+        return FuzzyMap(spec, sensor, engines.from_meta(meta))
+    return BayesMap(spec, sensor)
 
 
 def _restore(stored: StoredMap) -> MapEntry:
     """A map from its snapshot and the batches after it (replayed in order: bit-identical risk)."""
     unlimited = 2**62  # a limit lowered since the map was made must not lose the map
-    built = _build_map(stored.meta, max_cells=unlimited)
+    try:
+        built = _build_map(stored.meta, max_cells=unlimited)
+    except ValueError as exc:
+        raise RuntimeError(f"map {stored.name!r}: its stored metadata cannot be used ({exc}); the database "
+                           "needs repair") from exc
     if stored.snapshot is not None:
         arrays = _unnpz(stored.snapshot)
-        cls = FuzzyMap if stored.meta["model"] == "fuzzy" else BayesMap
-        built = cls.from_arrays(built.spec, built.sensor, arrays)
+        if isinstance(built, FuzzyMap):
+            built = FuzzyMap.from_arrays(built.spec, built.sensor, arrays, built.engine)
+        else:
+            built = BayesMap.from_arrays(built.spec, built.sensor, arrays)
     entry = MapEntry(
         dict(stored.meta), built, stored.snapshot_version, stored.snapshot_version, built.scans_fused, stored.updated
     )
@@ -420,6 +439,8 @@ class MapService:
                 "sensor": request.sensor.model_dump(),
                 "created": now,
             }
+            if request.model == "fuzzy":
+                meta["engine"] = engines.to_meta(request.engine or engines.default())
             try:
                 built = await self._run(lambda: _build_map(meta, max_cells=self.settings.max_map_cells))
             except ValueError as exc:
