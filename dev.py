@@ -6,8 +6,11 @@
     python3 dev.py bench NAME [args]                         # install, then run bench/bench_NAME.py
 
 Each command creates ``.venv`` beside this file when it is missing and installs
-the project into it (again only when ``pyproject.toml`` changed), then runs.
-The Dockerfile performs the same steps: ``pip install .`` then ``python -m app``.
+the project into it with the pinned versions of ``constraints.txt`` (again only when
+``pyproject.toml`` or ``constraints.txt`` changed), then runs. The last step replaces
+this process (``exec``), so a signal sent to ``python3 dev.py serve`` (SIGTERM, Ctrl-C)
+reaches the server itself. The Dockerfile performs the same steps: ``pip install -c
+constraints.txt .`` then ``python -m app``.
 """
 
 from __future__ import annotations
@@ -22,6 +25,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent
 VENV = Path(os.environ.get("FUZZYRISK_VENV", ROOT / ".venv"))
 PYTHON = VENV / ("Scripts/python.exe" if os.name == "nt" else "bin/python")
+CONSTRAINTS = "constraints.txt"
 
 
 def _ensure_env(extras: str) -> None:
@@ -30,15 +34,29 @@ def _ensure_env(extras: str) -> None:
     if not PYTHON.exists():
         print(f"creating virtual environment in {VENV}", flush=True)
         venv.EnvBuilder(with_pip=True).create(VENV)
-    digest = hashlib.sha256((ROOT / "pyproject.toml").read_bytes()).hexdigest()
+    digest = hashlib.sha256((ROOT / "pyproject.toml").read_bytes() + (ROOT / CONSTRAINTS).read_bytes()).hexdigest()
     stamp = VENV / f".fuzzyrisk-installed-{extras.replace(',', '-') or 'runtime'}"
-    if stamp.exists() and stamp.read_text() == digest:
-        return
+    wanted = set(filter(None, extras.split(",")))
+    for done in VENV.glob(".fuzzyrisk-installed-*"):  # an install with more extras covers this one
+        installed = set(done.name.removeprefix(".fuzzyrisk-installed-").split("-")) - {"runtime"}
+        if wanted <= installed and done.read_text() == digest:
+            return
     print(f"installing the project ({extras or 'runtime'} dependencies) into {VENV}", flush=True)
     target = f"{ROOT}[{extras}]" if extras else str(ROOT)
-    subprocess.run([str(PYTHON), "-m", "pip", "install", "--quiet", "--upgrade", "pip"], check=True)
-    subprocess.run([str(PYTHON), "-m", "pip", "install", "--quiet", "-e", target], check=True)
+    pip = [str(PYTHON), "-m", "pip", "install", "--quiet", "--constraint", str(ROOT / CONSTRAINTS)]
+    subprocess.run([*pip, "--upgrade", "pip"], check=True)
+    subprocess.run([*pip, "-e", target], check=True)
     stamp.write_text(digest)
+
+
+def _become(args: list[str]) -> int:
+    """Run ``args`` in ROOT in place of this process (signals then reach it directly); a child where there is no exec."""
+    sys.stdout.flush()
+    sys.stderr.flush()
+    if os.name == "nt":
+        return subprocess.call(args, cwd=ROOT)
+    os.chdir(ROOT)
+    os.execv(args[0], args)
 
 
 def main(argv: list[str]) -> int:
@@ -48,7 +66,7 @@ def main(argv: list[str]) -> int:
     command, rest = argv[0], argv[1:]
     if command == "serve":
         _ensure_env("")
-        return subprocess.call([str(PYTHON), "-m", "app", *rest], cwd=ROOT)
+        return _become([str(PYTHON), "-m", "app", *rest])
     if command == "bench":
         names = sorted(p.stem.removeprefix("bench_") for p in (ROOT / "bench").glob("bench_*.py"))
         names.append("soak")
@@ -56,13 +74,15 @@ def main(argv: list[str]) -> int:
             print(f"usage: python3 dev.py bench {{{','.join(names)}}} [args]", file=sys.stderr)
             return 2
         _ensure_env("test,plots,bench")
+        # the servers a benchmark starts, each on a new data directory, share one kernel cache (as the tests do)
+        os.environ.setdefault("NUMBA_CACHE_DIR", str(ROOT / ".numba-cache"))
         module = "bench.soak" if rest[0] == "soak" else f"bench.bench_{rest[0]}"
-        return subprocess.call([str(PYTHON), "-m", module, *rest[1:]], cwd=ROOT)
+        return _become([str(PYTHON), "-m", module, *rest[1:]])
     _ensure_env("test,plots")
     lint = subprocess.call([str(VENV / "bin" / "lint-imports")], cwd=ROOT)
     if lint != 0:
         return lint
-    return subprocess.call([str(PYTHON), "-m", "pytest", *rest], cwd=ROOT)
+    return _become([str(PYTHON), "-m", "pytest", *rest])
 
 
 if __name__ == "__main__":

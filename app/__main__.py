@@ -1,16 +1,26 @@
-"""`python -m app`: serve the product (options override the FUZZYRISK_* environment)."""
+"""`python -m app`: serve the product (options override the FUZZYRISK_* environment).
+
+The order matters: settings and logs first; then the port (taken: exit 1 at once) and the
+directories (numba's kernel cache must be set before numba is imported); then the application,
+whose lifespan loads the maps before uvicorn listens, and compiles the kernels and starts the
+planner workers in the background (``GET /ready`` says when they are done).
+"""
 
 from __future__ import annotations
 
 import argparse
 import logging
+import sys
 from pathlib import Path
 
-import uvicorn
+from pydantic import ValidationError
 
 from app.config import Settings
+from app.lifecycle import StartupError, bind, prepare_directories
 from app.logs import configure_logging
-from app.main import create_app
+
+#: Exit status when the service cannot start (a bad setting, a port in use, an unusable data directory).
+EXIT_STARTUP_FAILURE = 1
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -20,24 +30,42 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--data-dir", type=Path, help="map database directory (FUZZYRISK_DATA_DIR, default ./data)")
     args = parser.parse_args(argv)
     overrides = {k: v for k, v in vars(args).items() if v is not None}
-    settings = Settings(**overrides)
+    try:
+        settings = Settings(**overrides)
+    except ValidationError as exc:
+        sys.exit(f"python -m app: invalid configuration:\n{exc}")
     configure_logging(log_format=settings.log_format, level=settings.log_level)
     log = logging.getLogger("fuzzyrisk")
+    try:
+        sock = bind(settings.host, settings.port)
+        directories = prepare_directories(settings)
+    except StartupError as exc:
+        log.error("cannot start: %s", exc)
+        sys.exit(EXIT_STARTUP_FAILURE)
+    if directories.warning:
+        log.warning(directories.warning)
     if settings.api_key is None and settings.host not in ("127.0.0.1", "localhost", "::1"):
         log.warning("listening on %s without FUZZYRISK_API_KEY: anyone who can reach it can change maps", settings.host)
     log.info(
         "starting",
         extra={"fields": {"host": settings.host, "port": settings.port, "data_dir": str(settings.data_dir.resolve()),
-                          "auth": settings.api_key is not None}},
+                          "auth": settings.api_key is not None, "kernel_cache": str(directories.numba_cache)}},
     )
-    uvicorn.run(
+
+    # numba, OMPL, the web stack: imported only now that NUMBA_CACHE_DIR is set
+    import uvicorn
+
+    from app.main import create_app
+
+    server = uvicorn.Server(uvicorn.Config(
         create_app(settings),
-        host=settings.host,
-        port=settings.port,
         log_config=None,  # keep our structured handler
         access_log=False,  # one access record per request comes from our middleware
         timeout_graceful_shutdown=settings.graceful_timeout_s,
-    )
+    ))
+    server.run(sockets=[sock])
+    if not server.started:  # the lifespan failed (it logged why)
+        sys.exit(EXIT_STARTUP_FAILURE)
 
 
 if __name__ == "__main__":

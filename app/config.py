@@ -7,6 +7,7 @@ reads the environment once for ``python -m app``.
 
 from __future__ import annotations
 
+import os
 from functools import lru_cache
 from pathlib import Path
 from typing import Literal
@@ -36,7 +37,7 @@ class Settings(BaseSettings):
         2_000_000, ge=1, description="Most ranges in a LaserScan, or points in a point cloud."
     )
     max_map_cells: int = Field(
-        16_000_000, ge=1, description="Most cells in one map (about 9 bytes a cell in memory for a fuzzy map)."
+        16_000_000, ge=1, description="Most cells in one map (at most about 13 bytes a cell in memory for a fuzzy map of the default engine)."
     )
     max_query_points: int = Field(100_000, ge=1, description="Most points in one risk query.")
     max_plan_time_s: float = Field(30.0, gt=0.0, le=3600.0, description="Largest plan time_limit, seconds.")
@@ -81,6 +82,16 @@ class Settings(BaseSettings):
     def database_path(self) -> Path:
         """The SQLite file holding every map."""
         return self.data_dir / "fuzzyrisk.sqlite3"
+
+    @property
+    def numba_cache_dir(self) -> Path:
+        """Where compiled kernels are cached: numba's own ``NUMBA_CACHE_DIR`` when set, else ``<data dir>/numba-cache``.
+
+        In the data directory because that is writable wherever the service runs (a read-only root, an
+        installed package owned by another user) and belongs to the machine that compiled the kernels
+        (numba keys them to the CPU): compiled once where they run, loaded at every later start.
+        """
+        return Path(os.environ.get("NUMBA_CACHE_DIR") or self.data_dir / "numba-cache")
 
 
 @lru_cache(maxsize=1)

@@ -17,12 +17,12 @@ import yaml
 from PIL import Image, PngImagePlugin
 
 #: Thresholds of every occupancy export (Nav2 YAML and image, OccupancyGrid) unless asked otherwise.
-#: Free below map_saver's 0.25 (a cell scanned free once reads about 0.17). Occupied above 0.6,
-#: the planner's default ``max_risk``: what a default plan refuses to enter, Nav2 sees as
-#: occupied. map_saver's 0.65 would leave a wall seen once (risk about 0.63; the fuzzy risk of
-#: a surface peaks near 0.84, never 1, as a centroid) unknown, and Nav2 plans through unknown.
+#: Occupied above 0.6, the planner's default ``max_risk``: what a default plan refuses to enter,
+#: Nav2 sees as occupied (with the default engine, a wall seen once reads 0.7). Free below 0.45:
+#: more free than occupied evidence (the default engine's cell seen free once reads 0.4, twice
+#: 0.3; map_saver's 0.25 would export space seen free once or twice as unknown). Unknown is 0.5.
 NAV2_OCCUPIED_THRESH = 0.6
-NAV2_FREE_THRESH = 0.25
+NAV2_FREE_THRESH = 0.45
 
 #: Never-observed cells in the PNG: a grey-blue that is not on the risk scale, hatched when scale >= 4.
 UNKNOWN_RGB = (138, 154, 181)
@@ -170,7 +170,7 @@ def nav2_pixels(
     Nav2 reads ``occ = (255 - p) / 255`` (negate 0). ``trinary``: occupied (risk above
     ``occupied_thresh``) is 0, free (below ``free_thresh``) is 255, the rest is the grey whose
     ``occ`` lies midway between the thresholds, so it reads back as unknown. (map_saver's 205
-    reads back as *free* under its own free_thresh 0.25: 50/255 = 0.196.) ``scale``:
+    reads back as *free* under free_thresh 0.25: 50/255 = 0.196.) ``scale``:
     ``p = round(255 * (1 - risk))``; never-observed cells are transparent (Nav2's unknown in
     scale mode) and, where there is no alpha (PGM), risk 0.5.
     """

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 from typing import Any
@@ -19,6 +20,7 @@ from app.schemas import RiskGridJSON, ScanBatch
 from app.services import MapService
 from app.storage import SqliteStorage
 
+LOG = logging.getLogger("fuzzyrisk")
 DESCRIPTION = """\
 Robots post range scans with their poses; the service fuses them into named fuzzy occupancy
 maps (Payeur's fuzzy inference fusion, or a Bayesian baseline) and plans paths whose collision
@@ -50,6 +52,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         service = MapService(settings, SqliteStorage(settings.database_path), metrics)
         await service.start()
         app.state.service = service
+        LOG.info("answering requests: GET /health says alive, GET /ready says ready for traffic",
+                 extra={"fields": {"url": f"http://{settings.host}:{settings.port}"}})
         try:
             yield
         finally:

@@ -3,7 +3,15 @@
 OMPL's ``solve()`` holds the GIL for the whole solve, so plans never run on the
 event loop's process: a bounded ``ProcessPoolExecutor`` (forkserver, or spawn where
 there is no forkserver) receives the risk grid and the parameters, and returns
-plain data. Workers import ``planning`` (and OMPL) once, at start.
+plain data. The forkserver imports the planner stack (OMPL, and numba's kernels compiled
+at import) once; each worker forked from it warms the rest up as it starts.
+
+The processes end with the server, however it ends: the forkserver is started from a
+thread that lives as long as the server and asks Linux to kill it when the server ends
+(``app.forkserver_preload``), each worker asks the same of the forkserver and also
+watches the server itself (``app.lifecycle``). Without that, a server killed with
+``kill -9`` leaves them all waiting for each other (each worker holds the pipe the
+forkserver waits on, and waits for work itself).
 """
 
 from __future__ import annotations
@@ -13,21 +21,52 @@ import concurrent.futures
 import logging
 import math
 import multiprocessing
+import multiprocessing.forkserver
+import os
+import time
 from collections.abc import Callable
 from concurrent.futures.process import BrokenProcessPool
-from typing import Any, TypeVar
+from typing import Any, Literal, TypeVar
 
 import numpy as np
 
+from app import lifecycle
 from app.errors import Unavailable
 
 LOG = logging.getLogger("fuzzyrisk.plans")
 T = TypeVar("T")
 
 
-def _init_worker(native: bool) -> None:
-    """In each new worker: use the compiled planner callbacks (``planning/native.py``) or not, and
-    compile or load every kernel now, so that no plan waits for it."""
+#: Modules the forkserver imports before it forks any worker: first the one that ties its life to the
+#: server's, then the planner stack (``planning.query`` compiles, or loads, numba's kernels as it is imported).
+FORKSERVER_PRELOAD = ["app.forkserver_preload", "app.planworker", "planning.query"]
+#: Seconds a worker that is not done when the pool shuts down (an abandoned plan) gets before it is ended.
+SHUTDOWN_GRACE_S = 2.0
+
+# Linux ties the forkserver's death signal to the thread that started it, so that thread must live as long
+# as the process: this one never ends before the interpreter does (a request's thread may).
+_FORKSERVER_STARTER = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="forkserver-start")
+
+
+def _ensure_forkserver(context: multiprocessing.context.BaseContext) -> None:
+    """Start the forkserver (if it is not running) from the long-lived starter thread; blocks."""
+    if context.get_start_method() == "forkserver":
+        _FORKSERVER_STARTER.submit(multiprocessing.forkserver.ensure_running).result()
+
+
+#: In a worker: the barrier its pool's warm-up tasks meet at (``_warm``), so that each lands in its own worker.
+_STARTED_TOGETHER: Any = None
+#: Seconds the warm-up waits for all workers to be up (from numba's cache they start in seconds).
+WARM_BARRIER_TIMEOUT_S = 120.0
+
+
+def _init_worker(native: bool, together: Any = None) -> None:
+    """In each new worker: end with the server, use the compiled planner callbacks (``planning/native.py``)
+    or not, and compile or load every kernel now, so that no plan waits for it."""
+    global _STARTED_TOGETHER
+    lifecycle.die_with_parent()  # the forkserver, which dies with the server
+    lifecycle.exit_with_parent()  # the server itself: other systems, or the forkserver gone before the line above
+    _STARTED_TOGETHER = together
     import planning
     from planning import native as compiled
 
@@ -38,8 +77,15 @@ def _init_worker(native: bool) -> None:
     planning.warm_up()  # its plans load (or compile) the compiled callbacks too
 
 
-def _warm() -> None:
-    """Start a worker (its initializer warms the planner stack up) so the first plan does not pay for it."""
+def _warm(together: bool = False) -> int:
+    """A task that starts a worker (its initializer warms the planner stack up); the worker's pid.
+
+    ``together``: wait until every worker of the pool runs one, so that tasks submitted together
+    each start their own worker instead of being taken one after another by the first that is free.
+    """
+    if together and _STARTED_TOGETHER is not None:
+        _STARTED_TOGETHER.wait(WARM_BARRIER_TIMEOUT_S)
+    return os.getpid()
 
 
 def _number(value: Any) -> float | None:
@@ -89,7 +135,7 @@ def _context() -> multiprocessing.context.BaseContext:
     method = "forkserver" if "forkserver" in multiprocessing.get_all_start_methods() else "spawn"
     context = multiprocessing.get_context(method)
     if method == "forkserver":
-        context.set_forkserver_preload(["app.planworker", "planning"])
+        context.set_forkserver_preload(FORKSERVER_PRELOAD)
     return context
 
 
@@ -103,22 +149,65 @@ class PlanPool:
         self._waiting = 0
         self._running = asyncio.Semaphore(workers)
         self._executor: concurrent.futures.ProcessPoolExecutor | None = None
-        self._warming: asyncio.Future[Any] | None = None
+        self._context = _context()
+        self._warming: asyncio.Task[None] | None = None
+        #: pids of the workers warmed up by ``start``
+        self.warmed: set[int] = set()
+        self.warm_error: str | None = None
+
+    @property
+    def warm_state(self) -> Literal["off", "starting", "ready", "failed"]:
+        """``start`` never called, its workers starting, all warmed up, or failed (``warm_error`` says why)."""
+        if self.warm_error is not None:
+            return "failed"
+        if self._warming is None:
+            return "off"
+        return "ready" if self._warming.done() else "starting"
 
     def start(self) -> None:
-        """Start the worker processes in the background (otherwise they start at the first plan)."""
-        executor = self._ensure()
-        # submit() starts processes, and the first one waits for the forkserver to import the
-        # planner stack (seconds): never on the event loop
-        self._warming = asyncio.get_running_loop().run_in_executor(
-            None, lambda: [executor.submit(_warm) for _ in range(self._workers)]
-        )
+        """Start the worker processes in the background (otherwise they start at the first plan).
+
+        One worker first: it compiles the planner kernels into numba's cache (or loads them); then the
+        others, which load them. Compiled once, not once per worker at the same time.
+        """
+        self._warming = asyncio.get_running_loop().create_task(self._warm_up(self._ensure()))
+
+    async def _warm_up(self, executor: concurrent.futures.ProcessPoolExecutor) -> None:
+        loop = asyncio.get_running_loop()
+        started = time.perf_counter()
+        LOG.info("starting the planner workers (each compiles or loads its kernels)",
+                 extra={"fields": {"workers": self._workers}})
+        try:
+            # submit() starts processes, and the first one waits for the forkserver to import the
+            # planner stack (seconds): never on the event loop
+            first = await loop.run_in_executor(None, self._submit, executor, _warm)
+            self.warmed.add(await asyncio.wrap_future(first))
+            LOG.info("planner worker ready", extra={"fields": {
+                "workers_ready": 1, "workers": self._workers, "seconds": round(time.perf_counter() - started, 1)}})
+            if self._workers > 1:  # the first worker is free again: it and each new one take one task
+                others = [await loop.run_in_executor(None, self._submit, executor, _warm, True)
+                          for _ in range(self._workers)]
+                self.warmed.update(await asyncio.gather(*(asyncio.wrap_future(f) for f in others)))
+        except Exception as exc:  # noqa: BLE001 - reported by readiness and the log, and again by the first plan
+            self.warm_error = f"the planner workers did not start: {exc!r}"
+            LOG.error(self.warm_error, exc_info=True)
+            return
+        LOG.info("planner workers ready", extra={"fields": {
+            "workers_ready": len(self.warmed), "workers": self._workers,
+            "seconds": round(time.perf_counter() - started, 1)}})
+
+    def _submit(self, executor: concurrent.futures.ProcessPoolExecutor, fn: Callable[..., T], *args: Any
+                ) -> concurrent.futures.Future[T]:
+        """``executor.submit`` (which may start a worker), the forkserver started by the long-lived thread first."""
+        _ensure_forkserver(self._context)
+        return executor.submit(fn, *args)
 
     def _ensure(self) -> concurrent.futures.ProcessPoolExecutor:
         if self._executor is None:
             # creating the executor starts no process; submit() does
+            together = self._context.Barrier(self._workers)  # passed at start: a barrier cannot travel in a task
             self._executor = concurrent.futures.ProcessPoolExecutor(
-                self._workers, mp_context=_context(), initializer=_init_worker, initargs=(self._native,)
+                self._workers, mp_context=self._context, initializer=_init_worker, initargs=(self._native, together)
             )
         return self._executor
 
@@ -144,7 +233,7 @@ class PlanPool:
             async with self._running:
                 executor = self._ensure()
                 loop = asyncio.get_running_loop()
-                future = await loop.run_in_executor(None, lambda: executor.submit(fn, *args))
+                future = await loop.run_in_executor(None, self._submit, executor, fn, *args)
                 try:
                     return await asyncio.wait_for(asyncio.wrap_future(future), timeout_s)
                 except TimeoutError:
@@ -159,7 +248,22 @@ class PlanPool:
             self._waiting -= 1
 
     def shutdown(self) -> None:
-        """Stop the workers (plans in flight were awaited by the server before this)."""
-        if self._executor is not None:
-            self._executor.shutdown(wait=True, cancel_futures=True)
-            self._executor = None
+        """Stop the workers: idle ones at once, one still busy (a plan whose request the graceful shutdown
+        gave up on, or a warm-up) after ``SHUTDOWN_GRACE_S``, so that a stop fits ``docker stop``'s time."""
+        if self._warming is not None:
+            self._warming.cancel()
+        executor, self._executor = self._executor, None
+        if executor is None:
+            return
+        processes = list(getattr(executor, "_processes", {}).values())
+        executor.shutdown(wait=False, cancel_futures=True)
+        deadline = time.monotonic() + SHUTDOWN_GRACE_S
+        for process in processes:
+            process.join(max(0.0, deadline - time.monotonic()))
+        for process in processes:
+            if process.is_alive():
+                process.terminate()
+                process.join(5.0)
+            if process.is_alive():
+                process.kill()
+                process.join(5.0)

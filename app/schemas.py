@@ -194,6 +194,11 @@ class EngineDefinition(BaseModel):
     or_op: Literal["max", "probsum"] = "max"
     normalize: bool | None = Field(None, description="rescale each fused state to a largest activation of 1; "
                                    "null: when and_op is product")
+    incidence_floor: float = Field(1.0, gt=0.0, le=1.0, description="sigma along a LaserScan beam is divided by "
+                                   "max(sin(incidence on the surface), incidence_floor); 1: incidence ignored")
+    no_return_neighbours: int = Field(0, ge=0, le=8, description="a LaserScan no-return with a hit among this "
+                                      "many neighbours on each side clears only up to 0.1 m before the nearest "
+                                      "of them; 0: every no-return clears to range_max")
 
 
 EnginePreset = Literal[tuple(PRESETS)]  # type: ignore[valid-type]
@@ -551,6 +556,22 @@ class OccupancyGrid(BaseModel):
 
 class Health(BaseModel):
     status: Literal["ok"]
+
+
+class Readiness(BaseModel):
+    """Whether the service is ready for traffic (``GET /ready``: 200 when ``status`` is ready, else 503)."""
+
+    status: Literal["ready", "starting", "failed"] = Field(
+        description="ready: maps loaded, kernels compiled, planner workers up; starting: not yet; failed: see detail"
+    )
+    maps_loaded: int = Field(description="maps held (all stored maps are loaded before the service answers at all)")
+    kernels_compiled: bool = Field(description="the fusion kernels are compiled, or loaded from numba's cache")
+    planner_workers_ready: int = Field(description="planner workers started and warmed up")
+    planner_workers_wanted: int = Field(
+        description="planner workers readiness waits for: FUZZYRISK_PLAN_WORKERS, or 0 when FUZZYRISK_PLAN_WARMUP "
+        "is false (they start at the first plan)"
+    )
+    detail: str = Field("", description="what failed, when status is failed")
 
 
 class PlannerInfo(BaseModel):

@@ -41,6 +41,7 @@ import asyncio
 import functools
 import io
 import logging
+import os
 import time
 from collections.abc import Callable, Coroutine, Mapping
 from concurrent.futures import ThreadPoolExecutor
@@ -52,7 +53,7 @@ import numpy as np
 from fastapi.exceptions import RequestValidationError
 from pydantic import ValidationError
 
-from app import batches, engines, exports
+from app import batches, engines, exports, warmup
 from app.committer import GroupCommitter
 from app.config import Settings
 from app.errors import (
@@ -75,6 +76,7 @@ from app.schemas import (
     OccupancyGrid,
     PlanRequest,
     PlanResult,
+    Readiness,
     RiskGridJSON,
     RiskValues,
     ScanBatch,
@@ -340,6 +342,8 @@ class MapService:
             workers=settings.plan_workers, queue=settings.plan_queue, native=settings.native_planning
         )
         self._limits = batches.Limits(max_scans=settings.max_scans_per_batch, max_rays=settings.max_rays_per_scan)
+        self._kernels: asyncio.Task[None] | None = None
+        self._kernels_error: str | None = None
 
     async def _run(self, fn: Callable[..., T], *args: Any) -> T:
         return await asyncio.get_running_loop().run_in_executor(self._threads, fn, *args)
@@ -362,8 +366,46 @@ class MapService:
             extra={"fields": {"maps": len(self._maps), "replayed_batches": sum(len(s.batches) for s in stored),
                               "seconds": round(time.perf_counter() - started, 3)}},
         )
+        # in the background: /health answers meanwhile, /ready once they are done; a scan that comes first
+        # waits for the kernel it needs (numba compiles one at a time), not for all of them
+        self._kernels = asyncio.get_running_loop().create_task(self._warm_kernels())
         if self.settings.plan_warmup:
             self._plans.start()
+
+    async def _warm_kernels(self) -> None:
+        """Compile the fusion kernels, or load them from numba's cache, in a fusion thread, with progress in the log."""
+        LOG.info("compiling the fusion kernels, or loading them from numba's cache (a first start compiles for "
+                 "about 20 s)", extra={"fields": {"cache": os.environ.get("NUMBA_CACHE_DIR", "numba's default")}})
+
+        def progress(step: str, seconds: float) -> None:
+            LOG.info("kernels ready: %s", step, extra={"fields": {"seconds": round(seconds, 2)}})
+
+        try:
+            seconds = await self._run(warmup.warm_fusion, progress)
+        except Exception as exc:  # noqa: BLE001 - a bug: readiness reports it; requests report their own
+            self._kernels_error = f"the fusion kernels did not compile: {exc!r}"
+            LOG.error(self._kernels_error, exc_info=True)
+            return
+        LOG.info("fusion kernels ready", extra={"fields": {"seconds": round(seconds, 2)}})
+
+    def readiness(self) -> Readiness:
+        """Ready for traffic: maps loaded (always, once the service answers), fusion kernels compiled or loaded,
+        and the planner workers up and warmed (when FUZZYRISK_PLAN_WARMUP starts them with the service)."""
+        kernels = self._kernels is not None and self._kernels.done() and self._kernels_error is None
+        planners = self._plans.warm_state
+        problems = [p for p in (self._kernels_error, self._plans.warm_error) if p]
+        if problems:
+            status = "failed"
+        elif kernels and planners in ("off", "ready"):
+            status = "ready"
+        else:
+            status = "starting"
+        return Readiness(
+            status=status, maps_loaded=len(self._maps), kernels_compiled=kernels,
+            planner_workers_ready=len(self._plans.warmed),
+            planner_workers_wanted=self.settings.plan_workers if self.settings.plan_warmup else 0,
+            detail="; ".join(problems),
+        )
 
     async def stop(self) -> None:
         """Wait for batches in flight, snapshot every map with unsnapshotted batches, release everything."""
@@ -375,6 +417,8 @@ class MapService:
                     await self._snapshot(entry)
             finally:
                 entry.line.done(ticket)
+        if self._kernels is not None:
+            self._kernels.cancel()  # a compilation under way still ends in its thread (below)
         self._committer.shutdown()
         self._plans.shutdown()
         self._parsers.shutdown(wait=True)

@@ -22,11 +22,12 @@ from __future__ import annotations
 import argparse
 import os
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
 
-from fuzzyocc import BayesMap, FuzzyEngine, FuzzyMap, GridSpec, SensorModel
+from fuzzyocc import BayesMap, FuzzyEngine, FuzzyMap, GridSpec, SensorModel, presets
 from fuzzyocc.engine import _defuzzify_tables
 from fuzzyocc.raycast import cast_rays
 
@@ -147,7 +148,7 @@ class _Clock:
         self.wall, self.cpu = time.perf_counter() - self.wall, time.process_time() - self.cpu
 
 
-def _integrate(factory: type[FuzzyMap] | type[BayesMap], scene: Scene) -> Run:
+def _integrate(factory: Callable[[GridSpec, SensorModel], FuzzyMap | BayesMap], scene: Scene) -> Run:
     m = factory(scene.spec, SensorModel(range_sigma=RANGE_NOISE_M))
     rays = traversed = 0
     with _Clock() as clock:
@@ -200,9 +201,13 @@ def _segment_cells(scene: Scene) -> int:
     return total
 
 
-def _lut_nbytes() -> int:
-    tables = _defuzzify_tables(FuzzyEngine.paper())
+def _lut_nbytes(engine: FuzzyEngine) -> int:
+    tables = _defuzzify_tables(engine)
     return 0 if tables is None else sum(a.nbytes for a in tables)
+
+
+def _paper_map(spec: GridSpec, sensor: SensorModel) -> FuzzyMap:
+    return FuzzyMap(spec, sensor, FuzzyEngine.paper())
 
 
 def _warm_up() -> None:
@@ -223,6 +228,7 @@ def run(scene: Scene, repeat: int) -> None:
           f"grid {scene.spec.shape} at {scene.spec.resolution} m")
     models = {
         "FuzzyMap": lambda: _integrate(FuzzyMap, scene),
+        "Fuzzy/paper": lambda: _integrate(_paper_map, scene),
         "BayesMap": lambda: _integrate(BayesMap, scene),
         "OctoMap": lambda: _octomap(scene),
     }
@@ -236,11 +242,11 @@ def run(scene: Scene, repeat: int) -> None:
     best["OctoMap"].traversed = _segment_cells(scene)
     octo = best["OctoMap"]
     cells = scene.spec.num_cells
-    print(f"  {'model':9s} {'wall s':>7s} {'cpu s':>7s} {'rays/s':>10s} {'cells/s':>12s} "
+    print(f"  {'model':11s} {'wall s':>7s} {'cpu s':>7s} {'rays/s':>10s} {'cells/s':>12s} "
           f"{'rays/s vs OctoMap':>18s} {'(by cpu s)':>11s} {'state MB':>9s} {'B/cell':>6s} {'vs OctoMap':>10s} "
           f"{'resident MB':>11s} {'B/cell':>6s} {'vs OctoMap':>10s}")
     for label, r in best.items():
-        print(f"  {label:9s} {r.wall_s:7.3f} {cpu[label]:7.3f} {r.rays / r.wall_s:10,.0f} "
+        print(f"  {label:11s} {r.wall_s:7.3f} {cpu[label]:7.3f} {r.rays / r.wall_s:10,.0f} "
               f"{r.traversed / r.wall_s:12,.0f} {octo.wall_s / r.wall_s:17.2f}x {cpu['OctoMap'] / cpu[label]:10.2f}x "
               f"{r.nbytes / 1e6:9.2f} {r.nbytes / cells:6.2f} {r.nbytes / octo.nbytes:9.2f}x "
               f"{r.resident / 1e6:11.2f} {r.resident / cells:6.2f} {r.resident / octo.resident:9.2f}x")
@@ -261,9 +267,13 @@ def main(argv: list[str] | None = None) -> None:
     print("state MB: FuzzyMap/BayesMap state_nbytes(), the persistent state (cell states, observed bits); "
           "resident MB: resident_nbytes(), all a map holds between calls (plus the 16-bit risk cache); "
           "OctoMap: tree.memoryUsage() for both; B/cell: per cell of our dense grid; FuzzyMap keeps a block of "
-          "cells in one state (4x4x4 in 3-D, 4x4 in 2-D) once, so its B/cell is below its 7 bytes of state")
-    print(f"not in any row: the paper engine's defuzzification tables, {_lut_nbytes() / 1e6:.1f} MB once per "
-          "process (shared by every FuzzyMap); arrays an integrate call allocates and frees")
+          "cells in one state (4x4x4 in 3-D, 4x4 in 2-D) once, so its B/cell is below its L bytes of state")
+    default = presets.preset(presets.DEFAULT_PRESET)
+    print(f"FuzzyMap: the default engine ({presets.DEFAULT_PRESET!r}, {default.num_labels} labels); Fuzzy/paper: "
+          "the paper's engine (FuzzyEngine.paper(), 7 labels)")
+    print(f"not in any row: the engines' defuzzification tables, {_lut_nbytes(default) / 1e6:.1f} MB "
+          f"({presets.DEFAULT_PRESET}) and {_lut_nbytes(FuzzyEngine.paper()) / 1e6:.1f} MB (paper) once per process "
+          "(shared by every FuzzyMap of that engine); arrays an integrate call allocates and frees")
     print(f"wall s: the fastest of {args.repeat} interleaved runs (a fresh map each), one integrate call per "
           "scan, plus one risk() read at the end (defuzzification of the changed cells); cpu s: the least "
           "process CPU time of those runs (all threads); rays/s and cells/s are by wall time")

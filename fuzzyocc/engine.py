@@ -66,6 +66,9 @@ PAPER_RULES: Mapping[str, Mapping[str, str]] = {
 #: Samples of the risk axis [0, 1] the centroid is computed on (bin midpoints, symmetric about 0.5).
 RISK_SAMPLES = 1000
 
+#: Largest ``no_return_neighbours`` (beams on each side a no-return looks at).
+MAX_NO_RETURN_NEIGHBOURS = 8
+
 _AND_OPS = ("min", "product")
 _OR_OPS = ("max", "probsum")
 _UNKNOWN_RISK = 0.5
@@ -78,8 +81,8 @@ def even_output_mfs(labels: Sequence[str]) -> dict[str, MembershipFunction]:
     has a risk linear in the label's rank (the paper's "linear distribution"
     of risk, section III.C), mirror labels get mirror risks, and with an odd
     number of labels the middle one (UNK) is centred on 0.5. The end labels'
-    plateaus lie outside [0, 1], so their centroid is ``1 / (6 (L - 1))`` from
-    the end (1/36 for 7 labels): a centroid never reaches 0 or 1 exactly.
+    plateaus lie outside [0, 1], so their centroid is ``1 / (3 (L - 1))`` from
+    the end (1/18 for 7 labels, 1/30 for 11): a centroid never reaches 0 or 1 exactly.
     """
     n = len(labels)
     if n < 2:
@@ -160,6 +163,22 @@ class FuzzyEngine:
         (a ladder does), the largest activation never falls below
         min(its value, 0.5): the paper's min/max engine needs none and keeps
         the paper's semantics (and uint8 exactness).
+    incidence_floor : float in (0, 1]
+        How a beam's sigma grows where it meets a surface at a grazing angle: along the
+        beam it is ``sigma / max(sin(incidence), incidence_floor)``, the incidence taken
+        from the end points of the neighbouring beams of a LaserScan (see
+        :meth:`fuzzyocc.scans.LaserScan.to_rays`). A pose error of a few centimetres
+        across a wall is that many centimetres divided by the sine along a grazing beam,
+        so such beams would otherwise read the wall's cells as free space in front of
+        their surface and wear walls away. 1 (default) ignores the incidence (the paper).
+    no_return_neighbours : int in [0, 8]
+        A no-return beam of a LaserScan with a hit among its ``k`` neighbours on each side
+        clears free space only up to the nearest of those hits (less
+        :data:`fuzzyocc.scans.NO_RETURN_CUT_MARGIN_M`): most likely it met the same dark or
+        glass surface they did and returned nothing, and clearing on to ``range_max`` would
+        wear that surface (a wall) away. A no-return among no-returns clears on to
+        ``range_max``, so an obstacle that leaves open space behind it is still cleared.
+        0 (default): every no-return clears to ``range_max`` (the paper, REP 117).
 
     Raises
     ------
@@ -175,9 +194,13 @@ class FuzzyEngine:
     and_op: str = "min"
     or_op: str = "max"
     normalize: bool | None = None
+    incidence_floor: float = 1.0
+    no_return_neighbours: int = 0
     _rule_index: np.ndarray = field(init=False, repr=False, compare=False)
     _input_breakpoints: tuple[np.ndarray, np.ndarray, np.ndarray] = field(init=False, repr=False, compare=False)
-    _input_ends: tuple[float, np.ndarray, float, np.ndarray] = field(init=False, repr=False, compare=False)
+    _input_ends: tuple[float, np.ndarray, float, np.ndarray, float, float, np.ndarray] = field(
+        init=False, repr=False, compare=False
+    )
     _occupied_extent: float = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
@@ -198,6 +221,13 @@ class FuzzyEngine:
             raise ValueError(f"or_op must be one of {list(_OR_OPS)}, got {self.or_op!r}")
         if self.normalize not in (None, True, False):
             raise ValueError(f"normalize must be True, False or None (automatic), got {self.normalize!r}")
+        floor = self.incidence_floor
+        if isinstance(floor, bool) or not isinstance(floor, (int, float)) or not 0.0 < floor <= 1.0:
+            raise ValueError(f"incidence_floor must be a number in (0, 1], got {floor!r}")
+        object.__setattr__(self, "incidence_floor", float(floor))
+        k = self.no_return_neighbours
+        if isinstance(k, bool) or not isinstance(k, int) or not 0 <= k <= MAX_NO_RETURN_NEIGHBOURS:
+            raise ValueError(f"no_return_neighbours must be an integer in [0, {MAX_NO_RETURN_NEIGHBOURS}], got {k!r}")
 
         inputs = _as_label_map("input_mfs", self.input_mfs)
         outputs = _as_label_map("output_mfs", self.output_mfs)
@@ -241,13 +271,11 @@ class FuzzyEngine:
         ``python -m fuzzyocc.figures``): progressive refinement into unknown
         space, a contradictory measurement concluded after two merges rather
         than one, recovery of the original surface after two re-fusions with
-        the occluded peak kept. The risk peak does not stay exactly on the
-        original surface after one contradictory merge: Table 1 takes that
-        surface (OCC meeting PO/MPO evidence) and the unknown cells at the new
-        one (UNK meeting OCC) both to MPO, a tie that the cells between them
-        (holding OCC and MPO) edge past. It follows from Table 1: widening
-        OCC's input support to 2.5 or 3 sigma in front of the surface, or any
-        sigma from 3 to 12 mm for a 10 mm shift, was tried and leaves it so.
+        the occluded peak kept. After one contradictory merge 10 mm behind the
+        surface (sigma 4 mm) the original surface falls from 0.944 to 0.750 (OCC
+        meeting PO/MPO evidence) and the new one rises to 0.833 (UNK meeting OCC
+        gives MPO): the new surface leads, at the risk of a surface seen once;
+        after the second merge it is at 0.944 and the original at 0.583.
         """
         inputs = dict(zip(_DISTANCE_ORDER, ladder(PAPER_INPUT_PEAKS)))
         return cls(
@@ -632,12 +660,16 @@ def _fuzzify_kernel(
     low_row: np.ndarray,
     high: float,
     high_row: np.ndarray,
+    flat_lo: float,
+    flat_hi: float,
+    flat_row: np.ndarray,
     out: np.ndarray,
 ) -> int:
     """Piecewise-linear interpolation of every label at every distance; index of a NaN, or -1.
 
-    ``v < low`` (before every function's first breakpoint) and ``v > high`` (past
-    every last one) take the precomputed rows of :func:`_constant_rows`.
+    ``v < low`` (before every function's first breakpoint), ``v > high`` (past
+    every last one) and ``flat_lo < v < flat_hi`` (an interval where every function
+    is flat) take the precomputed rows of :func:`_constant_rows`.
     """
     n_labels = xs.shape[0]
     for n in range(d.shape[0]):
@@ -651,6 +683,10 @@ def _fuzzify_kernel(
         if v > high:
             for k in range(n_labels):
                 out[n, k] = high_row[k]
+            continue
+        if flat_lo < v < flat_hi:
+            for k in range(n_labels):
+                out[n, k] = flat_row[k]
             continue
         for k in range(n_labels):
             c = counts[k]
@@ -669,22 +705,34 @@ def _fuzzify_kernel(
     return -1
 
 
-def _constant_rows(xs: np.ndarray, ys: np.ndarray, counts: np.ndarray) -> tuple[float, np.ndarray, float, np.ndarray]:
-    """``(low, row at -inf, high, row at +inf)`` for the fast paths of :func:`_fuzzify_kernel`.
+def _constant_rows(
+    xs: np.ndarray, ys: np.ndarray, counts: np.ndarray
+) -> tuple[float, np.ndarray, float, np.ndarray, float, float, np.ndarray]:
+    """``(low, row at -inf, high, row at +inf, flat_lo, flat_hi, flat row)`` for :func:`_fuzzify_kernel`.
 
     Strictly below ``low`` every function is at its first breakpoint's value and
-    strictly above ``high`` at its last one's, so these rows are exactly what the
-    interpolation would give there. They are computed by the kernel itself with
-    the fast paths off (bounds at -inf / +inf), so the rounding is the same.
+    strictly above ``high`` at its last one's; on ``(flat_lo, flat_hi)``, the widest
+    gap between consecutive breakpoints (of all functions) over which every function
+    is constant, they hold the flat row (most cells of a beam lie in front of its
+    surface, on such a plateau when it is not below ``low``). The rows are computed by
+    the kernel itself with the fast paths off, so the rounding is the same.
     """
     low = float(xs[:, 0].min())
     high = float(max(xs[k, c - 1] for k, c in enumerate(counts)))
-    rows = np.empty((2, xs.shape[0]), dtype=np.uint8)
+    points = np.unique(np.concatenate([xs[k, :c] for k, c in enumerate(counts)]))
+    samples = np.concatenate([[-np.inf, np.inf], points])
     unused = np.empty(0, dtype=np.uint8)
     unused.flags.writeable = False  # the type the real rows have: one compiled specialisation
-    _fuzzify_kernel(np.array([-np.inf, np.inf]), xs, ys, counts, -np.inf, unused, np.inf, unused, rows)
+    no_flat = (np.inf, -np.inf, unused)
+    rows = np.empty((samples.size, xs.shape[0]), dtype=np.uint8)
+    _fuzzify_kernel(samples, xs, ys, counts, -np.inf, unused, np.inf, unused, *no_flat, rows)
+    flat_lo, flat_hi, flat_row = no_flat
+    exact = [np.array([np.interp(x, xs[k, :c], ys[k, :c]) for k, c in enumerate(counts)]) for x in points]
+    for i in range(points.size - 1):  # between consecutive breakpoints every function is linear
+        if np.array_equal(exact[i], exact[i + 1]) and points[i + 1] - points[i] > flat_hi - flat_lo:
+            flat_lo, flat_hi, flat_row = float(points[i]), float(points[i + 1]), rows[2 + i]
     rows.flags.writeable = False
-    return low, rows[0], high, rows[1]
+    return low, rows[0], high, rows[1], flat_lo, flat_hi, flat_row
 
 
 @numba.njit(cache=True, nogil=True)

@@ -10,7 +10,8 @@ True
 The dict holds every init field of the engine's dataclass, in field order::
 
     {"labels": [...], "unknown": "UNK", "input_mfs": {label: mf}, "output_mfs": {label: mf},
-     "rules": {current: {new: conclusion}}, "and_op": "min", "or_op": "max", "normalize": false}
+     "rules": {current: {new: conclusion}}, "and_op": "min", "or_op": "max", "normalize": false,
+     "incidence_floor": 1.0, "no_return_neighbours": 0}
 
 with an mf ``{"type": "triangle", "left", "peak", "right"}``, ``{"type": "trapezoid", "a", "b",
 "c", "d"}``, ``{"type": "left_shoulder", "top_end", "zero_at"}`` or ``{"type": "right_shoulder",

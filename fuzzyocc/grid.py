@@ -16,7 +16,7 @@ Risk is cached as uint16 fixed point, ``risk = q / 2**16``: every cached risk is
 of :data:`RISK_STEP` (2**-16), the nearest one to the model's value (ties to even), and
 reading it back as float32 is exact. 0 and 0.5 (unknown) are represented exactly. The
 largest value is ``65534 / 65536`` (1 - 3e-5); no model here gives a risk above it (the
-fuzzy centroid stays 1/36 from 1, Bayes is clamped at 0.971).
+fuzzy centroid stays 1/(3 (L - 1)) from 1, Bayes is clamped at 0.971).
 """
 
 from __future__ import annotations
@@ -550,8 +550,13 @@ def _collapse(touched, shape, shift, nblk, ref, urow, urisk, pool, prisk, owner,
         ref[b] = -1
         last = n_dense - 1  # keep the pool packed: the last slab moves into the hole
         if s != last:
-            pool[s] = pool[last]
-            prisk[s] = prisk[last]
+            # element by element: a slice assignment would compile numba's shape-mismatch error
+            # message formatting into this kernel (seconds more at the first start, on a cold cache)
+            for o in range(pool.shape[1]):
+                for k in range(width):
+                    pool[s, o, k] = pool[last, o, k]
+            for o in range(prisk.shape[1]):
+                prisk[s, o] = prisk[last, o]
             moved = owner[last]
             owner[s] = moved
             ref[moved] = s

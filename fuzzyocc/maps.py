@@ -14,7 +14,10 @@ Bayes in log-odds, clamped like OctoMap) share the orchestration in :class:`Occu
 Beam geometry: a hit at range ``r`` updates the cells from the sensor to
 ``r + occupied_extent * sigma`` (the end of the occupied region behind the surface); a
 no-return updates the cells up to ``range_max`` as free space. ``sigma`` of a beam is
-``sensor.sigma(r, scan.registration_sigma)`` floored at half a cell.
+``sensor.sigma(r, scan.registration_sigma)``, divided by ``max(sin(incidence),
+incidence_floor)`` for a FuzzyMap whose engine sets one (LaserScan beams only), floored at
+half a cell. A FuzzyMap whose engine sets ``no_return_neighbours`` cuts a LaserScan's
+no-returns that have hits beside them (:meth:`fuzzyocc.scans.Rays.cut_no_returns`).
 
 Maps are not thread-safe: serialise calls on one map.
 """
@@ -27,7 +30,7 @@ from typing import cast
 
 import numpy as np
 
-from fuzzyocc import bayes
+from fuzzyocc import bayes, presets
 from fuzzyocc.config import GridSpec, SensorModel
 from fuzzyocc.engine import FuzzyEngine
 from fuzzyocc.grid import BlockGrid, CellGrid
@@ -149,7 +152,7 @@ class OccupancyMap:
             self._check_scan(scan, f"scans[{i}]")
         if not scans:
             return IntegrationStats(scans=0, rays=0, cells_updated=0)
-        rays = [scan.to_rays() for scan in scans]
+        rays = [self._rays_of(scan) for scan in scans]
         cast = self._cast(scans, rays)
         updated = 0
         for s in range(len(scans)):
@@ -187,7 +190,8 @@ class OccupancyMap:
         directions = np.concatenate([r.directions for r in rays])
         ranges = np.concatenate([r.ranges for r in rays])
         hit = np.concatenate([r.hit for r in rays])
-        sigma = np.concatenate([self.sensor.sigma(r.ranges, s.registration_sigma) for s, r in zip(scans, rays)])
+        sigma = np.concatenate([self.sensor.sigma(r.ranges, s.registration_sigma) * self._grazing(r)
+                                for s, r in zip(scans, rays)])
         sigma = np.maximum(sigma, half_cell)
         return cast_rays(
             self.spec,
@@ -200,6 +204,23 @@ class OccupancyMap:
             unknown_from=self.occupied_extent,
             block_shift=self._grid.block_shift,
         )
+
+    @property
+    def incidence_floor(self) -> float:
+        """Sigma along a beam is divided by ``max(sin(incidence), incidence_floor)``; 1 = incidence ignored."""
+        return 1.0
+
+    def _rays_of(self, scan: Scan) -> Rays:
+        """The beams of ``scan`` as this model fuses them."""
+        return scan.to_rays()
+
+    def _grazing(self, rays: Rays) -> np.ndarray | float:
+        """Factor on each beam's sigma for its incidence (1 where unknown or ignored)."""
+        floor = self.incidence_floor
+        if floor >= 1.0 or rays.incidence is None:
+            return 1.0
+        sine = rays.incidence
+        return np.where(np.isfinite(sine), 1.0 / np.maximum(np.nan_to_num(sine, nan=1.0), floor), 1.0)
 
     # -- reading -------------------------------------------------------------------------
     def risk(self) -> np.ndarray:
@@ -306,13 +327,14 @@ class FuzzyMap(OccupancyMap):
     sensor : SensorModel, optional
         Range and registration uncertainty (default ``SensorModel()``).
     engine : FuzzyEngine, optional
-        Labels, membership functions, rule table, operators (default ``FuzzyEngine.paper()``).
+        Labels, membership functions, rule table, operators (default: the shipped default
+        preset, :data:`fuzzyocc.presets.DEFAULT_PRESET`; ``FuzzyEngine.paper()`` for the paper's).
     """
 
     model = "fuzzy"
 
     def __init__(self, spec: GridSpec, sensor: SensorModel | None = None, engine: FuzzyEngine | None = None) -> None:
-        self.engine = FuzzyEngine.paper() if engine is None else engine
+        self.engine = presets.preset(presets.DEFAULT_PRESET) if engine is None else engine
         super().__init__(spec, sensor)
 
     @property
@@ -330,6 +352,17 @@ class FuzzyMap(OccupancyMap):
     def occupied_extent(self) -> float:
         """The engine's: sigmas behind the surface past which its input is pure UNK."""
         return float(self.engine.occupied_extent)
+
+    @property
+    def incidence_floor(self) -> float:
+        """The engine's (1 for the paper's: incidence ignored)."""
+        return self.engine.incidence_floor
+
+    def _rays_of(self, scan: Scan) -> Rays:
+        rays = scan.to_rays()
+        if isinstance(scan, LaserScan) and self.engine.no_return_neighbours:
+            return rays.cut_no_returns(self.engine.no_return_neighbours)
+        return rays
 
     def _update(self, cells: np.ndarray, distance_sigmas: np.ndarray) -> int:
         self._blocks.fuse(cells, self.engine.fuzzify(distance_sigmas), self.engine.row_fusion())
@@ -349,7 +382,7 @@ class FuzzyMap(OccupancyMap):
     def from_arrays(cls, spec: GridSpec, sensor: SensorModel | None, arrays: dict[str, np.ndarray],
                     engine: FuzzyEngine | None = None) -> FuzzyMap:
         """A map restored from :meth:`to_arrays`; ``ValueError`` naming ``arrays`` if they do not fit."""
-        engine = FuzzyEngine.paper() if engine is None else engine
+        engine = presets.preset(presets.DEFAULT_PRESET) if engine is None else engine
         observed, scans = cls._common_from_arrays(spec, arrays)
         labels = tuple(str(x) for x in np.asarray(arrays.get("labels", np.array(engine.labels))).ravel())
         if labels != tuple(engine.labels):

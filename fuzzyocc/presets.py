@@ -12,16 +12,18 @@ from collections.abc import Callable, Mapping
 from types import MappingProxyType
 
 from fuzzyocc.engine import FuzzyEngine
+from fuzzyocc.evidence import evidence_engine
 
 __all__ = ["DEFAULT_PRESET", "PRESETS", "preset", "preset_name_of"]
 
 #: Factories of the named engines.
 PRESETS: Mapping[str, Callable[[], FuzzyEngine]] = MappingProxyType({
     "paper": FuzzyEngine.paper,  # Payeur's Table 1, min/max (FuzzyEngine.paper)
+    "evidence": evidence_engine,  # 11 evidence levels, tuned on recorded logs (fuzzyocc.evidence)
 })
 
-#: The preset of a map that names none.
-DEFAULT_PRESET: str = "paper"
+#: The preset of a map that names none (and of ``FuzzyMap`` without an engine).
+DEFAULT_PRESET: str = "evidence"
 
 
 @functools.cache

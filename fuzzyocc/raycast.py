@@ -178,10 +178,13 @@ def _cast_kernel(origins, dirs, t_end, slope, offset, ray_offsets, lower, shape,
         if n_out + n > cells.shape[0]:
             cap = max(2 * cells.shape[0], n_out + n)
             grown = np.empty(cap, np.int64)
-            grown[:n_out] = cells[:n_out]
-            cells = grown
             grown_d = np.empty(cap, np.float32)
-            grown_d[:n_out] = dist[:n_out]
+            # element by element: a slice assignment would compile numba's shape-mismatch error
+            # message formatting into this kernel (seconds more at the first start, on a cold cache)
+            for q in range(n_out):
+                grown[q] = cells[q]
+                grown_d[q] = dist[q]
+            cells = grown
             dist = grown_d
         # Hand the cells out in increasing id order, so that the map's reads and writes of
         # their states sweep memory instead of jumping about.

@@ -15,6 +15,7 @@ naming the field) and hold read-only float64 arrays:
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass, field
 
@@ -22,6 +23,10 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from fuzzyocc.config import _finite_tuple
+
+#: A no-return cut at its neighbours' nearest hit stops this far in front of it (see
+#: :meth:`Rays.cut_no_returns`): two cells at 0.05 m, clear of the surface band of that hit.
+NO_RETURN_CUT_MARGIN_M = 0.1
 
 #: Default cap on the beams of a LaserScan or the points of a PointCloud (per scan);
 #: override per scan with ``max_rays=``.
@@ -44,6 +49,10 @@ class Rays:
         True where the beam returned from a surface.
     skipped : int
         Beams of the scan that were dropped (REP 117 invalid readings, points at the origin).
+    incidence : (N,) ndarray of float64, optional
+        Sine of the angle at which each hit meets its surface (1 = head-on), estimated from
+        the end points of the neighbouring beams; NaN where it cannot be (a no-return, an
+        edge of the scan or of an object, a point cloud). None: not estimated.
     """
 
     origin: np.ndarray
@@ -51,6 +60,26 @@ class Rays:
     ranges: np.ndarray
     hit: np.ndarray
     skipped: int
+    incidence: np.ndarray | None = None
+
+    def cut_no_returns(self, neighbours: int) -> Rays:
+        """These rays with each no-return that has a hit among its ``neighbours`` beams on each side
+        cut at the nearest of those hits, less :data:`NO_RETURN_CUT_MARGIN_M` (still a no-return:
+        free space up to the cut, nothing beyond). Neighbours are in beam order (a LaserScan's)."""
+        hit, n = self.hit, self.hit.size
+        if neighbours <= 0 or n < 3 or hit.all() or not hit.any():
+            return self
+        hit_range = np.where(hit, self.ranges, np.inf)
+        left, right = np.full(n, np.inf), np.full(n, np.inf)
+        for k in range(1, min(neighbours, n - 1) + 1):
+            left[k:] = np.minimum(left[k:], hit_range[:-k])
+            right[:-k] = np.minimum(right[:-k], hit_range[k:])
+        cut = ~hit & np.isfinite(left) & np.isfinite(right)
+        if not cut.any():
+            return self
+        ranges = self.ranges.copy()
+        ranges[cut] = np.minimum(ranges[cut], np.maximum(np.minimum(left[cut], right[cut]) - NO_RETURN_CUT_MARGIN_M, 0.0))
+        return dataclasses.replace(self, ranges=ranges)
 
     @property
     def endpoints(self) -> np.ndarray:
@@ -150,13 +179,39 @@ class LaserScan:
         x, y, theta = self.pose
         beam = np.flatnonzero(keep)
         angles = theta + self.angle_min + beam * self.angle_increment
+        directions = np.stack([np.cos(angles), np.sin(angles)], axis=1)
+        hit = keep & ~no_return
         return Rays(
             origin=np.array([x, y]),
-            directions=np.stack([np.cos(angles), np.sin(angles)], axis=1),
+            directions=directions,
             ranges=np.where(no_return[beam], self.range_max, r[beam]),
             hit=~no_return[beam],
             skipped=int(r.size - beam.size),
+            incidence=_incidence(r, hit, self.angle_min + np.arange(r.size) * self.angle_increment)[beam],
         )
+
+
+#: Neighbouring end points farther apart than this fraction of the range (or of 1 m, below
+#: 1 m) lie on different surfaces: the incidence of the beam between them is not estimated.
+INCIDENCE_MAX_GAP = 0.1
+
+
+def _incidence(ranges: np.ndarray, hit: np.ndarray, angles: np.ndarray) -> np.ndarray:
+    """Sine of each beam's incidence on its surface, from the chord between its neighbours' hits."""
+    out = np.full(ranges.size, np.nan)
+    if ranges.size < 3:
+        return out
+    with np.errstate(invalid="ignore"):
+        r = np.where(hit, ranges, np.nan)
+        px, py = r * np.cos(angles), r * np.sin(angles)  # sensor frame: the pose does not change angles
+        tx, ty = px[2:] - px[:-2], py[2:] - py[:-2]
+        chord = np.hypot(tx, ty)
+        near = hit[2:] & hit[:-2] & hit[1:-1] & (chord > 0.0)
+        near &= chord < INCIDENCE_MAX_GAP * np.maximum(ranges[1:-1], 1.0)
+        c, s = np.cos(angles[1:-1]), np.sin(angles[1:-1])
+        sine = np.abs(c * ty - s * tx) / np.where(chord > 0.0, chord, 1.0)
+    out[1:-1] = np.where(near, np.minimum(sine, 1.0), np.nan)
+    return out
 
 
 @dataclass(frozen=True, eq=False)

@@ -7,17 +7,30 @@ result = plan(field, start=(x, y), goal=(x, y), planner="RRTstar", robot_radius=
 ```
 
 Knows nothing of fuzzy labels or HTTP: a risk grid in, a path out.
+
+``plan``, ``warm_up``, ``quiet_ompl`` and ``STATE_SPACES`` are imported at their first use: the
+modules behind them compile numba kernels as they are imported (seconds on a cold cache), which a
+process that only names planners and state spaces (the service's web process: plans run in its
+worker processes) should not pay for.
 """
 
+from __future__ import annotations
+
+import importlib
+from typing import TYPE_CHECKING, Any
+
 from planning.field import RiskField
-from planning.planners import available_planners
-from planning.query import plan, quiet_ompl, warm_up
+from planning.planners import STATE_SPACE_NAMES, available_planners
 from planning.result import PLAN_ERROR_CODES, PlanError, PlanResult
-from planning.spaces import STATE_SPACES
+
+if TYPE_CHECKING:
+    from planning.query import plan, quiet_ompl, warm_up
+    from planning.spaces import STATE_SPACES
 
 __all__ = [
     "PLAN_ERROR_CODES",
     "STATE_SPACES",
+    "STATE_SPACE_NAMES",
     "PlanError",
     "PlanResult",
     "RiskField",
@@ -26,3 +39,19 @@ __all__ = [
     "quiet_ompl",
     "warm_up",
 ]
+
+_LAZY = {"plan": "planning.query", "quiet_ompl": "planning.query", "warm_up": "planning.query",
+         "STATE_SPACES": "planning.spaces"}
+
+
+def __getattr__(name: str) -> Any:
+    module = _LAZY.get(name)
+    if module is None:
+        raise AttributeError(f"module 'planning' has no attribute {name!r}")
+    value = getattr(importlib.import_module(module), name)
+    globals()[name] = value  # later lookups skip this function
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(_LAZY))

@@ -13,6 +13,9 @@ from ompl import base as ob
 from ompl import geometric as og
 
 GRID = "grid"
+#: The state spaces ``plan`` accepts, by name (``spaces.STATE_SPACES`` holds one entry per name, in this
+#: order): named here, where importing compiles nothing, for processes that only list them.
+STATE_SPACE_NAMES = ("R2", "SE2", "Dubins", "ReedsShepp", "R3")
 
 
 @dataclass(frozen=True)

@@ -35,6 +35,7 @@ from ompl import base as ob
 from planning import _kernels
 from planning.native import NativePatch, native_motion, native_objective, native_validity
 from planning.packed import PackedGrid, entry
+from planning.planners import STATE_SPACE_NAMES
 
 _Cost = ob.Cost
 _sqrt = math.sqrt
@@ -463,3 +464,5 @@ STATE_SPACES: dict[str, SpaceSpec] = {
     ),
     "R3": SpaceSpec("R3", field_ndim=3, state_dim=3, curved=False, build=_build_r3),
 }
+if tuple(STATE_SPACES) != STATE_SPACE_NAMES:
+    raise RuntimeError(f"planning.planners.STATE_SPACE_NAMES {STATE_SPACE_NAMES} differs from {tuple(STATE_SPACES)}")

@@ -4,9 +4,8 @@ from __future__ import annotations
 
 from fastapi import APIRouter
 
-from planning import available_planners
+from planning import STATE_SPACE_NAMES, available_planners
 from planning.planners import PLANNERS
-from planning.spaces import STATE_SPACES
 
 from app.deps import MapNamePath, ServiceDep
 from app.schemas import PlannerInfo, Planners, PlanRequest, PlanResult
@@ -19,7 +18,7 @@ async def planners() -> Planners:
     """The planner names and state spaces a plan request accepts (what works in this build)."""
     return Planners(
         planners=[PlannerInfo(name=n, optimizing=PLANNERS[n].optimizing) for n in available_planners()],
-        state_spaces=list(STATE_SPACES),
+        state_spaces=list(STATE_SPACE_NAMES),
     )
 
 

@@ -91,7 +91,7 @@ async def occupancy_grid(
 
     The grid map_server would publish from ``export/nav2`` with the same mode and thresholds:
     ``trinary`` (the default, as map_server's): 100 above ``occupied_thresh`` (0.6, the planner's
-    default ``max_risk``), 0 below ``free_thresh`` (0.25), else -1; ``scale``: 100 above, 0 below,
+    default ``max_risk``), 0 below ``free_thresh`` (0.45), else -1; ``scale``: 100 above, 0 below,
     graded 0..100 between. ``probability``: raw ``round(100 * risk)``; never 100, so not for a
     costmap with Nav2's defaults. A 3-D map is projected over ``[z_min, z_max]`` as
     octomap_server's projected map.

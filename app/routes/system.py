@@ -1,11 +1,12 @@
-"""Liveness and metrics: open even when an API key is configured (probes and scrapers carry none)."""
+"""Liveness, readiness and metrics: open even when an API key is configured (probes and scrapers carry none)."""
 
 from __future__ import annotations
 
 from fastapi import APIRouter, Request, Response
 from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
 
-from app.schemas import Health
+from app.deps import ServiceDep
+from app.schemas import Health, Readiness
 
 router = APIRouter(tags=["operations"])
 
@@ -14,6 +15,17 @@ router = APIRouter(tags=["operations"])
 async def health() -> Health:
     """Answers at once, also while plans and fusions run (they never run on the event loop)."""
     return Health(status="ok")
+
+
+@router.get("/ready", response_model=Readiness, responses={503: {"model": Readiness, "description": "not ready yet"}})
+async def ready(service: ServiceDep, response: Response) -> Readiness:
+    """200 once the maps are loaded, the fusion kernels compiled and the planner workers up; 503 until then
+    (``Retry-After``). What a container's health check, a load balancer or a robot's start-up should wait for."""
+    readiness = service.readiness()
+    if readiness.status != "ready":
+        response.status_code = 503
+        response.headers["Retry-After"] = "1"
+    return readiness
 
 
 @router.get("/metrics", response_class=Response, responses={200: {"content": {CONTENT_TYPE_LATEST: {}}}})

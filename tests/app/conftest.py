@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import io
+import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
@@ -70,6 +71,11 @@ def make_client(make_settings: Callable[..., Settings]) -> Iterator[Callable[...
         client = TestClient(create_app(make_settings(**overrides)))
         client.__enter__()
         clients.append(client)
+        # as a client of the real service does: wait for /ready, so that the kernels' warm-up (a fusion
+        # in a thread of its own) is over before a test counts or patches fusions
+        deadline = time.monotonic() + 300
+        while client.get("/ready").json()["status"] == "starting" and time.monotonic() < deadline:
+            time.sleep(0.02)
         return client
 
     yield make

@@ -19,6 +19,7 @@ from fuzzyocc import FuzzyEngine, FuzzyMap, GridSpec, LaserScan, SensorModel, pr
 from fuzzyocc.engine import even_output_mfs
 from fuzzyocc.engine_spec import engine_to_dict
 from fuzzyocc.membership import ladder
+from fuzzyocc.presets import PRESETS
 
 
 def stepping_engine(labels: tuple[str, ...], output_peaks: list[float] | None = None, **ops: Any) -> FuzzyEngine:
@@ -158,7 +159,7 @@ BAD = [
     ("nan", _edit("input_mfs.PO.peak", float("nan")), "engine.input_mfs.PO.peak must be a finite number"),
     ("infinity", _edit("output_mfs.OCC.zero_at", float("-inf")), "engine.output_mfs.OCC.zero_at must be a finite"),
     ("too-many-labels", _too_many_labels(), "engine.labels has 17 labels; at most 16"),
-    ("not-an-object", 3, "engine must be a preset name (one of ['paper']) or an engine definition"),
+    ("not-an-object", 3, f"engine must be a preset name (one of {sorted(PRESETS)}) or an engine definition"),
     ("labels-not-a-list", _edit("labels", "EMP MPE PE"), "engine.labels must be a list of label names"),
     ("mf-type", _edit("input_mfs.PO.type", "gaussian"), "engine.input_mfs.PO.type must be one of"),
     ("mf-order", _edit("input_mfs.PO.left", -1.5), "engine.input_mfs.PO: Triangle needs left < peak"),
@@ -167,8 +168,8 @@ BAD = [
     ("long-label", _edit("unknown", "U" * 40), "engine.unknown is 40 characters long; at most 32"),
     ("huge", {**engine_to_dict(FuzzyEngine.paper()), "extra": list(range(5000))}, "engine holds more than 2048"),
     ("unknown-field", _edit("colour", "red"), "engine.colour is not a field of an engine"),
-    ("unknown-preset", "papr", "no engine preset named 'papr'; the presets are ['paper']"),
-    ("long-preset", "p" * 100_000, "engine is a 100000-character string; a preset name is one of ['paper']"),
+    ("unknown-preset", "papr", f"no engine preset named 'papr'; the presets are {sorted(PRESETS)}"),
+    ("long-preset", "p" * 100_000, f"engine is a 100000-character string; a preset name is one of {sorted(PRESETS)}"),
 ]
 
 

@@ -14,6 +14,7 @@ import yaml
 from fastapi.testclient import TestClient
 from PIL import Image
 
+from app.exports import NAV2_FREE_THRESH as FREE
 from app.exports import UNKNOWN_RGB
 
 
@@ -40,10 +41,10 @@ def test_npy_is_the_float32_grid_indexed_along_x_then_y(scanned: TestClient, kit
     assert response.headers["x-map-version"] == "1" and response.headers["x-map-origin"] == "-5.0,-5.0"
     risk = np.load(io.BytesIO(response.content), allow_pickle=False)
     assert risk.dtype == np.float32 and risk.shape == (100, 100)
-    points = [[3.05, 0.0], [1.0, 0.0], [-2.0, 2.95], [4.9, -4.9]]
+    points = [[3.05, 0.0], [1.0, 0.0], [-2.0, 3.05], [4.9, -4.9]]
     queried = scanned.post("/maps/lab/risk/query", json={"points": points}).json()["risk"]
     assert [float(risk[_cell(*p)]) for p in points] == queried
-    assert queried[0] > 0.65 and queried[1] < 0.25 and queried[2] > 0.65 and queried[3] == 0.5
+    assert queried[0] > 0.65 and queried[1] < 0.45 and queried[2] > 0.65 and queried[3] == 0.5
 
 
 def test_json_grid_matches_the_npy_grid(scanned: TestClient, kit: Any) -> None:
@@ -103,7 +104,7 @@ def test_occupancy_grid_is_row_major_from_the_origin_cell(scanned: TestClient) -
 
     # trinary by default, as map_server publishes: the walls are lethal to a costmap with Nav2's defaults
     assert set(data) <= {-1, 0, 100}
-    assert at(3.05, 0.0) == 100 and at(1.0, 0.0) == 0 and at(4.9, -4.9) == -1 and at(-2.0, 2.95) == 100
+    assert at(3.05, 0.0) == 100 and at(1.0, 0.0) == 0 and at(4.9, -4.9) == -1 and at(-2.0, 3.05) == 100
     raw = scanned.get("/maps/lab/occupancy_grid", params={"mode": "probability"}).json()["data"]
     assert 60 < raw[data.index(100)] < 100 and all(-1 <= v < 100 for v in raw)
 
@@ -175,7 +176,7 @@ def _export(client: TestClient, **params: str) -> tuple[dict[str, Any], np.ndarr
 def test_nav2_yaml_has_the_map_geometry_and_thresholds(scanned: TestClient) -> None:
     meta, data = _export(scanned)
     assert meta == {"image": "map.pgm", "mode": "trinary", "resolution": 0.1, "origin": [-5.0, -5.0, 0.0],
-                    "negate": 0, "occupied_thresh": 0.6, "free_thresh": 0.25}
+                    "negate": 0, "occupied_thresh": 0.6, "free_thresh": FREE}
     assert data.size == 100 * 100
 
 
@@ -185,7 +186,7 @@ def test_trinary_export_reads_back_as_our_free_occupied_and_unknown(scanned: Tes
     _, data = _export(scanned, mode="trinary", format=image_format)
     expected = np.full(risk.shape, -1)
     expected[observed & (risk > 0.6)] = 100
-    expected[observed & (risk < 0.25)] = 0
+    expected[observed & (risk < FREE)] = 0
     flat = expected.T.reshape(-1)  # data[j * width + i]
     assert np.array_equal(data, flat)
     assert {-1, 0, 100} <= set(np.unique(data).tolist())
@@ -197,10 +198,11 @@ def test_scale_png_export_keeps_the_grades_and_the_unknown(scanned: TestClient) 
     risk, observed = _grid(scanned)
     meta, data = _export(scanned, mode="scale", format="png")
     assert meta["mode"] == "scale" and meta["image"] == "map.png"
-    cost = np.where(risk > 0.6, 100, np.where(risk < 0.25, 0, np.rint((risk - 0.25) / 0.35 * 100)))
+    cost = np.where(risk > 0.6, 100, np.where(risk < FREE, 0, np.rint((risk - FREE) / (0.6 - FREE) * 100)))
     expected = np.where(observed, cost, -1).T.reshape(-1)
-    near_threshold = (np.minimum(abs(risk - 0.25), abs(risk - 0.6)) < 0.004).T.reshape(-1)
-    differs = np.abs(data - expected) > 1
+    near_threshold = (np.minimum(abs(risk - FREE), abs(risk - 0.6)) < 0.004).T.reshape(-1)
+    grey_step = 100 / (255 * (0.6 - FREE))  # the image holds risk in 1/255 steps
+    differs = np.abs(data - expected) > grey_step + 0.5
     assert not (differs & ~near_threshold).any()
     assert ((data > 0) & (data < 100)).any()  # graded cells survive
     assert (data[~observed.T.reshape(-1)] == -1).all()
@@ -226,7 +228,7 @@ def test_scale_pgm_export_writes_unknown_as_risk_one_half(scanned: TestClient) -
     _, observed = _grid(scanned)
     _, data = _export(scanned, mode="scale", format="pgm")
     unknown_cost = data[~observed.T.reshape(-1)]
-    assert set(np.unique(unknown_cost).tolist()) == {round((127 / 255 - 0.25) / 0.35 * 100)}
+    assert set(np.unique(unknown_cost).tolist()) == {round((127 / 255 - FREE) / (0.6 - FREE) * 100)}
 
 
 def test_custom_thresholds_are_written_and_used(scanned: TestClient) -> None:

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import json
 import logging
+import os
+import socket
 from pathlib import Path
 from typing import Any
 
@@ -35,12 +37,25 @@ def test_unusable_settings_are_refused(monkeypatch: pytest.MonkeyPatch, variable
 
 def test_command_line_options_override_the_environment(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
     seen: dict[str, Any] = {}
+
+    def run(server: Any, sockets: list[socket.socket]) -> None:  # in place of uvicorn's serving loop
+        seen.update(config=server.config, address=sockets[0].getsockname())
+        for sock in sockets:
+            sock.close()
+        server.started = True
+
     monkeypatch.setenv("FUZZYRISK_PORT", "9999")
-    monkeypatch.setattr("uvicorn.run", lambda app, **kw: seen.update(kw, settings=app.state.settings))
+    monkeypatch.setenv("NUMBA_CACHE_DIR", os.environ.get("NUMBA_CACHE_DIR", ""))  # restored after the test
+    monkeypatch.setattr("uvicorn.Server.run", run)
     monkeypatch.setattr("app.__main__.configure_logging", lambda **kw: seen.update(logging=kw))
-    cli_main(["--port", "8123", "--data-dir", str(tmp_path), "--host", "0.0.0.0"])
-    assert (seen["host"], seen["port"], seen["settings"].data_dir) == ("0.0.0.0", 8123, tmp_path)
-    assert seen["access_log"] is False and seen["timeout_graceful_shutdown"] > 0
+    with socket.socket() as probe:
+        probe.bind(("0.0.0.0", 0))
+        port = probe.getsockname()[1]
+    cli_main(["--port", str(port), "--data-dir", str(tmp_path), "--host", "0.0.0.0"])
+    config = seen["config"]
+    assert seen["address"] == ("0.0.0.0", port)  # uvicorn serves the socket bound before anything else
+    assert config.app.state.settings.data_dir == tmp_path and config.app.state.settings.port == port
+    assert config.access_log is False and config.timeout_graceful_shutdown > 0
     assert seen["logging"] == {"log_format": "json", "level": "INFO"}
 
 

@@ -26,8 +26,8 @@ def planner(tmp_path_factory: pytest.TempPathFactory) -> Iterator[TestClient]:
         scan = {"pose": {"x": 0.0, "y": 0.0, "theta": 0.0}, "angle_min": -math.pi / 4,
                 "angle_increment": math.pi / 2 / 180, "ranges": (3.05 / np.cos(angles)).tolist(),
                 "range_min": 0.1, "range_max": 20.0}
-        assert client.post("/maps/lab/scans", json={"scans": [scan, {**scan, "pose": {"x": -1.0, "y": 0.0,
-                                                                                         "theta": 0.0}}]}).status_code == 200
+        behind = {**scan, "pose": {"x": -1.0, "y": 0.0, "theta": 0.0}, "ranges": (4.05 / np.cos(angles)).tolist()}
+        assert client.post("/maps/lab/scans", json={"scans": [scan, behind]}).status_code == 200
         client.post("/maps", json={"name": "hall", "resolution": 0.2, "origin": [-4.0, -4.0, 0.0],
                                    "size": [8.0, 8.0, 3.0]})
         points = [[2.5, y, z] for y in np.linspace(-2, 2, 21) for z in (-0.6, -0.2, 0.2, 0.6)]

@@ -8,6 +8,7 @@ vectorized over beams and boxes).
 from __future__ import annotations
 
 import os
+import shutil
 import signal
 import socket
 import subprocess
@@ -20,6 +21,7 @@ from typing import Any
 
 import httpx
 import numpy as np
+import psutil
 import pytest
 from playwright.sync_api import Browser, Page, sync_playwright
 
@@ -92,6 +94,7 @@ class Server:
         return f"http://127.0.0.1:{self.port}"
 
     def start(self, timeout_s: float = 90.0) -> Server:
+        """Start and wait until ``/ready`` answers 200 (maps loaded, kernels compiled, planner workers up)."""
         self.port = free_port()
         # one planner process, started at the first plan unless a test asks for the warm-up
         env = {**os.environ, "FUZZYRISK_PLAN_WORKERS": "1", "FUZZYRISK_PLAN_WARMUP": "false", **self.env}
@@ -107,11 +110,12 @@ class Server:
             if self.process.poll() is not None:
                 raise RuntimeError(f"server exited with {self.process.returncode}:\n{self.log()}")
             try:
-                if httpx.get(f"{self.url}/health", timeout=1.0).status_code == 200:
+                if httpx.get(f"{self.url}/ready", timeout=1.0).status_code == 200:
                     return self
             except httpx.HTTPError:
-                time.sleep(0.1)
-        raise RuntimeError(f"server did not answer /health within {timeout_s} s:\n{self.log()}")
+                pass
+            time.sleep(0.1)
+        raise RuntimeError(f"server was not ready within {timeout_s} s:\n{self.log()}")
 
     def log(self) -> str:
         return self.log_path.read_text(errors="replace") if self.log_path else ""
@@ -119,22 +123,48 @@ class Server:
     def client(self, timeout_s: float = 60.0) -> httpx.Client:
         return httpx.Client(base_url=self.url, timeout=timeout_s)
 
-    def terminate(self, timeout_s: float = 60.0) -> int:
-        """SIGTERM (graceful: requests in flight finish, maps are snapshotted); the exit code."""
+    def children(self) -> list[psutil.Process]:
+        """The server's processes: planner forkserver and workers, multiprocessing's resource tracker."""
         assert self.process is not None
+        try:
+            return psutil.Process(self.process.pid).children(recursive=True)
+        except psutil.NoSuchProcess:
+            return []
+
+    def terminate(self, timeout_s: float = 60.0) -> int:
+        """SIGTERM (graceful: requests in flight finish, maps are snapshotted); the exit code, once every
+        process the server started has ended too."""
+        assert self.process is not None
+        children = self.children()
         self.process.send_signal(signal.SIGTERM)
-        return self.process.wait(timeout=timeout_s)
+        code = self.process.wait(timeout=timeout_s)
+        assert_ended(children, CHILDREN_GRACE_S)
+        return code
 
     def kill(self) -> None:
-        """SIGKILL: no chance to flush anything."""
+        """SIGKILL: no chance to flush anything; the server's children must still end (checked)."""
         assert self.process is not None
+        children = self.children()
         self.process.kill()
         self.process.wait(timeout=30)
+        assert_ended(children, CHILDREN_GRACE_S)
 
     def stop(self) -> None:
         if self.process is not None and self.process.poll() is None:
-            self.process.kill()
-            self.process.wait(timeout=30)
+            self.kill()
+
+
+#: Seconds a killed server's children may take to end (the issue's bar: none alive 10 s later).
+CHILDREN_GRACE_S = 10.0
+
+
+def assert_ended(processes: list[psutil.Process], timeout_s: float) -> None:
+    """Every one of ``processes`` ends within ``timeout_s`` (the stragglers are killed, then the test fails)."""
+    _, alive = psutil.wait_procs(processes, timeout=timeout_s)
+    alive = [p for p in alive if p.is_running() and p.status() != psutil.STATUS_ZOMBIE]
+    for process in alive:
+        process.kill()
+    assert not alive, f"still alive {timeout_s:.0f} s after the server ended: {[p.pid for p in alive]}"
 
 
 @pytest.fixture
@@ -171,7 +201,17 @@ def world() -> type[World]:
 
 # ---------------------------------------------------------------- headless Chromium (Debian's)
 
-CHROMIUM = "/usr/bin/chromium"
+
+def find_chromium() -> str:
+    """The Chromium to drive: $CHROME, else ``chromium`` or ``chromium-browser`` on the PATH."""
+    named = os.environ.get("CHROME")
+    found = shutil.which(named) if named else shutil.which("chromium") or shutil.which("chromium-browser")
+    if found is None:
+        pytest.fail(f"no Chromium found ({'CHROME=' + named if named else 'chromium, chromium-browser'} on the "
+                    "PATH): apt-get install chromium (.ci/run does), or set CHROME to a Chromium executable")
+    return found
+
+
 CHROMIUM_ARGS = [
     "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
     "--disable-background-networking", "--disable-component-update", "--disable-sync",
@@ -181,7 +221,7 @@ CHROMIUM_ARGS = [
 @pytest.fixture(scope="module")
 def browser() -> Iterator[Browser]:
     with sync_playwright() as p:
-        b = p.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
+        b = p.chromium.launch(executable_path=find_chromium(), args=CHROMIUM_ARGS)
         yield b
         b.close()
 

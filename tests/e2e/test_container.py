@@ -1,20 +1,31 @@
-"""The Dockerfile's steps without a Docker engine: its HEALTHCHECK command and its CMD, run for real."""
+"""The Dockerfile's steps without a Docker engine: its layout, its HEALTHCHECK and CMD run for real, and the
+service on a read-only root (a mount namespace, as ``docker run --read-only -v volume:/data`` gives)."""
 
 from __future__ import annotations
 
 import json
 import os
 import re
+import shutil
+import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 from typing import Any
 
+import httpx
+import psutil
 import pytest
+
+from app.planworker import SHUTDOWN_GRACE_S
+from tests.e2e.conftest import CHILDREN_GRACE_S, assert_ended, free_port
 
 pytestmark = pytest.mark.slow
 
 DOCKERFILE = (Path(__file__).resolve().parents[2] / "Dockerfile").read_text()
+#: docker stop's default wait between SIGTERM and SIGKILL.
+DOCKER_STOP_S = 10.0
 
 
 def _exec_form(instruction: str) -> list[str]:
@@ -24,21 +35,98 @@ def _exec_form(instruction: str) -> list[str]:
     return list(json.loads(match))
 
 
-def test_the_image_is_slim_non_root_with_a_data_volume() -> None:
-    assert re.search(r"^FROM python:3\.11-slim$", DOCKERFILE, flags=re.MULTILINE)
-    assert re.search(r"^USER (?!root)\S+$", DOCKERFILE, flags=re.MULTILINE)
-    assert 'VOLUME ["/data"]' in DOCKERFILE and "FUZZYRISK_DATA_DIR=/data" in DOCKERFILE
-    assert "EXPOSE 8000" in DOCKERFILE and "NUMBA_CACHE_DIR=" in DOCKERFILE and "pip install ." in DOCKERFILE
-    assert "curl" not in DOCKERFILE.split("HEALTHCHECK", 1)[1]
+def _stage(index: int) -> str:
+    return re.split(r"^FROM ", DOCKERFILE, flags=re.MULTILINE)[index + 1]
+
+
+def test_the_image_is_built_in_two_stages_from_a_pinned_base_with_locked_dependencies_first() -> None:
+    (base,) = re.findall(r"^ARG PYTHON_IMAGE=(\S+)$", DOCKERFILE, flags=re.MULTILINE)
+    assert re.fullmatch(r"python:3\.11\.\d+-slim-bookworm@sha256:[0-9a-f]{64}", base)
+    assert re.findall(r"^FROM (\S+)", DOCKERFILE, flags=re.MULTILINE) == ["${PYTHON_IMAGE}", "${PYTHON_IMAGE}"]
+    build, final = _stage(0), _stage(1)
+    # the dependencies' layer comes before any source, and installs the locked versions
+    assert build.index("COPY pyproject.toml constraints.txt") < build.index("COPY app")
+    assert build.index("--constraint constraints.txt --requirement") < build.index("COPY app")
+    assert "pip uninstall --yes pip setuptools" in build
+    # the final image: no pip or setuptools, a non-root user owning /data, tini as PID 1
+    assert "pip uninstall --yes --no-cache-dir pip setuptools wheel" in final and "COPY --from=build /opt/fuzzyrisk" in final
+    assert re.search(r"^USER (?!root)\S+$", final, flags=re.MULTILINE)
+    assert 'VOLUME ["/data"]' in final and "FUZZYRISK_DATA_DIR=/data" in final and "EXPOSE 8000" in final
+    assert _exec_form("ENTRYPOINT") == ["/usr/bin/tini", "--"]
     assert _exec_form("CMD") == ["python", "-m", "app", "--host", "0.0.0.0"]
+    assert "curl" not in final.split("HEALTHCHECK", 1)[1]
 
 
-def test_the_healthcheck_command_passes_against_a_running_server_and_fails_without(start_server: Any) -> None:
+def test_a_stop_fits_in_docker_stop() -> None:
+    assert re.search(r"^STOPSIGNAL SIGTERM$", DOCKERFILE, flags=re.MULTILINE)
+    (graceful,) = re.findall(r"FUZZYRISK_GRACEFUL_TIMEOUT_S=(\d+)", DOCKERFILE)
+    # requests in flight, then the planner workers; what is left is for the snapshots
+    assert float(graceful) + SHUTDOWN_GRACE_S <= DOCKER_STOP_S - 3
+
+
+def test_the_healthcheck_command_passes_against_a_ready_server_and_fails_without(start_server: Any) -> None:
     command = _exec_form("HEALTHCHECK.*CMD")
-    assert command[0] == "python"
-    server = start_server()
+    assert command[0] == "python" and "/ready" in command[-1]
+    server = start_server()  # returns once /ready answers 200
     env = {**os.environ, "FUZZYRISK_PORT": str(server.port)}
     assert subprocess.run([sys.executable, *command[1:]], env=env, timeout=30).returncode == 0
     server.stop()
     failed = subprocess.run([sys.executable, *command[1:]], env=env, timeout=30, capture_output=True)
     assert failed.returncode != 0
+
+
+def _mount_namespaces() -> bool:
+    if not sys.platform.startswith("linux") or shutil.which("unshare") is None:
+        return False
+    probe = subprocess.run(["unshare", "--mount", "--propagation", "private", "true"], capture_output=True)
+    return probe.returncode == 0
+
+
+@pytest.mark.skipif(not _mount_namespaces(), reason="needs a mount namespace (unshare --mount, as root)")
+def test_the_service_starts_and_serves_on_a_read_only_root(tmp_path: Path) -> None:
+    """Everything read-only but the data directory, no writable home or /tmp, the kernel cache cold: the first
+    start of a container with ``--read-only``. The service keeps its kernels and temporary files in /data."""
+    data = tmp_path / "data"
+    data.mkdir()
+    port = free_port()
+    script = (
+        f"mount --bind {data} {data} && mount -o remount,bind,ro / "
+        "&& if touch /.fuzzyrisk-probe 2>/dev/null; then exit 99; fi "  # the root must really be read-only
+        f"&& cd {data} && exec {sys.executable} -m app --port {port}"
+    )
+    env = {k: v for k, v in os.environ.items() if k != "NUMBA_CACHE_DIR"}
+    env.update(HOME="/nonexistent", FUZZYRISK_DATA_DIR=str(data), FUZZYRISK_PLAN_WORKERS="2")
+    log_path = tmp_path / "server.log"
+    with log_path.open("wb") as log:
+        process = subprocess.Popen(["unshare", "--mount", "--propagation", "private", "sh", "-c", script],
+                                   env=env, stdout=log, stderr=subprocess.STDOUT)
+    try:
+        with httpx.Client(base_url=f"http://127.0.0.1:{port}", timeout=120.0) as client:
+            deadline = time.monotonic() + 300
+            while True:
+                assert process.poll() is None, log_path.read_text()
+                assert time.monotonic() < deadline, log_path.read_text()
+                try:
+                    if client.get("/ready").status_code == 200:
+                        break
+                except httpx.TransportError:
+                    pass
+                time.sleep(0.2)
+            assert client.post("/maps", json={"name": "lab", "resolution": 0.1, "origin": [-5, -5],
+                                              "size": [10, 10]}).status_code == 201
+            scan = {"pose": {"x": 0, "y": 0, "theta": 0}, "angle_min": -0.5, "angle_increment": 0.1,
+                    "ranges": [3.0] * 11, "range_min": 0.1, "range_max": 10}
+            assert client.post("/maps/lab/scans", json={"scans": [scan]}).status_code == 200
+            for space, start, goal in (("R2", [-3, -3], [3, -3]), ("SE2", [-3, -3, 0], [3, -3, 0])):
+                planned = client.post("/maps/lab/plan", json={"start": start, "goal": goal, "state_space": space,
+                                                              "planner": "RRTConnect", "time_limit": 1.0})
+                assert planned.status_code == 200 and planned.json()["status"] == "exact", planned.text
+        assert any((data / "numba-cache").rglob("*.nbi")) and (data / "tmp").is_dir()
+        children = psutil.Process(process.pid).children(recursive=True)
+        process.send_signal(signal.SIGTERM)
+        assert process.wait(timeout=60) in (0, -signal.SIGTERM), log_path.read_text()
+        assert_ended(children, CHILDREN_GRACE_S)
+    finally:
+        if process.poll() is None:
+            process.kill()
+            process.wait(timeout=30)

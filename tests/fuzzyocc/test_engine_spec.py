@@ -50,7 +50,8 @@ def test_an_engine_survives_the_dict_and_json_text(make: Any) -> None:
 
 def test_the_dict_has_the_documented_shape() -> None:
     d = paper_dict()
-    assert list(d) == ["labels", "unknown", "input_mfs", "output_mfs", "rules", "and_op", "or_op", "normalize"]
+    assert list(d) == ["labels", "unknown", "input_mfs", "output_mfs", "rules", "and_op", "or_op", "normalize",
+                       "incidence_floor", "no_return_neighbours"]
     assert d["labels"] == list(PAPER_LABELS) and d["unknown"] == "UNK"
     assert d["input_mfs"]["EMP"] == {"type": "left_shoulder", "top_end": -5.0, "zero_at": -4.0}
     assert d["input_mfs"]["PO"] == {"type": "triangle", "left": -3.0, "peak": -2.0, "right": -1.0}

@@ -9,7 +9,8 @@ from fuzzyocc.grid import RISK_STEP
 from fuzzyocc.raycast import cast_rays
 
 SPEC_2D = GridSpec(origin=(0.0, 0.0), size=(4.0, 2.0), resolution=0.1)  # 40 x 20 cells
-SENSOR = SensorModel(range_sigma=0.03)  # floored at half a cell: sigma = 0.05 m here
+SENSOR = SensorModel(range_sigma=0.03)
+PAPER = FuzzyEngine.paper()  # floored at half a cell: sigma = 0.05 m here
 POSE = (0.25, 1.05, 0.0)  # centre of cell (2, 10); beam 0 runs along row 10
 ROW = 10
 
@@ -94,14 +95,15 @@ def _grazing_scan() -> list[LaserScan]:
 
 
 def test_a_thin_wall_survives_grazing_beams_of_the_same_scan() -> None:
-    together = FuzzyMap(SPEC_2D, SENSOR)
+    # The paper's engine: under the default one beam B (a no-return at range_max) never erodes a wall.
+    together = FuzzyMap(SPEC_2D, SENSOR, PAPER)
     together.integrate_batch(_grazing_scan())
-    alone = FuzzyMap(SPEC_2D, SENSOR)
+    alone = FuzzyMap(SPEC_2D, SENSOR, PAPER)
     alone.integrate_batch([_beam([1.8])])
     assert together.risk()[20, ROW] > 0.5
     assert together.risk()[20, ROW] == alone.risk()[20, ROW]
     # The same two beams as two scans: the free one erodes the wall.
-    apart = FuzzyMap(SPEC_2D, SENSOR)
+    apart = FuzzyMap(SPEC_2D, SENSOR, PAPER)
     scan = _grazing_scan()[0]
     apart.integrate_batch([_beam([1.8]), _beam([3.5], angle_min=scan.angle_min)])
     assert apart.risk()[20, ROW] < alone.risk()[20, ROW]
@@ -132,13 +134,14 @@ def test_a_rejected_batch_leaves_the_map_bit_for_bit_unchanged(factory) -> None:
 
 def test_a_batch_is_fused_in_order_like_successive_calls() -> None:
     scans = [_beam([2.0]), _beam([1.0])]  # cell 12 is free for the first, occupied for the second
-    batched = FuzzyMap(SPEC_2D, SENSOR)
+    # The paper's engine: the default one counts evidence, and here both orders count the same.
+    batched = FuzzyMap(SPEC_2D, SENSOR, PAPER)
     batched.integrate_batch(scans)
-    one_by_one = FuzzyMap(SPEC_2D, SENSOR)
+    one_by_one = FuzzyMap(SPEC_2D, SENSOR, PAPER)
     for scan in scans:
         one_by_one.integrate_batch([scan])
     assert _same_arrays(batched.to_arrays(), one_by_one.to_arrays())
-    reordered = FuzzyMap(SPEC_2D, SENSOR)
+    reordered = FuzzyMap(SPEC_2D, SENSOR, PAPER)
     reordered.integrate_batch(scans[::-1])
     assert not _same_arrays(batched.to_arrays(), reordered.to_arrays())
 

@@ -1,0 +1,235 @@
+"""Maps of recorded CARMEN logs and held-out beam scoring, shared by ``bench_maps`` and the tests.
+
+The protocol (issue 10): fuse 9 scans of every 10 (scan ``i`` is held out when ``i % 10 == 9``);
+march every held-out hit beam through the map from the laser and take the first cell at or
+above the occupied threshold; compare that cell's distance with the measured range.
+
+OctoMap gets the very same beams as points at the height of a cell centre in a 3-D ``OcTree`` at
+the same resolution (it has no 2-D mode), with its default sensor model, updates limited to the
+map's box (``useBBXLimit``, as our maps are bounded), and is read back with ``castRay``
+(ignoring unknown cells), whose answer is also a cell centre. No-returns clear free space up to
+the box for both.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from numba import njit
+
+from fuzzyocc import BayesMap, FuzzyMap, GridSpec, LaserScan
+from fuzzyocc.carmen import read_carmen
+
+#: The shared logs, beside the repository (``../shared/data/carmen``).
+LOG_DIR = Path(__file__).resolve().parents[2] / "shared" / "data" / "carmen"
+RESOLUTION = 0.05
+MARGIN_M = 1.0
+HOLDOUT_EVERY = 10
+OCCUPIED = 0.6  # the planner's default max_risk: what a default plan refuses
+TOLERANCE_CELLS = 2
+
+
+def log_paths(log_dir: Path = LOG_DIR) -> list[Path]:
+    """Every ``*.log.gz`` in the shared folder, sorted; ``SystemExit`` with a message when there is none."""
+    paths = sorted(log_dir.glob("*.log.gz"))
+    if not paths:
+        raise SystemExit(f"no CARMEN logs in {log_dir}: the shared data must sit beside the repository")
+    return paths
+
+
+def log_name(path: Path) -> str:
+    return path.name.removesuffix(".log.gz").removesuffix("-corrected")
+
+
+def grid_for(scans: list[LaserScan], resolution: float = RESOLUTION, margin: float = MARGIN_M) -> GridSpec:
+    """The box of every pose and hit end point, padded by ``margin``."""
+    points = [np.asarray(s.pose[:2])[None, :] for s in scans]
+    for s in scans:
+        rays = s.to_rays()
+        points.append(rays.endpoints[rays.hit])
+    allp = np.concatenate(points)
+    lo = np.floor((allp.min(axis=0) - margin) / resolution) * resolution
+    hi = allp.max(axis=0) + margin
+    return GridSpec(origin=tuple(lo), size=tuple(hi - lo), resolution=resolution)
+
+
+@dataclass(frozen=True)
+class HeldOut:
+    """The held-out hit beams of a log: origins, unit directions and measured ranges."""
+
+    origins: np.ndarray  # (N, 2)
+    directions: np.ndarray  # (N, 2)
+    ranges: np.ndarray  # (N,)
+
+
+def split(scans: list[LaserScan], every: int = HOLDOUT_EVERY) -> tuple[list[LaserScan], list[LaserScan]]:
+    """(fused, held out): scan ``i`` is held out when ``i % every == every - 1``."""
+    fused = [s for i, s in enumerate(scans) if i % every != every - 1]
+    held = [s for i, s in enumerate(scans) if i % every == every - 1]
+    return fused, held
+
+
+def held_out_beams(scans: list[LaserScan]) -> HeldOut:
+    origins, dirs, ranges = [], [], []
+    for s in scans:
+        rays = s.to_rays()
+        n = int(rays.hit.sum())
+        origins.append(np.repeat(rays.origin[None, :], n, axis=0))
+        dirs.append(rays.directions[rays.hit])
+        ranges.append(rays.ranges[rays.hit])
+    return HeldOut(np.concatenate(origins), np.concatenate(dirs), np.concatenate(ranges))
+
+
+@njit(cache=True)
+def _march(risk, lower, res, origins, dirs, threshold, out):  # pragma: no cover - compiled
+    """Distance from each origin to the centre of the first cell at or above ``threshold`` (inf: none in the map)."""
+    nx, ny = risk.shape
+    for r in range(origins.shape[0]):
+        ox, oy = origins[r, 0], origins[r, 1]
+        dx, dy = dirs[r, 0], dirs[r, 1]
+        i = int(math.floor((ox - lower[0]) / res))
+        j = int(math.floor((oy - lower[1]) / res))
+        out[r] = np.inf
+        if i < 0 or j < 0 or i >= nx or j >= ny:
+            continue
+        si = 1 if dx > 0 else -1
+        sj = 1 if dy > 0 else -1
+        tdx = abs(res / dx) if dx != 0.0 else np.inf
+        tdy = abs(res / dy) if dy != 0.0 else np.inf
+        nxb = lower[0] + (i + (1 if dx > 0 else 0)) * res
+        nyb = lower[1] + (j + (1 if dy > 0 else 0)) * res
+        tmx = (nxb - ox) / dx if dx != 0.0 else np.inf
+        tmy = (nyb - oy) / dy if dy != 0.0 else np.inf
+        while 0 <= i < nx and 0 <= j < ny:
+            if risk[i, j] >= threshold:
+                cx = lower[0] + (i + 0.5) * res - ox
+                cy = lower[1] + (j + 0.5) * res - oy
+                out[r] = math.sqrt(cx * cx + cy * cy)
+                break
+            if tmx < tmy:
+                i += si
+                tmx += tdx
+            else:
+                j += sj
+                tmy += tdy
+
+
+def predicted_ranges(risk: np.ndarray, spec: GridSpec, beams: HeldOut, threshold: float = OCCUPIED) -> np.ndarray:
+    """Range each held-out beam reads off a 2-D risk grid (inf where it finds no surface)."""
+    out = np.empty(beams.ranges.size)
+    _march(np.ascontiguousarray(risk, dtype=np.float32), np.asarray(spec.origin, dtype=np.float64), spec.resolution,
+           np.ascontiguousarray(beams.origins), np.ascontiguousarray(beams.directions), float(threshold), out)
+    return out
+
+
+@dataclass(frozen=True)
+class Score:
+    """Held-out beam prediction figures of one map (fractions of the held-out hit beams)."""
+
+    beams: int
+    within: float
+    early: float
+    late: float
+    none: float
+    median_error: float  # metres, a beam with no surface counting as infinitely wrong
+
+    def row(self) -> list[str]:
+        med = "inf" if math.isinf(self.median_error) else f"{100 * self.median_error:.1f} cm"
+        return [f"{100 * self.within:.1f} %", med, f"{100 * self.early:.1f} %", f"{100 * self.late:.1f} %",
+                f"{100 * self.none:.1f} %"]
+
+
+def score(predicted: np.ndarray, measured: np.ndarray, resolution: float = RESOLUTION) -> Score:
+    tol = TOLERANCE_CELLS * resolution + 1e-9
+    err = predicted - measured
+    found = np.isfinite(predicted)
+    n = max(1, measured.size)
+    return Score(
+        beams=int(measured.size),
+        within=float(np.sum(found & (np.abs(err) <= tol)) / n),
+        early=float(np.sum(found & (err < -tol)) / n),
+        late=float(np.sum(found & (err > tol)) / n),
+        none=float(np.sum(~found) / n),
+        median_error=float(np.median(np.where(found, np.abs(err), np.inf))),
+    )
+
+
+def fuse(model: FuzzyMap | BayesMap, scans: list[LaserScan], batch: int = 16) -> None:
+    """Fuse ``scans`` in order, a batch at a time (as a robot streams them to the service)."""
+    for k in range(0, len(scans), batch):
+        model.integrate_batch(scans[k : k + batch])
+
+
+# -------------------------------------------------------------------- OctoMap
+def _z(spec: GridSpec) -> float:
+    return 0.5 * spec.resolution  # the centre of OctoMap's cell [0, res) in z
+
+
+def octomap_tree(spec: GridSpec, scans: list[LaserScan]):  # type: ignore[no-untyped-def]
+    """An OctoMap ``OcTree`` (default sensor model) of ``scans``, updates limited to the map's box."""
+    import octomap  # the bench extra: octomap-python
+
+    tree = octomap.OcTree(spec.resolution)
+    z = _z(spec)
+    tree.setBBXMin(np.array([spec.origin[0], spec.origin[1], 0.0]))
+    tree.setBBXMax(np.array([spec.upper[0], spec.upper[1], spec.resolution * 0.999]))
+    tree.useBBXLimit(True)
+    reach = float(np.hypot(*np.subtract(spec.upper, spec.origin)))
+    for s in scans:
+        insert_scan(tree, s, z, reach)
+    return tree
+
+
+def insert_scan(tree, scan: LaserScan, z: float, reach: float) -> None:  # type: ignore[no-untyped-def]
+    """One scan into an OcTree: hits as end points, no-returns as free beams cut at ``range_max``
+    (as our maps clear them, REP 117), or at ``reach`` (the map's diagonal) if that is shorter."""
+    rays = scan.to_rays()
+    origin = np.array([rays.origin[0], rays.origin[1], z])
+    ends = rays.origin + rays.directions * rays.ranges[:, None]
+    hits = np.column_stack([ends[rays.hit], np.full(int(rays.hit.sum()), z)])
+    if hits.size:
+        tree.insertPointCloud(hits, origin, maxrange=-1.0)
+    miss = ~rays.hit
+    if miss.any():
+        cut = min(reach, scan.range_max)
+        far = rays.origin + rays.directions[miss] * (cut + 1.0)
+        tree.insertPointCloud(np.column_stack([far, np.full(int(miss.sum()), z)]), origin, maxrange=cut)
+
+
+def octomap_predicted(tree, spec: GridSpec, beams: HeldOut) -> np.ndarray:  # type: ignore[no-untyped-def]
+    """``castRay`` of every held-out beam (unknown cells ignored) up to the map's box; inf where it hits nothing."""
+    z = _z(spec)
+    lo, hi = np.asarray(spec.origin), np.asarray(spec.upper)
+    out = np.full(beams.ranges.size, np.inf)
+    end = np.zeros(3)
+    for r in range(beams.ranges.size):
+        o, d = beams.origins[r], beams.directions[r]
+        with np.errstate(divide="ignore"):
+            t = np.where(d > 0, (hi - o) / d, np.where(d < 0, (lo - o) / d, np.inf))
+        reach = float(t.min())
+        if tree.castRay(np.array([o[0], o[1], z]), np.array([d[0], d[1], 0.0]), end,
+                        ignoreUnknownCells=True, maxRange=reach):
+            out[r] = float(np.hypot(end[0] - o[0], end[1] - o[1]))
+    return out
+
+
+def octomap_occupied(tree, spec: GridSpec) -> np.ndarray:  # type: ignore[no-untyped-def]
+    """Boolean grid of ``spec.shape``: cells whose centre lies in an occupied OctoMap leaf."""
+    occ = np.zeros(spec.shape, dtype=bool)
+    res = spec.resolution
+    for leaf in tree.begin_leafs():
+        if not tree.isNodeOccupied(leaf):
+            continue
+        c, size = leaf.getCoordinate(), leaf.getSize()
+        i0 = int(round((c[0] - size / 2 - spec.origin[0]) / res))
+        j0 = int(round((c[1] - size / 2 - spec.origin[1]) / res))
+        n = max(1, int(round(size / res)))
+        occ[max(i0, 0) : max(i0 + n, 0), max(j0, 0) : max(j0 + n, 0)] = True
+    return occ
+
+
+def load(path: Path) -> list[LaserScan]:
+    return read_carmen(path)

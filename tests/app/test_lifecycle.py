@@ -1,0 +1,197 @@
+"""Starting and stopping: a port in use, the directories chosen, readiness, children that die with their parent."""
+
+from __future__ import annotations
+
+import os
+import re
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+import tomllib
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import psutil
+import pytest
+from fastapi.testclient import TestClient
+
+from app import lifecycle
+from app.config import Settings
+from app.lifecycle import StartupError, prepare_directories
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def _wait_ready(client: TestClient, timeout_s: float = 120.0) -> dict[str, Any]:
+    deadline = time.monotonic() + timeout_s
+    while True:
+        answer = client.get("/ready")
+        if answer.status_code == 200 or time.monotonic() > deadline:
+            return {"status_code": answer.status_code, **answer.json()}
+        assert answer.status_code == 503 and answer.headers["Retry-After"] == "1", answer.text
+        time.sleep(0.05)
+
+
+# ---------------------------------------------------------------- the start
+
+
+def test_a_port_in_use_stops_the_start_at_once_with_exit_1_and_a_message(tmp_path: Path) -> None:
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        started = time.monotonic()
+        result = subprocess.run(
+            [sys.executable, "-m", "app", "--port", str(port), "--data-dir", str(tmp_path / "data")],
+            cwd=ROOT, capture_output=True, text=True, timeout=60,
+        )
+    assert result.returncode == 1, result.stderr
+    assert f"port {port} on 127.0.0.1 is already in use" in result.stderr and "FUZZYRISK_PORT" in result.stderr
+    assert time.monotonic() - started < 10  # before the maps, the kernels or the workers
+    assert not (tmp_path / "data").exists()  # nothing created
+
+
+def test_the_listening_socket_says_it_is_tcp_so_that_answers_are_not_delayed() -> None:
+    """asyncio sets TCP_NODELAY only on connections of a socket whose protocol is IPPROTO_TCP: without it, a
+    small answer waits for the client's delayed ACK (a /health of 40-50 ms instead of a few)."""
+    sock = lifecycle.bind("127.0.0.1", 0)
+    with sock:
+        assert sock.proto == socket.IPPROTO_TCP and sock.type == socket.SOCK_STREAM
+
+
+def test_a_bad_setting_stops_the_start_with_exit_1_naming_it(tmp_path: Path) -> None:
+    result = subprocess.run([sys.executable, "-m", "app", "--data-dir", str(tmp_path / "data")], cwd=ROOT,
+                            env={**os.environ, "FUZZYRISK_PLAN_WORKERS": "0"}, capture_output=True, text=True,
+                            timeout=60)
+    assert result.returncode == 1 and "plan_workers" in result.stderr, result.stderr
+
+
+def test_the_web_process_imports_no_planner_kernel() -> None:
+    """Plans run in the workers: the server must not compile their kernels (seconds on a cold cache)."""
+    code = "import sys, app.main; print(sorted(m for m in sys.modules if m.startswith('planning')))"
+    loaded = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, check=True).stdout
+    assert "planning._kernels" not in loaded and "planning.query" not in loaded, loaded
+
+
+def test_the_kernel_cache_goes_to_the_data_directory_unless_numba_cache_dir_says(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.delenv("NUMBA_CACHE_DIR")  # restored at the end of the test, whatever the code sets
+    monkeypatch.setenv("TMPDIR", os.environ.get("TMPDIR", tempfile.gettempdir()))
+    chosen = prepare_directories(Settings(data_dir=tmp_path / "data"))
+    assert chosen.numba_cache == (tmp_path / "data" / "numba-cache").resolve() and chosen.numba_cache.is_dir()
+    assert os.environ["NUMBA_CACHE_DIR"] == str(chosen.numba_cache) and chosen.warning is None
+    monkeypatch.setenv("NUMBA_CACHE_DIR", str(tmp_path / "elsewhere"))
+    assert prepare_directories(Settings(data_dir=tmp_path / "data")).numba_cache == (tmp_path / "elsewhere").resolve()
+
+
+def test_an_unusable_cache_directory_falls_back_to_a_temporary_one_with_a_warning(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.delenv("NUMBA_CACHE_DIR")
+    monkeypatch.setenv("TMPDIR", os.environ.get("TMPDIR", tempfile.gettempdir()))
+    (tmp_path / "data").mkdir()
+    (tmp_path / "data" / "numba-cache").write_text("a file where the cache would go")
+    chosen = prepare_directories(Settings(data_dir=tmp_path / "data"))
+    assert chosen.warning is not None and "every start compiles them" in chosen.warning
+    assert chosen.numba_cache.is_dir() and chosen.numba_cache != (tmp_path / "data" / "numba-cache").resolve()
+    chosen.numba_cache.rmdir()
+    monkeypatch.setenv("NUMBA_CACHE_DIR", str(tmp_path / "data" / "numba-cache"))  # set by the user: no fallback
+    with pytest.raises(StartupError, match="NUMBA_CACHE_DIR"):
+        prepare_directories(Settings(data_dir=tmp_path / "data"))
+
+
+def test_an_uncreatable_data_directory_stops_the_start(tmp_path: Path) -> None:
+    (tmp_path / "file").write_text("")
+    with pytest.raises(StartupError, match="FUZZYRISK_DATA_DIR"):
+        prepare_directories(Settings(data_dir=tmp_path / "file" / "data"))
+
+
+def test_without_a_writable_temporary_directory_the_data_directory_holds_the_temporary_files(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A read-only root: multiprocessing's sockets need a writable directory."""
+    monkeypatch.setenv("TMPDIR", os.environ.get("TMPDIR", tempfile.gettempdir()))
+    monkeypatch.setattr(tempfile, "tempdir", None)
+
+    def nowhere() -> str:
+        raise FileNotFoundError("No usable temporary directory found")
+
+    monkeypatch.setattr(tempfile, "gettempdir", nowhere)
+    (tmp_path / "data" / "tmp" / "pymp-stale").mkdir(parents=True)  # what a killed run left
+    temp = lifecycle._ensure_temp_dir(tmp_path / "data")
+    assert temp == (tmp_path / "data" / "tmp").resolve() and os.environ["TMPDIR"] == str(temp)
+    assert list(temp.iterdir()) == []
+
+
+# ---------------------------------------------------------------- readiness
+
+
+def test_ready_answers_503_then_200_once_the_kernels_are_compiled(make_client: Callable[..., TestClient]) -> None:
+    client = make_client(api_key="k" * 16)  # /ready needs no key, as /health
+    ready = _wait_ready(client)
+    assert ready == {"status_code": 200, "status": "ready", "maps_loaded": 0, "kernels_compiled": True,
+                     "planner_workers_ready": 0, "planner_workers_wanted": 0, "detail": ""}
+
+
+def test_ready_waits_for_the_planner_workers_when_they_start_with_the_service(
+    make_client: Callable[..., TestClient],
+) -> None:
+    client = make_client(plan_warmup=True, plan_workers=2)
+    ready = _wait_ready(client)
+    assert ready["status_code"] == 200, ready
+    assert ready["planner_workers_ready"] == 2 and ready["planner_workers_wanted"] == 2
+    assert "/ready" in client.get("/openapi.json").json()["paths"]
+
+
+# ---------------------------------------------------------------- children that end with their parent
+
+
+def test_die_with_parent_ends_a_child_when_its_parent_is_killed(tmp_path: Path) -> None:
+    if not sys.platform.startswith("linux"):
+        pytest.skip("PR_SET_PDEATHSIG is Linux's")
+    armed = tmp_path / "armed"
+    child = ("import pathlib, time; from app.lifecycle import die_with_parent; assert die_with_parent(); "
+             f"pathlib.Path({str(armed)!r}).write_text('1'); time.sleep(120)")
+    parent = subprocess.Popen([sys.executable, "-c", (
+        "import subprocess, sys, time; "
+        f"subprocess.Popen([sys.executable, '-c', {child!r}]); time.sleep(120)")], cwd=ROOT)
+    try:
+        deadline = time.monotonic() + 30
+        while not armed.exists():
+            assert time.monotonic() < deadline and parent.poll() is None
+            time.sleep(0.05)
+        (orphan,) = psutil.Process(parent.pid).children()
+    finally:
+        parent.send_signal(signal.SIGKILL)
+        parent.wait(timeout=30)
+    _, alive = psutil.wait_procs([orphan], timeout=5)
+    assert not alive
+
+
+def test_the_forkserver_preload_does_nothing_outside_a_forkserver() -> None:
+    import app.forkserver_preload
+
+    assert app.forkserver_preload.ACTIVE is False  # this process must not die with pytest's parent
+
+
+# ---------------------------------------------------------------- the lock
+
+
+def test_constraints_pin_every_dependency_of_every_extra() -> None:
+    project = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
+    wanted = list(project["dependencies"])
+    for extra in project["optional-dependencies"].values():
+        wanted += extra
+
+    def name(requirement: str) -> str:
+        return re.sub(r"[-_.]+", "-", re.match(r"[A-Za-z0-9._-]+", requirement).group(0)).lower()  # type: ignore[union-attr]
+
+    pinned = {name(line): line for line in (ROOT / "constraints.txt").read_text().splitlines()
+              if line and not line.startswith("#")}
+    assert all("==" in line for line in pinned.values())
+    assert sorted({name(r) for r in wanted} - set(pinned)) == []
