@@ -29,8 +29,9 @@ UNKNOWN_RGB = (138, 154, 181)
 UNKNOWN_HATCH_RGB = (104, 118, 143)
 
 # ColorBrewer YlOrRd-like ramp from white (risk 0) to dark crimson (risk 1): sequential,
-# readable in grey print, and far from the grey-blue of unknown space.
-_RAMP_AT = np.array([0.0, 0.25, 0.5, 0.75, 1.0])
+# readable in grey print, and far from the grey-blue of unknown space. Pale up to 0.4 (the default
+# engine's space seen free once), orange at 0.6 (occupied for a default plan and the exports).
+_RAMP_AT = np.array([0.0, 0.4, 0.6, 0.8, 1.0])
 _RAMP_RGB = np.array(
     [[255, 255, 255], [254, 230, 150], [253, 141, 60], [222, 35, 32], [110, 0, 30]], dtype=np.float64
 )

@@ -511,7 +511,7 @@
   // The service's risk colour ramp (app/exports.py, _RAMP_AT / _RAMP_RGB, linear in between);
   // the browser test holds the two together.
   const SCALE = [
-    [0.0, [255, 255, 255]], [0.25, [254, 230, 150]], [0.5, [253, 141, 60]], [0.75, [222, 35, 32]],
+    [0.0, [255, 255, 255]], [0.4, [254, 230, 150]], [0.6, [253, 141, 60]], [0.8, [222, 35, 32]],
     [1.0, [110, 0, 30]],
   ];
 
