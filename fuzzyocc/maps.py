@@ -359,8 +359,10 @@ class FuzzyMap(OccupancyMap):
         return self.engine.incidence_floor
 
     def _rays_of(self, scan: Scan) -> Rays:
-        rays = scan.to_rays()
-        if isinstance(scan, LaserScan) and self.engine.no_return_neighbours:
+        if not isinstance(scan, LaserScan):
+            return scan.to_rays()
+        rays = scan.to_rays(incidence=self.engine.incidence_floor < 1.0)
+        if self.engine.no_return_neighbours:
             return rays.cut_no_returns(self.engine.no_return_neighbours)
         return rays
 

@@ -171,8 +171,11 @@ class LaserScan:
         set_(self, "range_max", rmax)
         set_(self, "registration_sigma", _finite_scalar("registration_sigma", self.registration_sigma, minimum=0.0))
 
-    def to_rays(self) -> Rays:
-        """The beams that carry information (hits and no-returns), in the map frame."""
+    def to_rays(self, incidence: bool = False) -> Rays:
+        """The beams that carry information (hits and no-returns), in the map frame.
+
+        ``incidence``: also estimate each hit's incidence on its surface (``Rays.incidence``).
+        """
         r = self.ranges
         keep = r >= self.range_min  # False for NaN and -inf as well
         no_return = r >= self.range_max  # +inf and the legacy range_max / range_max + 1
@@ -187,7 +190,8 @@ class LaserScan:
             ranges=np.where(no_return[beam], self.range_max, r[beam]),
             hit=~no_return[beam],
             skipped=int(r.size - beam.size),
-            incidence=_incidence(r, hit, self.angle_min + np.arange(r.size) * self.angle_increment)[beam],
+            incidence=(_incidence(r, hit, self.angle_min + np.arange(r.size) * self.angle_increment)[beam]
+                       if incidence else None),
         )
 
 

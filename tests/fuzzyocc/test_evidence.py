@@ -92,7 +92,7 @@ def _wall_scan(x: float, y: float, wall_x: float, angles: np.ndarray) -> LaserSc
 
 def test_the_incidence_of_each_beam_is_estimated_from_its_neighbours() -> None:
     angles = np.radians(np.arange(-80.0, 80.5, 0.5))
-    rays = _wall_scan(0.0, 1.0, 2.0, angles).to_rays()
+    rays = _wall_scan(0.0, 1.0, 2.0, angles).to_rays(incidence=True)
     head_on, grazing = rays.incidence[160], rays.incidence[2]  # 0 and -79 degrees from the wall's normal
     assert head_on == pytest.approx(1.0, abs=1e-6)
     assert grazing == pytest.approx(math.cos(math.radians(79.0)), abs=1e-3)
