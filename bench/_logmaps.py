@@ -184,19 +184,17 @@ def octomap_tree(spec: GridSpec, scans: list[LaserScan]):  # type: ignore[no-unt
 
 
 def insert_scan(tree, scan: LaserScan, z: float, reach: float) -> None:  # type: ignore[no-untyped-def]
-    """One scan into an OcTree: hits as end points, no-returns as free beams cut at ``range_max``
-    (as our maps clear them, REP 117), or at ``reach`` (the map's diagonal) if that is shorter."""
+    """One scan into an OcTree in one ``insertPointCloud`` (so its occupied-before-free rule holds
+    across the whole scan): hits as end points, every no-return as a free beam cut at
+    ``range_max`` (REP 117, as the paper engine clears it), or at ``reach`` (the map's diagonal)
+    if that is shorter. Our default engine also shortens the no-returns that have hits beside
+    them (``Rays.cut_no_returns``): a part of our model, so OctoMap gets the raw scan."""
     rays = scan.to_rays()
     origin = np.array([rays.origin[0], rays.origin[1], z])
-    ends = rays.origin + rays.directions * rays.ranges[:, None]
-    hits = np.column_stack([ends[rays.hit], np.full(int(rays.hit.sum()), z)])
-    if hits.size:
-        tree.insertPointCloud(hits, origin, maxrange=-1.0)
-    miss = ~rays.hit
-    if miss.any():
-        cut = min(reach, scan.range_max)
-        far = rays.origin + rays.directions[miss] * (cut + 1.0)
-        tree.insertPointCloud(np.column_stack([far, np.full(int(miss.sum()), z)]), origin, maxrange=cut)
+    cut = min(reach, scan.range_max)  # every hit lies within it: below range_max, inside the map
+    ends = rays.origin + rays.directions * np.where(rays.hit, rays.ranges, cut + 1.0)[:, None]
+    if ends.size:
+        tree.insertPointCloud(np.column_stack([ends, np.full(len(ends), z)]), origin, maxrange=cut)
 
 
 def octomap_predicted(tree, spec: GridSpec, beams: HeldOut) -> np.ndarray:  # type: ignore[no-untyped-def]

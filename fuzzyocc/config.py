@@ -13,7 +13,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-#: Default bound on the number of cells of one map (dense storage, about L + 2 bytes a cell for a fuzzy map of L labels: 13 for the default engine).
+#: Default bound on the number of cells of one map (dense storage, about L + 2 bytes a cell for a
+#: fuzzy map of L labels: 13 for the default engine).
 DEFAULT_MAX_CELLS = 64_000_000
 
 

@@ -314,7 +314,7 @@ class OccupancyMap:
 
 
 class FuzzyMap(OccupancyMap):
-    """Payeur's fuzzy occupancy map: L uint8 label activations per cell (7 bytes for the paper's).
+    """Payeur's fuzzy occupancy map: L uint8 label activations per cell (11 for the default engine).
 
     Stored by uniform blocks (:class:`fuzzyocc.grid.BlockGrid`): a block of cells in one state
     (free space, unknown space, the inside of an obstacle) keeps that state once, so the map

@@ -7,8 +7,10 @@ engine's own 2-D table: the label concluded from the current label ``i`` and new
 their rank, emptiest first), so the result does not depend on the order in which the n inputs
 arrive. Mamdani inference as in :meth:`FuzzyEngine.fuse`: a rule fires at the AND (min) of its
 n + 1 antecedents, a label takes the OR (max) of the rules concluding it. For an additive
-table (``fuzzyocc.evidence``: conclusion = current level + a step per new label, clamped) this
-is the sum of the steps, clamped once at the end of the sorted chain.
+table (``fuzzyocc.evidence``: conclusion = current level + a step per new label, clamped at
+each step) the free readings come first in that order, so at the empty end they are clamped
+before the hits are added: the merge leans towards occupied there (E5 with one free reading
+and one hit gives E3, where summing first would give E4).
 
 Used by ``bench/bench_maps.py`` to merge all beams of one scan that reach a cell at once,
 instead of the ray caster's "most occupied-ward beam wins"; the bench prints both (the default
@@ -50,6 +52,8 @@ def merge_n(engine: FuzzyEngine, state: np.ndarray, evidence: np.ndarray, groups
     """
     if engine.and_op != "min" or engine.or_op != "max" or engine.normalize:
         raise ValueError("merge_n needs a min/max engine without normalisation")
+    if _most_inputs_positive(engine) > 2:
+        raise ValueError("merge_n needs input functions of which at most two are positive at any distance")
     state = np.ascontiguousarray(state, dtype=np.uint8)
     evidence = np.ascontiguousarray(evidence, dtype=np.uint8)
     groups = np.ascontiguousarray(groups, dtype=np.int64)
@@ -63,6 +67,13 @@ def merge_n(engine: FuzzyEngine, state: np.ndarray, evidence: np.ndarray, groups
     out = np.empty_like(state)
     _merge(state, evidence, groups, rules, MAX_INPUTS, out)
     return out
+
+
+def _most_inputs_positive(engine: FuzzyEngine) -> int:
+    """The largest number of input functions positive at one distance (between breakpoints it is constant)."""
+    points = np.unique(np.concatenate([mf.breakpoints[0] for _, mf in engine.input_mfs]))
+    probes = np.concatenate([points, 0.5 * (points[1:] + points[:-1]), [points[0] - 1.0, points[-1] + 1.0]])
+    return int(max(np.sum([mf(probes) > 0.0 for _, mf in engine.input_mfs], axis=0)))
 
 
 @numba.njit(cache=True, nogil=True)

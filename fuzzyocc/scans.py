@@ -78,7 +78,8 @@ class Rays:
         if not cut.any():
             return self
         ranges = self.ranges.copy()
-        ranges[cut] = np.minimum(ranges[cut], np.maximum(np.minimum(left[cut], right[cut]) - NO_RETURN_CUT_MARGIN_M, 0.0))
+        nearest = np.minimum(left[cut], right[cut])
+        ranges[cut] = np.minimum(ranges[cut], np.maximum(nearest - NO_RETURN_CUT_MARGIN_M, 0.0))
         return dataclasses.replace(self, ranges=ranges)
 
     @property
