@@ -48,7 +48,6 @@ LEVELS = 5
 EVIDENCE_LABELS: tuple[str, ...] = (
     *(f"E{k}" for k in range(LEVELS, 0, -1)), "UNK", *(f"O{k}" for k in range(1, LEVELS + 1))
 )
-NO_RETURN_LABEL = "E5"
 HIT_STEP = 2
 MISS_STEP = 1
 
@@ -82,8 +81,8 @@ def _inputs() -> dict[str, MembershipFunction]:
     }
 
 
-def _step(state: str, evidence: str) -> int:  # noqa: ARG001 - the table is (state, evidence)
-    """Levels a cell in ``state`` moves on ``evidence``."""
+def _step(evidence: str) -> int:
+    """Levels a cell moves on ``evidence``, whatever its state (clamped at the ends by the caller)."""
     if evidence == "UNK":
         return 0  # behind the surface: nothing was measured there
     if evidence.startswith("O"):
@@ -95,7 +94,7 @@ def _rules() -> dict[str, dict[str, str]]:
     top = len(EVIDENCE_LABELS) - 1
     return {
         state: {
-            evidence: EVIDENCE_LABELS[min(top, max(0, EVIDENCE_LABELS.index(state) + _step(state, evidence)))]
+            evidence: EVIDENCE_LABELS[min(top, max(0, EVIDENCE_LABELS.index(state) + _step(evidence)))]
             for evidence in EVIDENCE_LABELS
         }
         for state in EVIDENCE_LABELS
