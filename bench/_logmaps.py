@@ -21,7 +21,7 @@ import numpy as np
 from numba import njit
 
 from fuzzyocc import BayesMap, FuzzyMap, GridSpec, LaserScan
-from fuzzyocc.carmen import read_carmen
+from fuzzyocc.carmen import grid_for_scans, read_carmen
 
 #: The shared logs, beside the repository (``../shared/data/carmen``).
 LOG_DIR = Path(__file__).resolve().parents[2] / "shared" / "data" / "carmen"
@@ -45,15 +45,8 @@ def log_name(path: Path) -> str:
 
 
 def grid_for(scans: list[LaserScan], resolution: float = RESOLUTION, margin: float = MARGIN_M) -> GridSpec:
-    """The box of every pose and hit end point, padded by ``margin``."""
-    points = [np.asarray(s.pose[:2])[None, :] for s in scans]
-    for s in scans:
-        rays = s.to_rays()
-        points.append(rays.endpoints[rays.hit])
-    allp = np.concatenate(points)
-    lo = np.floor((allp.min(axis=0) - margin) / resolution) * resolution
-    hi = allp.max(axis=0) + margin
-    return GridSpec(origin=tuple(lo), size=tuple(hi - lo), resolution=resolution)
+    """The box of every pose and hit end point, padded by ``margin`` (what ``app.import_log`` maps)."""
+    return grid_for_scans(scans, resolution, margin)
 
 
 @dataclass(frozen=True)
