@@ -350,6 +350,9 @@ def shortcut(buf: np.ndarray, points: np.ndarray) -> np.ndarray:
 # ---------------------------------------------------------------- grid search
 
 
+_CLOSED = -2  # grid_search: pos of an expanded cell
+
+
 @njit(cache=True, inline="always")
 def _heap_up(keys: np.ndarray, nodes: np.ndarray, pos: np.ndarray, h: int) -> None:
     key = keys[h]
@@ -440,10 +443,13 @@ def grid_search(buf: np.ndarray, start: int, goal: int) -> tuple[np.ndarray, boo
                 off_len[m] = res * math.sqrt(a * a + b * b + c * c)
                 m += 1
 
+    # Only g is filled up front. The other arrays are read only at cells whose g is finite (seen),
+    # so their untouched pages are never faulted in: a search costs memory in proportion to what
+    # it explores, not to the map (on a 2 M-cell map, filling all of them took longer than a
+    # typical search).
     g = np.full(n, np.inf)
-    parent = np.full(n, -1, dtype=np.int64)
-    closed = np.zeros(n, dtype=np.bool_)
-    pos = np.full(n, -1, dtype=np.int64)
+    parent = np.empty(n, dtype=np.int64)
+    pos = np.empty(n, dtype=np.int64)  # heap slot of a seen cell, CLOSED once expanded
     keys = np.empty(n)
     nodes = np.empty(n, dtype=np.int64)
     gk = goal % nz
@@ -452,6 +458,7 @@ def grid_search(buf: np.ndarray, start: int, goal: int) -> tuple[np.ndarray, boo
 
     size = 0
     g[start] = 0.0
+    parent[start] = -1
     sk = start % nz
     sj = (start // nz) % ny
     si = start // (nz * ny)
@@ -465,13 +472,12 @@ def grid_search(buf: np.ndarray, start: int, goal: int) -> tuple[np.ndarray, boo
     while size > 0:
         c = nodes[0]
         size -= 1
-        pos[c] = -1
+        pos[c] = _CLOSED
         if size > 0:
             keys[0] = keys[size]
             nodes[0] = nodes[size]
             pos[nodes[0]] = 0
             _heap_down(keys, nodes, pos, size)
-        closed[c] = True
         if c == goal:
             reached = True
             best = c
@@ -491,14 +497,16 @@ def grid_search(buf: np.ndarray, start: int, goal: int) -> tuple[np.ndarray, boo
             if ni < 0 or ni >= nx or nj < 0 or nj >= ny or nk < 0 or nk >= nz:
                 continue
             nb = (ni * ny + nj) * nz + nk
-            if closed[nb] or valid[nb] == 0.0:
+            gn = g[nb]
+            seen = gn < np.inf
+            if (seen and pos[nb] == _CLOSED) or valid[nb] == 0.0:
                 continue
             ng = g[c] + off_len[e] * (1.0 + w * 0.5 * (rc + risk[nb]))
-            if ng < g[nb]:
+            if ng < gn:
                 g[nb] = ng
                 parent[nb] = c
                 f = ng + res * _octile(ni, nj, nk, gi, gj, gk)
-                if pos[nb] < 0:
+                if not seen:
                     keys[size] = f
                     nodes[size] = nb
                     pos[nb] = size

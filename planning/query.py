@@ -69,6 +69,13 @@ SEEDED_SIMPLIFY_CHECKS = 20_000  # termination checks a seeded simplification ma
 # a seeded solve's default count is this share of what the calibrated rate fits in the solve's
 # seconds: headroom so that the count, not the clock, ends it on an unloaded machine
 SEEDED_BUDGET_SHARE = 0.6
+#: Spaces where a sampling plan is seeded with the grid planner's path (``_grid_seed``); curved
+#: motions cannot follow a cell chain, and a 26-connected search of a large 3-D map is not cheap.
+GRID_SEEDED_SPACES = ("R2", "SE2")
+#: Seconds the grid search spends per cell when it explores every one (measured on a 2 M-cell
+#: building map, about 45 ns; rounded up), and the share of a plan's time limit it may take.
+GRID_SEED_S_PER_CELL = 60e-9
+GRID_SEED_SHARE = 0.5
 CLOCK_NOTE = "stopped by the time limit before the seeded iteration budget; the path may differ between runs"
 
 
@@ -262,6 +269,7 @@ def plan(
     goal_tolerance: float | None = None,
     turning_radius: float | None = None,
     max_iterations: int | None = None,
+    grid_seed: bool = True,
 ) -> PlanResult:
     """Plan a low-risk path on a risk field.
 
@@ -297,6 +305,10 @@ def plan(
     max_iterations : int or None
         Bound the solve by this many termination checks (about planner iterations) as well
         as by time; with a seed, replaces the default budget.
+    grid_seed : bool
+        Sampling planners in R2 and SE2 also get the grid planner's path as a candidate
+        (``_grid_seed``): exact wherever the cell graph reaches the goal. False leaves the
+        sampling planner on its own (to study it, or for paths that differ with the seed).
 
     Returns
     -------
@@ -338,6 +350,8 @@ def plan(
         raise ValueError(f"max_iterations: must be a positive integer, got {max_iterations!r}")
     if not isinstance(allow_unknown, bool | np.bool_):
         raise ValueError(f"allow_unknown: must be a bool, got {allow_unknown!r}")
+    if not isinstance(grid_seed, bool | np.bool_):
+        raise ValueError(f"grid_seed: must be a bool, got {grid_seed!r}")
     start_pt = _point("start", start, sspec.state_dim, sspec.name)
     goal_pt = _point("goal", goal, sspec.state_dim, sspec.name)
 
@@ -350,7 +364,8 @@ def plan(
         return _plan_grid(grid, sspec, start_pt, goal_pt, t0)
     with _SOLVE_LOCK:
         return _plan_ompl(
-            grid, pspec, sspec, start_pt, goal_pt, t0, time_limit, tolerance, turning_radius, seed, max_iterations
+            grid, pspec, sspec, start_pt, goal_pt, t0, time_limit, tolerance, turning_radius, seed, max_iterations,
+            bool(grid_seed),
         )
 
 
@@ -473,6 +488,27 @@ def _plan_grid(
                    error_code="" if found.reached else NO_VALID_PATH)
 
 
+def _grid_seed(
+    grid: PackedGrid, sspec: SpaceSpec, start: tuple[float, ...], goal: tuple[float, ...], t0: float,
+    time_limit: float,
+) -> tuple[np.ndarray | None, float | None]:
+    """The grid planner's path from start to goal for a sampling planner, and when it was found.
+
+    In the planar spaces with straight motions (``GRID_SEEDED_SPACES``) a sampling plan first
+    runs the grid search (tens of milliseconds on a building's map): its path is a candidate
+    beside the sampling planner's, so a plan is exact wherever the cell graph reaches the goal,
+    and the cheaper verified path wins. The search cannot be interrupted, so it runs only when
+    even a search of every cell fits in ``GRID_SEED_SHARE`` of the time limit. (None, None)
+    when it does not run, or when the goal is unreachable.
+    """
+    if sspec.name not in GRID_SEEDED_SPACES or grid.valid.size * GRID_SEED_S_PER_CELL > GRID_SEED_SHARE * time_limit:
+        return None, None
+    found = grid_path(grid, start[: grid.ndim], goal[: grid.ndim])
+    if not found.reached:
+        return None, None
+    return _drop_collinear(found.positions), time.perf_counter() - t0
+
+
 def _plan_ompl(
     grid: PackedGrid,
     pspec: PlannerSpec,
@@ -485,6 +521,7 @@ def _plan_ompl(
     turning_radius: float | None,
     seed: int | None,
     max_iterations: int | None,
+    grid_seed: bool,
 ) -> PlanResult:
     assert pspec.make is not None
     notes: list[str] = []
@@ -503,6 +540,8 @@ def _plan_ompl(
         counter = _Counter(checks, t0)
     else:
         counter = _Counter(max_iterations, t0)
+
+    seed_path, seed_at = _grid_seed(grid, sspec, start, goal, t0, time_limit) if grid_seed else (None, None)
 
     # space, state validity, motion validity, risk objective
     space = sspec.build(grid, turning_radius)
@@ -528,8 +567,12 @@ def _plan_ompl(
         finished = kind == ob.PlannerStatus.EXACT_SOLUTION and not pspec.optimizing  # stopped at its first solution
         if seed is not None and not counter.exhausted and not finished and time.perf_counter() >= solve_end:
             notes.append(CLOCK_NOTE)
-        if kind == ob.PlannerStatus.EXACT_SOLUTION and pdef.hasExactSolution():
+        own_exact = kind == ob.PlannerStatus.EXACT_SOLUTION and pdef.hasExactSolution()
+        if own_exact:
             label = "exact"
+        elif seed_path is not None:
+            label = "exact"
+            notes.append(f"{pspec.name} reached no exact path in its budget: the path is the grid planner's seed")
         elif kind in (ob.PlannerStatus.EXACT_SOLUTION, ob.PlannerStatus.APPROXIMATE_SOLUTION) and pdef.hasSolution():
             label = "approximate"
             unit = " m" if sspec.name in ("R2", "R3") else " (in the state space's distance)"
@@ -540,21 +583,27 @@ def _plan_ompl(
             return _result(grid, sspec, pspec.name, "none", None, None, t0, "; ".join(notes), iterations,
                            error_code=code)
         first = counter.first_solution if counter.first_solution is not None else solved_at
+        if seed_at is not None:
+            first = min(first, seed_at) if own_exact else seed_at
 
-        # simplify with the risk objective; keep whichever candidate is cheapest and verifies
-        raw = og.PathGeometric(pdef.getSolutionPath())  # a copy: the simplifier edits in place
-        simplified = og.PathGeometric(raw)
-        simp_counter = _Counter(SEEDED_SIMPLIFY_CHECKS, t0) if seed is not None else None
-        simp_end = end - post
-        og.PathSimplifier(si, pdef.getGoal(), objective).simplify(simplified, _until(simp_end, simp_counter))
-        if (
-            simp_counter is not None
-            and not simp_counter.exhausted
-            and time.perf_counter() >= simp_end
-            and CLOCK_NOTE not in notes
-        ):
-            notes.append("simplification " + CLOCK_NOTE)
-        best = _pick(grid, space, sspec, [simplified, raw], pdef if label == "exact" else None, goal)
+        candidates: list[og.PathGeometric] = []
+        if own_exact or seed_path is None:
+            # simplify with the risk objective; keep whichever candidate is cheapest and verifies
+            raw = og.PathGeometric(pdef.getSolutionPath())  # a copy: the simplifier edits in place
+            simplified = og.PathGeometric(raw)
+            simp_counter = _Counter(SEEDED_SIMPLIFY_CHECKS, t0) if seed is not None else None
+            simp_end = end - post
+            og.PathSimplifier(si, pdef.getGoal(), objective).simplify(simplified, _until(simp_end, simp_counter))
+            if (
+                simp_counter is not None
+                and not simp_counter.exhausted
+                and time.perf_counter() >= simp_end
+                and CLOCK_NOTE not in notes
+            ):
+                notes.append("simplification " + CLOCK_NOTE)
+            candidates = [simplified, raw]
+        seeds = [] if seed_path is None else [seed_path]
+        best = _pick(grid, space, sspec, candidates, pdef if label == "exact" else None, goal, start, seeds)
         if best is None:
             notes.append("every candidate path crossed an invalid cell between the planner's checks")
             return _result(grid, sspec, pspec.name, "none", None, None, t0, "; ".join(notes), iterations,
@@ -573,10 +622,13 @@ def _pick(
     candidates: list[og.PathGeometric],
     exact_pdef: ob.ProblemDefinition | None,
     goal: tuple[float, ...],
+    start: tuple[float, ...],
+    seeds: list[np.ndarray],
 ) -> tuple[np.ndarray, np.ndarray] | None:
     """The cheapest candidate that verifies, as (path at the resolution, verified polyline).
 
-    Straight-motion spaces also try the deterministic shortcut of each candidate, and an
+    Straight-motion spaces also try the deterministic shortcut of each candidate and of each
+    of ``seeds`` (polylines of positions from start to goal, the grid planner's), and an
     exact path that stops inside the goal tolerance is extended to the goal itself when that
     last straight piece is valid. Curved motions are verified as chords a quarter cell long
     (each strays from its arc by at most res^2 / (128 r)); the path returned is the same
@@ -584,6 +636,9 @@ def _pick(
     """
     res = grid.resolution
     options: list[tuple[float, np.ndarray, np.ndarray]] = []
+    polylines: list[tuple[np.ndarray, float, float]] = [  # positions, start and end heading (SE2)
+        (seed[:, : grid.ndim], start[-1], goal[-1]) for seed in seeds
+    ]
     for path in candidates:
         if exact_pdef is not None and not exact_pdef.getGoal().isSatisfied(path.getState(path.getStateCount() - 1)):
             continue  # an approximate path never passes as exact
@@ -592,27 +647,29 @@ def _pick(
             coarse = _interpolate_ompl(space, path, res)
             # the curve is verified as quarter-cell chords; the path handed out samples it
             # every cell, unless its own chords clip a cell the curve does not
-            versions = [(coarse if grid.evaluate(coarse[:, :2]).valid else fine, fine)]
-        else:
-            vertices = _states(space, path)
-            positions = vertices[:, : grid.ndim]
-            if exact_pdef is not None:
-                target = np.asarray(goal[: grid.ndim])
-                if np.any(positions[-1] != target) and grid.evaluate(np.vstack([positions[-1], target])).valid:
-                    positions = np.vstack([positions, target])
-            versions = []
-            for pts in (positions[grid.shortcut(positions)], positions):
-                dense = _interpolate_straight(pts, res)
-                if sspec.name == "SE2":
-                    # heading is free in plain SE2 (position-only cost, footprint a disk): turn
-                    # steadily from the start's heading to the goal's (or the last state's)
-                    end_yaw = goal[2] if exact_pdef is not None else vertices[-1, 2]
-                    dense = np.column_stack([dense, _steady_heading(dense, vertices[0, 2], end_yaw)])
-                versions.append((dense, dense))
-        for coarse, fine in versions:
-            m = grid.evaluate(fine[:, : grid.ndim])
+            m = grid.evaluate(fine[:, :2])
             if m.valid:
-                options.append((m.length + grid.risk_weight * m.integral, coarse, fine))
+                options.append((m.length + grid.risk_weight * m.integral,
+                                coarse if grid.evaluate(coarse[:, :2]).valid else fine, fine))
+            continue
+        vertices = _states(space, path)
+        positions = vertices[:, : grid.ndim]
+        if exact_pdef is not None:
+            target = np.asarray(goal[: grid.ndim])
+            if np.any(positions[-1] != target) and grid.evaluate(np.vstack([positions[-1], target])).valid:
+                positions = np.vstack([positions, target])
+        end_yaw = goal[-1] if exact_pdef is not None else vertices[-1, -1]
+        polylines.append((positions, vertices[0, -1], end_yaw))
+    for positions, yaw0, yaw1 in polylines:
+        for pts in (positions[grid.shortcut(positions)], positions):
+            dense = _interpolate_straight(pts, res)
+            if sspec.name == "SE2":
+                # heading is free in plain SE2 (position-only cost, footprint a disk): turn
+                # steadily from the start's heading to the goal's (or the last state's)
+                dense = np.column_stack([dense, _steady_heading(dense, yaw0, yaw1)])
+            m = grid.evaluate(dense[:, : grid.ndim])
+            if m.valid:
+                options.append((m.length + grid.risk_weight * m.integral, dense, dense))
     if not options:
         return None
     options.sort(key=lambda o: o[0])

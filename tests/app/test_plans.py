@@ -88,8 +88,10 @@ def test_an_unusable_start_or_goal_answers_its_nav2_code(planner: TestClient, bo
 
 
 def test_a_plan_out_of_time_answers_200_with_nav2s_timeout(planner: TestClient) -> None:
-    # behind the wall: the way round its end is far longer than a millisecond of sampling finds
-    response = _plan(planner, planner="RRTstar", goal=[4.5, 0.0], time_limit=0.001, seed=None)
+    # behind the wall: the way round its end is far longer than a millisecond of sampling finds (a
+    # car-like robot: in R2 the grid planner's seed would find it)
+    response = _plan(planner, planner="RRTstar", state_space="Dubins", start=[-1.5, 0.0, 0.0], goal=[4.5, 0.0, 0.0],
+                     turning_radius=0.5, time_limit=0.001, seed=None)
     assert response.status_code == 200, response.text
     result = response.json()
     assert result["status"] in ("approximate", "none") and result["error_code"] == "TIMEOUT", result

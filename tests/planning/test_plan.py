@@ -204,8 +204,9 @@ def test_the_same_seed_gives_the_same_path(planner: str, space: str) -> None:
     field = RiskField(risk, RES, (0.0, 0.0))
     start, goal = ((0.2, 0.2), (3.8, 3.8)) if space == "R2" else ((0.2, 0.2, 0.0), (3.8, 3.8, 1.0))
     # a generous time limit: the iteration count, not the clock, ends every run
+    # grid_seed off: the sampler's own path, which the seed decides (a grid seed would often win)
     kwargs = dict(planner=planner, state_space=space, time_limit=10.0, max_iterations=1500, robot_radius=0.0,
-                  turning_radius=0.3)  # fmt: skip
+                  turning_radius=0.3, grid_seed=False)  # fmt: skip
     first = plan(field, start, goal, seed=7, **kwargs)
     second = plan(field, start, goal, seed=7, **kwargs)
     other = plan(field, start, goal, seed=8, **kwargs)
@@ -214,6 +215,60 @@ def test_the_same_seed_gives_the_same_path(planner: str, space: str) -> None:
     assert np.array_equal(first.path, second.path) and first.cost == second.cost
     if planner != "BITstar":  # BIT*'s first batches may well agree across seeds
         assert not np.array_equal(first.path, other.path)
+
+
+# ---------------------------------------------------------------- the grid seed
+
+
+def _maze_field() -> RiskField:
+    """A 4 m square with three walls, their gaps at alternate ends: a way a few samples never find."""
+    risk = np.zeros((80, 80), dtype=np.float32)
+    for i, (lo, hi) in enumerate(((0, 76), (4, 80), (0, 76))):
+        risk[18 + 20 * i : 20 + 20 * i, lo:hi] = 1.0
+    return RiskField(risk, RES, (0.0, 0.0))
+
+
+@pytest.mark.parametrize(("planner", "space"), [("RRTstar", "R2"), ("RRTstar", "SE2")])
+def test_a_sampling_plan_is_exact_wherever_the_grid_reaches_the_goal(planner: str, space: str) -> None:
+    field = _maze_field()
+    start, goal = ((0.5, 0.5), (0.5, 3.6)) if space == "R2" else ((0.5, 0.5, 0.0), (0.5, 3.6, 1.0))
+    kwargs = dict(planner=planner, state_space=space, time_limit=10.0, max_iterations=20, robot_radius=0.05,
+                  seed=3)  # fmt: skip
+    alone = plan(field, start, goal, grid_seed=False, **kwargs)
+    seeded = plan(field, start, goal, **kwargs)
+    grid = plan(field, start[:2], goal[:2], planner="grid", robot_radius=0.05)
+    assert alone.status != "exact"  # 20 iterations do not find the way through the bends
+    assert seeded.status == "exact" and seeded.error_code == ""
+    assert "grid planner's seed" in seeded.message
+    assert np.allclose(seeded.path[-1, :2], goal[:2]) and np.allclose(seeded.path[0, :2], start[:2])
+    assert seeded.cost <= grid.cost + 1e-9
+    assert seeded.first_solution_time <= seeded.planning_time
+    if space == "SE2":
+        assert seeded.path[0, 2] == pytest.approx(0.0) and seeded.path[-1, 2] == pytest.approx(1.0)
+
+
+def test_a_seeded_sampling_plan_keeps_its_own_path_when_cheaper() -> None:
+    rng = np.random.default_rng(12)
+    risk = (rng.random((80, 80)) < 0.04).astype(np.float32)
+    risk[:8, :8] = risk[-8:, -8:] = 0.0
+    field = RiskField(risk, RES, (0.0, 0.0))
+    kwargs = dict(planner="RRTstar", time_limit=10.0, max_iterations=20_000, robot_radius=0.0, seed=5)
+    seeded = plan(field, (0.2, 0.2), (3.8, 3.8), **kwargs)
+    alone = plan(field, (0.2, 0.2), (3.8, 3.8), grid_seed=False, **kwargs)
+    grid = plan(field, (0.2, 0.2), (3.8, 3.8), planner="grid", robot_radius=0.0)
+    assert seeded.status == alone.status == "exact"
+    assert seeded.cost == pytest.approx(min(alone.cost, grid.cost), abs=1e-9)
+
+
+def test_no_grid_seed_when_a_search_of_the_map_may_not_fit_in_the_time_limit() -> None:
+    field = _maze_field()  # 6400 cells: a full search may take 0.4 ms, more than half of 0.5 ms
+    result = plan(field, (0.5, 0.5), (0.5, 3.6), planner="RRTstar", time_limit=0.0005, seed=3, max_iterations=20)
+    assert result.status != "exact" and "grid planner's seed" not in result.message
+
+
+def test_grid_seed_must_be_a_bool() -> None:
+    with pytest.raises(ValueError, match="grid_seed"):
+        plan(_maze_field(), (0.5, 0.5), (0.5, 3.6), grid_seed="yes")  # type: ignore[arg-type]
 
 
 # ---------------------------------------------------------------- the time limit
