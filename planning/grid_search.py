@@ -33,7 +33,10 @@ def grid_path(grid: PackedGrid, start: tuple[float, ...], goal: tuple[float, ...
     s = grid.cell_index(start)
     g = grid.cell_index(goal)
     assert s is not None and g is not None
-    chain, reached, graph_cost = _kernels.grid_search(grid.buffer, s, g)
+    n = grid.valid.size
+    scratch = [np.empty(n, dtype=np.int64) for _ in range(3)]  # parent, pos, nodes: never written here
+    chain, reached, graph_cost = _kernels.grid_search(grid.buffer, s, g, scratch[0], scratch[1], np.empty(n),
+                                                      scratch[2])
     cells = np.stack(np.unravel_index(chain, grid.shape), axis=1)
     centres = np.asarray(grid.origin) + (cells + 0.5) * grid.resolution
     # the start (goal) and its cell's centre share one convex valid cell: the joins are valid
