@@ -19,6 +19,7 @@ from __future__ import annotations
 import importlib
 from typing import TYPE_CHECKING, Any
 
+from planning.budget import wall_clock_limit
 from planning.field import RiskField
 from planning.planners import STATE_SPACE_NAMES, available_planners
 from planning.result import PLAN_ERROR_CODES, PlanError, PlanResult
@@ -37,6 +38,7 @@ __all__ = [
     "available_planners",
     "plan",
     "quiet_ompl",
+    "wall_clock_limit",
     "warm_up",
 ]
 

@@ -17,14 +17,14 @@ verification and interpolation; simplification has its own timed condition.
 Reproducibility: OMPL's seed is process-global (``ou.RNG.setSeed``), and every RNG a
 planner or simplifier makes draws its own seed from it when constructed. So every plan
 constructs, sets up, solves and simplifies under one process-wide lock (``solve()`` holds
-the GIL anyway: threads would gain nothing), and a seeded plan seeds first, then also
-bounds the solve by a count of termination checks (about planner iterations):
-``max_iterations``, by default ``SEEDED_BUDGET_SHARE`` x the solve's seconds x the
-planner's calibrated rate (and the state space's factor), which an idle machine finishes
-well inside the time. The same inputs and seed then give the same path in any process on
-the same software stack, as long as the count, not the clock, ends the solve. On a loaded
-machine the clock may come first: the time limit wins, and the result's message says that
-the path may differ between runs.
+the GIL anyway: threads would gain nothing), and a seeded plan seeds first, then ends its
+solve by a count of termination checks (about planner iterations): ``max_iterations``, by
+default ``SEEDED_BUDGET_SHARE`` x the solve's share of ``time_limit`` x the planner's
+calibrated rate (and the state space's factor), which an idle machine finishes well inside
+``time_limit``. The clock is only an outer bound for a seeded plan, ``SEEDED_CLOCK_FACTOR`` x
+``time_limit`` (:func:`planning.budget.wall_clock_limit`), so a loaded machine that runs the same count
+slower still gives the same path; the result's ``stopped_by`` says what ended the solve, and
+its message warns when the clock did (the path may then differ between runs).
 """
 
 from __future__ import annotations
@@ -41,6 +41,7 @@ from ompl import base as ob
 from ompl import geometric as og
 from ompl import util as ou
 
+from planning.budget import wall_clock_limit
 from planning.field import RiskField
 from planning.grid_search import grid_path
 from planning.packed import PackedGrid
@@ -76,7 +77,8 @@ GRID_SEEDED_SPACES = ("R2", "SE2")
 #: building map, about 45 ns; rounded up), and the share of a plan's time limit it may take.
 GRID_SEED_S_PER_CELL = 60e-9
 GRID_SEED_SHARE = 0.5
-CLOCK_NOTE = "stopped by the time limit before the seeded iteration budget; the path may differ between runs"
+CLOCK_NOTE = ("stopped by the wall-clock bound (3 x time_limit for a seeded plan) before the seeded iteration "
+              "budget; the path may differ between runs")
 
 
 # ---------------------------------------------------------------- argument checks
@@ -284,7 +286,9 @@ def plan(
     state_space : {"R2", "SE2", "Dubins", "ReedsShepp", "R3"} or None
         None: R2 on a 2-D field, R3 on a 3-D one.
     time_limit : float
-        Seconds for solving plus simplifying (> 0). The grid planner is not time-bounded.
+        Seconds for solving plus simplifying (> 0). The grid planner is not time-bounded. A
+        seeded plan is ended by its iteration budget, sized to fit this on an idle machine;
+        its clock bound is ``SEEDED_CLOCK_FACTOR`` (3) times this (``planning.wall_clock_limit``).
     robot_radius : float
         Metres, >= 0.
     max_risk : float
@@ -441,12 +445,13 @@ def _result(
     iterations: int = 0,
     first_solution_time: float | None = None,
     error_code: str = "",
+    stopped_by: str = "complete",
 ) -> PlanResult:
     if status == "none" or path is None or measure_points is None:
         nan = math.nan
         empty = np.zeros((0, sspec.state_dim))
         return PlanResult("none", empty, nan, nan, nan, nan, planner, sspec.name,
-                          time.perf_counter() - t0, message, iterations, nan, error_code)  # fmt: skip
+                          time.perf_counter() - t0, message, iterations, nan, error_code, stopped_by)  # fmt: skip
     m = grid.evaluate(measure_points[:, : grid.ndim])
     if m.length > 0:
         mean = m.integral / m.length
@@ -466,6 +471,7 @@ def _result(
         iterations,
         first_solution_time if first_solution_time is not None else time.perf_counter() - t0,
         error_code,
+        stopped_by,  # type: ignore[arg-type]
     )
 
 
@@ -528,14 +534,15 @@ def _plan_ompl(
     # the seed comes before anything that constructs an RNG (spaces, samplers, planners)
     if seed is not None:
         _seed(seed)
-    end = t0 + time_limit
-    post = _post_reserve(time_limit)
-    solve_end = end - post - SIMPLIFY_SHARE * time_limit
+    clock = wall_clock_limit(time_limit, seed is not None)
+    end = t0 + clock
+    post = _post_reserve(clock)
+    solve_end = end - post - SIMPLIFY_SHARE * clock
     if seed is not None:
         if max_iterations is not None:
             checks = max_iterations
         else:
-            seconds = max(0.0, solve_end - t0)
+            seconds = max(0.0, (1.0 - SIMPLIFY_SHARE) * time_limit - _post_reserve(time_limit))  # the nominal solve
             checks = max(1, round(SEEDED_BUDGET_SHARE * seconds * pspec.rate * sspec.rate_factor))
         counter = _Counter(checks, t0)
     else:
@@ -565,7 +572,8 @@ def _plan_ompl(
         iterations = int(planner.numIterations()) if hasattr(planner, "numIterations") else 0
         kind = status.getStatus()
         finished = kind == ob.PlannerStatus.EXACT_SOLUTION and not pspec.optimizing  # stopped at its first solution
-        if seed is not None and not counter.exhausted and not finished and time.perf_counter() >= solve_end:
+        stopped_by = "solution" if finished else "iterations" if counter.exhausted else "time_limit"
+        if seed is not None and stopped_by == "time_limit" and time.perf_counter() >= solve_end:
             notes.append(CLOCK_NOTE)
         own_exact = kind == ob.PlannerStatus.EXACT_SOLUTION and pdef.hasExactSolution()
         if own_exact:
@@ -581,7 +589,7 @@ def _plan_ompl(
             notes.append(f"no path found ({status.asString()})")
             code = TIMEOUT if kind == ob.PlannerStatus.TIMEOUT else NO_VALID_PATH
             return _result(grid, sspec, pspec.name, "none", None, None, t0, "; ".join(notes), iterations,
-                           error_code=code)
+                           error_code=code, stopped_by=stopped_by)
         first = counter.first_solution if counter.first_solution is not None else solved_at
         if seed_at is not None:
             first = min(first, seed_at) if own_exact else seed_at
@@ -607,10 +615,10 @@ def _plan_ompl(
         if best is None:
             notes.append("every candidate path crossed an invalid cell between the planner's checks")
             return _result(grid, sspec, pspec.name, "none", None, None, t0, "; ".join(notes), iterations,
-                           error_code=NO_VALID_PATH)
+                           error_code=NO_VALID_PATH, stopped_by=stopped_by)
         path, fine = best
         return _result(grid, sspec, pspec.name, label, path, fine, t0, "; ".join(notes), iterations, first,
-                       error_code="" if label == "exact" else TIMEOUT)
+                       error_code="" if label == "exact" else TIMEOUT, stopped_by=stopped_by)
     finally:
         space.close()  # the compiled objective's table goes back to its pool
 

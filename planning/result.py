@@ -8,6 +8,7 @@ from typing import Literal
 import numpy as np
 
 Status = Literal["exact", "approximate", "none"]
+StoppedBy = Literal["complete", "solution", "iterations", "time_limit"]
 
 # Nav2's ComputePathToPose error names (nav2_msgs/action/ComputePathToPose.action)
 START_OUTSIDE_MAP = "START_OUTSIDE_MAP"
@@ -82,6 +83,11 @@ class PlanResult:
         "TIMEOUT" (a sampling planner's time limit, or a seeded plan's iteration budget, ended
         the search before it reached the goal) or "NO_VALID_PATH" (the grid planner's complete search found none, or no
         candidate path passed verification).
+    stopped_by : "complete" | "solution" | "iterations" | "time_limit"
+        What ended the search: the grid planner's search ran to its end ("complete"); a
+        planner that stops at its first solution found one ("solution"); the iteration budget
+        (a seeded plan's, or ``max_iterations``) ran out ("iterations"); the clock did
+        ("time_limit": for a seeded plan, the path may differ between runs).
     """
 
     status: Status
@@ -97,3 +103,4 @@ class PlanResult:
     iterations: int = 0
     first_solution_time: float = float("nan")
     error_code: str = ""
+    stopped_by: StoppedBy = "complete"

@@ -162,3 +162,21 @@ def test_native_validity_and_motion_checks_answer_as_the_python_ones(name: str) 
     assert moves == [bool(slow.si.checkMotion(a, b)) for a, b in pairs]
     assert 0 < sum(moves) < len(moves)
     fast.close()
+
+
+def test_a_seeded_plan_repeats_on_a_machine_that_runs_it_slower() -> None:
+    # The Python objective runs RRTstar about half as fast as the compiled one, as a loaded
+    # machine would; the default budget of a seeded plan (no max_iterations) must still end both.
+    field = _field(2)
+    kw = dict(planner="RRTstar", time_limit=0.3, robot_radius=0.05, seed=4, grid_seed=False)
+    fast = plan(field, (0.0, 3.0), (2.7, 5.2), **kw)
+    native.set_enabled(False)
+    try:
+        slow = plan(field, (0.0, 3.0), (2.7, 5.2), **kw)
+    finally:
+        native.set_enabled(True)
+    assert fast.stopped_by == slow.stopped_by == "iterations"
+    assert fast.iterations == slow.iterations
+    assert planning.query.CLOCK_NOTE not in fast.message + slow.message
+    np.testing.assert_array_equal(fast.path, slow.path)
+    assert slow.planning_time <= planning.wall_clock_limit(0.3, seeded=True) + 0.2
