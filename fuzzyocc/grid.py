@@ -460,11 +460,24 @@ def _fuse_write(keys, bits, evidence, rules, float_ops, start, touched, n_touche
     out = np.empty(width, np.uint8)
     acc = np.zeros(width)
     active = np.empty(width, np.int64)
+    # A uniform block's cells come one after another (keys rise) and most carry the same evidence
+    # (free space far in front of the surface): once a row left the block's row unchanged, the
+    # next cell of that block with the same evidence row is skipped without fusing it again.
+    noop_block = -1
+    noop_cell = 0
     for n in range(start, keys.shape[0]):
         b = keys[n] >> bits
         o = keys[n] & mask
         s = ref[b]
         if s < 0:
+            if b == noop_block:
+                same = True
+                for k in range(width):
+                    if evidence[n, k] != evidence[noop_cell, k]:
+                        same = False
+                        break
+                if same:
+                    continue
             fuse_row(urow, b, evidence, n, rules, float_ops, out, acc, active)
             same = True
             for k in range(width):
@@ -472,6 +485,8 @@ def _fuse_write(keys, bits, evidence, rules, float_ops, start, touched, n_touche
                     same = False
                     break
             if same:
+                noop_block = b
+                noop_cell = n
                 continue
             if n_dense == capacity:
                 return n, n_dense, n_touched
