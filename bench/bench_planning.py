@@ -1,7 +1,11 @@
 """Planner success, speed and path quality on fixed, seeded risk maps, against the grid optimum.
 
     python -m bench.bench_planning [--quick] [--seed N] [--runs R] [--time-limit S]
+                                   [--real-only | --synthetic-only] [--logs a,b] [--pairs N]
+                                   [--planners a,b] [--repeats N] [--no-http]
                                                             (from the repository root)
+
+Two sections: the synthetic maps below (issue 3), then maps of real buildings (issue 13, at the end).
 
 Three 400 x 400 maps at 0.05 m (20 m x 20 m), generated from a fixed seed:
 
@@ -25,6 +29,16 @@ path-length objective, the same planner configuration and seeds: over a fixed it
 is measured as ``plan`` uses it (compiled into OMPL, ``planning/native.py``) and as the Python
 subclass it falls back to; a plain-Python length objective shows the floor any Python objective
 pays; and the number and rate of motionCost calls.
+
+Real maps (issue 13, ``bench/_real_plans.py``): a map per shared CARMEN log (``--logs``, default
+belgioioso, csail and orebro: 1.4-2.0 M cells of 0.05 m), every scan fused with the default engine;
+``--pairs`` queries between far-apart poses the robot drove (``_plan_audit.pick_pairs``). Printed:
+per planner (grid and the sampling planners a user would pick, 1 s, seeded with the pair's number)
+the exact rate, time to first solution, cost / the grid planner's, least clearance to our map's
+cells at risk >= 0.6; our grid search beside pyastar2d and scikit-image's ``route_through_array`` on
+the same cost grid (best of ``--repeats``); the same queries over HTTP (``python -m app`` on a free
+port, the map built there by ``app.import_log --url``) beside the same ``plan`` in-process; and the
+issue's targets as met / NOT met.
 """
 
 from __future__ import annotations
@@ -32,6 +46,7 @@ from __future__ import annotations
 import argparse
 import math
 import statistics
+import sys
 import time
 from dataclasses import dataclass
 
@@ -41,7 +56,8 @@ from ompl import geometric as og
 from ompl import util as ou
 from scipy import ndimage
 
-from planning import RiskField, available_planners, native, plan
+from bench import _real_plans
+from planning import RiskField, available_planners, native, plan, warm_up
 from planning.packed import PackedGrid
 from planning.planners import PLANNERS
 from planning.spaces import STATE_SPACES
@@ -324,13 +340,286 @@ def objective_overhead(field: RiskField, iterations: int, seconds: float, repeat
     print(f"risk objective: {calls / done:.1f} motionCost calls per iteration")
 
 
+# ---------------------------------------------------------------- real maps (issue 13)
+
+
+def _md(headers: list[str], rows: list[list[str]]) -> str:
+    lines = ["| " + " | ".join(headers) + " |", "|" + "---|" * len(headers)]
+    lines += ["| " + " | ".join(r) + " |" for r in rows]
+    return "\n".join(lines)
+
+
+def _ms(seconds: float) -> str:
+    return "-" if not math.isfinite(seconds) else f"{1000 * seconds:.1f}"
+
+
+def _frac(k: int, n: int) -> str:
+    return f"{k}/{n} ({100 * k / n:.0f} %)" if n else "-"
+
+
+def _planner_row(runs: list, label: str, clear_min: float, time_limit: float) -> list[str]:
+    mine = [r for r in runs if r.label == label]
+    exact = [r for r in mine if r.exact]
+    firsts = [r.first_s for r in exact]
+    times = [r.plan_s for r in mine]
+    ratios = _real_plans.cost_ratios(runs, label)
+    grid = _real_plans.grid_costs(runs)
+    took = sum(r.took_grid_path(grid.get((r.log, r.pair), math.nan)) for r in mine) if label != "grid" else None
+    clears = [r.clearance for r in mine if math.isfinite(r.clearance)]
+    close = sum(c < clear_min - 1e-9 for c in clears)
+    ratio = (f"{statistics.median(ratios):.3f} ({min(ratios):.3f}-{max(ratios):.3f})" if ratios else "-")
+    return [label, _frac(len(exact), len(mine)), f"{sum(r.in_time(time_limit) for r in mine)}/{len(mine)}",
+            "-" if took is None else f"{took}/{len(mine)}",
+            f"{_ms(_real_plans.p50(firsts))} ({_ms(max(firsts) if firsts else math.nan)})",
+            f"{_ms(_real_plans.p50(times))} ({_ms(max(times) if times else math.nan)})",
+            ratio, f"{min(clears):.2f}" if clears else "-", f"{close}/{len(clears)}"]
+
+
+def _notes(runs: list, label: str) -> list[str]:
+    """The distinct non-empty messages of a planner's plans with their counts (what a plan said about itself)."""
+    counts: dict[str, int] = {}
+    for r in runs:
+        if r.label == label and r.message:
+            counts[r.message] = counts.get(r.message, 0) + 1
+    return [f"  {label}: {n} x {msg!r}" for msg, n in sorted(counts.items(), key=lambda kv: -kv[1])]
+
+
+def real_maps(logs: list[str], pairs: int, planners: list[str], time_limit: float, repeats: int,
+              http: bool, alone: bool = True) -> None:
+    """The real-map section: planners, grid search baselines and HTTP on maps of the shared logs."""
+    import datetime
+    import os
+    import platform
+
+    print("## Real maps (issue 13)\n")
+    now = datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
+    try:
+        from bench._client import machine
+        where = machine()
+    except ImportError:  # psutil missing: the bench extra is not installed
+        where = f"{os.cpu_count()} cores, load average {os.getloadavg()[0]:.1f}"
+    compiled = ", ".join(f"{k}: {v}" for k, v in sorted(native.status().items()) if k.endswith(" R2"))
+    print(f"{now}; {where}; Python {platform.python_version()}; OMPL callbacks in R2: {compiled or '?'}")
+    version = _real_plans.code_version()
+    print(f"command: {' '.join(sys.argv)}; code: {version}")
+    clear_min = ROBOT_RADIUS - _real_plans._logmaps.RESOLUTION
+    maps = []
+    for name in logs:
+        t0 = time.perf_counter()
+        rm = _real_plans.build_map(_real_plans.log_path(name), pairs)
+        aparts = [q.apart for q in rm.queries]
+        print(f"map {rm.name}: {rm.scans} scans (all) fused in {rm.fuse_s:.1f} s, {rm.spec.shape[0]} x "
+              f"{rm.spec.shape[1]} = {rm.cells / 1e6:.2f} M cells of {rm.spec.resolution} m; {len(rm.queries)} "
+              f"queries {min(aparts):.0f}-{max(aparts):.0f} m apart (built in {time.perf_counter() - t0:.1f} s)",
+              flush=True)
+        maps.append(rm)
+    print(f"planners: grid and {', '.join(planners)}; time_limit {time_limit:g} s, seeded with the pair's number "
+          f"(plan's default seeded budget); robot_radius {ROBOT_RADIUS} m, max_risk {MAX_RISK}, risk_weight "
+          f"{RISK_WEIGHT}; clearance = least distance from the path's cells to our map's cells at risk >= "
+          f"{_real_plans.OCCUPIED} (centre to centre), too close: < radius - 1 cell = {clear_min:.2f} m\n",
+          flush=True)
+
+    # every planner on every query
+    runs: list = []
+    alone = alone and _real_plans.can_plan_alone()
+    for rm in maps:
+        t0 = time.perf_counter()
+        runs += _real_plans.run_planners(rm, planners, time_limit, alone=alone)
+        print(f"bench planning: {rm.name}: {len(rm.queries)} queries x {len(planners) + 1} planners"
+              f"{' (the sampling ones also alone)' if alone else ''} in {time.perf_counter() - t0:.0f} s", flush=True)
+    order = ["grid", *planners, *([f"{p} (alone)" for p in planners] if alone else [])]
+    print("\n### Planners on real maps, all logs\n")
+    print(f"(alone) = the same planner with grid_seed=False: plan() seeds a sampling planner with the grid planner's "
+          f"path by default, so the default rows say what a user gets and the (alone) rows what the sampler finds "
+          f"by itself. in time = exact and returned within time_limit + {1000 * _real_plans.OVERRUN_S:.0f} ms. "
+          f"grid's path = the path returned is the grid planner's (its message says so, or its cost equals the "
+          f"grid's).\n")
+    print(_md(["planner", "exact", "in time", "grid's path", "first solution p50 (max) ms", "plan time p50 (max) ms",
+               "cost / grid p50 (min-max)", "least clearance m", "too close"],
+              [_planner_row(runs, p, clear_min, time_limit) for p in order]))
+    print("\nper log (exact; cost / grid p50):\n")
+    rows = []
+    for p in order:
+        row = [p]
+        for rm in maps:
+            mine = [r for r in runs if r.log == rm.name]
+            n = sum(r.label == p for r in mine)
+            k = sum(r.label == p and r.exact for r in mine)
+            ratios = _real_plans.cost_ratios(mine, p)
+            row.append(f"{k}/{n}; {statistics.median(ratios):.3f}" if ratios else f"{k}/{n}; -")
+        rows.append(row)
+    print(_md(["planner", *[rm.name for rm in maps]], rows))
+    stops = []
+    for p in order[1:]:
+        counts: dict[str, int] = {}
+        for r in runs:
+            if r.label == p and r.stopped_by:
+                counts[r.stopped_by] = counts.get(r.stopped_by, 0) + 1
+        if counts:
+            stops.append(f"  {p}: " + ", ".join(f"{k} {n}" for k, n in sorted(counts.items())))
+    if stops:
+        print("\nwhat ended the search (PlanResult.stopped_by):")
+        print("\n".join(stops))
+    notes = [line for p in order for line in _notes(runs, p)]
+    if notes:
+        print("\nwhat the plans said (non-empty messages, with counts):")
+        print("\n".join(notes))
+    late = [r for r in runs if r.plan_s > time_limit + _real_plans.OVERRUN_S]
+    if late:
+        print(f"\nplans over time_limit + {1000 * _real_plans.OVERRUN_S:.0f} ms: "
+              + "; ".join(f"{r.label} on {r.log} pair {r.pair}: {_ms(r.plan_s)} ms ({r.status})" for r in late))
+
+    # the same search by pyastar2d and scikit-image
+    _real_plans.warm_baselines()
+    timings: list = []
+    for rm in maps:
+        timings += _real_plans.grid_baselines(rm, repeats)
+    print(f"\n### Grid search against pyastar2d and scikit-image, same cost grid (best of {repeats} per query)\n")
+    print("cost grid: 1 + risk_weight x dilated risk where the robot's footprint is valid, inf elsewhere. "
+          "ours search = grid_search.grid_path on a ready PackedGrid; ours plan = plan(..., 'grid') (packing, "
+          "search, shortcut, verification); pyastar2d = astar_path (its wrapper copies the grid and checks its "
+          "minimum each call), C core = its C entry point on a ready flat grid; skimage = route_through_array "
+          "(Dijkstra, geometric). pyastar2d charges the entered cell's weight per step (not our edge cost), so its "
+          "costs are not compared, only times and success; scikit-image's geometric cost is our edge cost, so its "
+          "optimum checks our A*'s.\n")
+    grows = []
+    for label, ts in [*[(rm.name, [t for t in timings if t.log == rm.name]) for rm in maps], ("all", timings)]:
+        if not ts:
+            continue
+        ratios = [t.ratio for t in ts]
+        rel = [abs(t.ours_graph_cost - t.skimage_cost) / t.skimage_cost for t in ts
+               if t.ours_found and t.skimage_found]
+        grows.append([
+            label, str(len(ts)),
+            f"{sum(t.ours_found for t in ts)} / {sum(t.pyastar_found for t in ts)} / {sum(t.skimage_found for t in ts)}",
+            _ms(_real_plans.p50([t.ours_search for t in ts])), _ms(_real_plans.p50([t.ours_plan for t in ts])),
+            _ms(_real_plans.p50([t.pyastar for t in ts])), _ms(_real_plans.p50([t.pyastar_core for t in ts])),
+            _ms(_real_plans.p50([t.skimage for t in ts])),
+            f"{statistics.median(ratios):.2f} ({sum(r <= 1.0 for r in ratios)}/{len(ratios)} <= 1)",
+            f"{_real_plans.p50([t.ours_plan / t.pyastar for t in ts]):.2f}",
+            f"{max(rel):.1e}" if rel else "-",
+        ])
+    print(_md(["log", "queries", "found ours / pyastar2d / skimage", "ours search p50 ms", "ours plan p50 ms",
+               "pyastar2d p50 ms", "pyastar2d C core p50 ms", "skimage p50 ms", "ours search / pyastar2d p50",
+               "ours plan / pyastar2d p50", "our A* cost vs skimage optimum, max rel. diff"], grows))
+
+    # over HTTP
+    hmaps: list = []
+    if http:
+        http_planners = [p for p in _real_plans.HTTP_PLANNERS if p == "grid" or p in planners] or ["grid"]
+        now_version = _real_plans.code_version()
+        if now_version != version:
+            print(f"\nWARNING: the code changed during the run ({version} -> {now_version}): the service starts "
+                  "on the new code, this process plans on the old")
+        print(f"\n### Over HTTP: the same queries as POST /maps/{{name}}/plan ({', '.join(http_planners)}), each "
+              "beside the same plan() in this process\n", flush=True)
+        hmaps = _real_plans.http_plans(maps, http_planners, time_limit, repeats,
+                                       log=lambda m: print(m, flush=True))
+        print()
+        for hm in hmaps:
+            print(f"- {hm.log} ({hm.cells / 1e6:.2f} M cells): built on the service by app.import_log --url in "
+                  f"{hm.import_s:.1f} s; risk grid equal to ours: {'yes' if hm.risk_equal else 'NO'} (max |diff| "
+                  f"{hm.risk_max_diff:.3g}); a new RiskField's dilation and valid mask (each worker plan builds one): "
+                  f"{1000 * hm.fresh_field_s:.0f} ms")
+        print()
+        hrows = []
+        for p in http_planners:
+            for label, hs in [*[(hm.log, [r for r in hm.runs if r.planner == p]) for hm in hmaps],
+                              ("all", [r for hm in hmaps for r in hm.runs if r.planner == p])]:
+                if not hs:
+                    continue
+                same = sum(abs(r.http_cost - r.local_cost) <= 1e-9 * max(1.0, abs(r.local_cost)) for r in hs)
+                diffs = [r.http_s - r.local_s for r in hs]
+                hrows.append([
+                    label, p, str(len(hs)),
+                    f"{sum(r.http_status == 'exact' for r in hs)} / {sum(r.local_status == 'exact' for r in hs)}",
+                    f"{same}/{len(hs)}", _ms(_real_plans.p50([r.local_s for r in hs])),
+                    _ms(_real_plans.p50([r.http_s for r in hs])),
+                    f"{_ms(_real_plans.p50(diffs))} ({_ms(_real_plans.percentile(diffs, 90))})",
+                    _ms(_real_plans.p50([r.worker_s for r in hs])),
+                ])
+        print(_md(["log", "planner", "samples", "exact HTTP / here", "same cost", "here p50 ms", "HTTP p50 ms",
+                   "HTTP - here p50 (p90) ms", "plan() in the worker p50 ms"], hrows))
+
+    # targets
+    print("\ntargets:")
+    for p in order[1:]:
+        mine = [r for r in runs if r.label == p]
+        k = sum(r.in_time(time_limit) for r in mine)
+        ok = bool(mine) and k >= 0.95 * len(mine)
+        print(f"  {p} exact on >= 95 % of queries within {time_limit:g} s (+ {1000 * _real_plans.OVERRUN_S:.0f} ms): "
+              f"{_frac(k, len(mine))}, longest plan {_ms(max((r.plan_s for r in mine), default=math.nan))} ms: "
+              f"{'met' if ok else 'NOT met'}")
+    if timings:
+        ratio = statistics.median([t.ratio for t in timings])
+        n_ok = sum(t.ratio <= 1.0 for t in timings)
+        print(f"  our grid search time <= pyastar2d's on the same cost grid (median of per-query ratios): {ratio:.2f} "
+              f"({n_ok}/{len(timings)} queries <= 1; our whole grid plan: "
+              f"{_real_plans.p50([t.ours_plan / t.pyastar for t in timings]):.2f}; against pyastar2d's C core: "
+              f"{_real_plans.p50([t.ours_search / t.pyastar_core for t in timings]):.2f}): "
+              f"{'met' if ratio <= 1.0 else 'NOT met'}")
+    if hmaps:
+        sizes = [hm.cells / 1e6 for hm in hmaps]
+        for p in sorted({r.planner for hm in hmaps for r in hm.runs}, key=order.index):
+            hs = [r for hm in hmaps for r in hm.runs if r.planner == p]
+            here, over = _real_plans.p50([r.local_s for r in hs]), _real_plans.p50([r.http_s for r in hs])
+            print(f"  {p} over HTTP p50 <= in-process p50 + 50 ms ({min(sizes):.2f}-{max(sizes):.2f} M-cell maps): "
+                  f"{_ms(over)} vs {_ms(here)} ms, +{_ms(over - here)} ms: "
+                  f"{'met' if over <= here + 0.050 else 'NOT met'}")
+        if not all(hm.risk_equal for hm in hmaps):
+            print("  (the service's risk differs from ours on: "
+                  + ", ".join(hm.log for hm in hmaps if not hm.risk_equal) + ")")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--quick", action="store_true", help="fewer runs and planners")
+    parser.add_argument("--quick", action="store_true", help="fewer runs and planners (both sections), one real log")
     parser.add_argument("--seed", type=int, default=2024, help="map generator seed")
     parser.add_argument("--runs", type=int, default=None, help="runs per planner and map")
     parser.add_argument("--time-limit", type=float, default=1.0, help="seconds per plan")
+    real = parser.add_argument_group("real maps (issue 13): run after the synthetic maps unless told otherwise")
+    part = real.add_mutually_exclusive_group()
+    part.add_argument("--real-only", action="store_true", help="only the real-map section")
+    part.add_argument("--synthetic-only", action="store_true", help="only the synthetic maps (the issue 3 bench)")
+    real.add_argument("--logs", default=None,
+                      help=f"shared logs, comma-separated (default {','.join(_real_plans.DEFAULT_LOGS)}; "
+                           f"--quick: {','.join(_real_plans.QUICK_LOGS)})")
+    real.add_argument("--pairs", type=int, default=None,
+                      help=f"queries per log (default {_real_plans.PAIRS}; --quick: {_real_plans.QUICK_PAIRS})")
+    real.add_argument("--planners", default=None,
+                      help=f"sampling planners, comma-separated (default those of {','.join(_real_plans.SAMPLING)} "
+                           f"available; --quick: {','.join(_real_plans.QUICK_SAMPLING)})")
+    real.add_argument("--repeats", type=int, default=3, help="grid timings: best of this many (and HTTP grid "
+                      "samples per query; default 3)")
+    real.add_argument("--no-http", action="store_true", help="skip the service (HTTP) part")
+    real.add_argument("--no-alone", action="store_true", help="skip the sampling planners' runs with "
+                      "grid_seed=False (the sampler on its own, beside plan()'s default that seeds it with the grid's path)")
     args = parser.parse_args()
+    if args.logs is not None:  # checked before minutes of synthetic maps
+        for name in args.logs.split(","):
+            _real_plans.log_path(name)
+    if args.planners is not None:
+        unknown = [p for p in args.planners.split(",") if p not in available_planners() or p == "grid"]
+        if unknown:
+            parser.error(f"--planners: not sampling planners here: {', '.join(unknown)}; choose from "
+                         f"{', '.join(p for p in available_planners() if p != 'grid')}")
+    if not args.real_only:
+        synthetic(args)
+    if not args.synthetic_only:
+        if not args.real_only:
+            print()
+        logs = args.logs.split(",") if args.logs else list(_real_plans.QUICK_LOGS if args.quick
+                                                           else _real_plans.DEFAULT_LOGS)
+        pairs = args.pairs or (_real_plans.QUICK_PAIRS if args.quick else _real_plans.PAIRS)
+        default = _real_plans.QUICK_SAMPLING if args.quick else _real_plans.SAMPLING
+        planners = (args.planners.split(",") if args.planners
+                    else [p for p in default if p in available_planners()])
+        warm_up("R2")
+        real_maps(logs, pairs, planners, args.time_limit, args.repeats, not args.no_http, not args.no_alone)
+
+
+def synthetic(args: argparse.Namespace) -> None:
+    """The synthetic maps (issue 3): planners against the grid optimum, and the objective's overhead."""
     runs = args.runs or (2 if args.quick else 5)
     planners = list(QUICK_PLANNERS) if args.quick else [p for p in available_planners() if p != "grid"]
     rng = np.random.default_rng(args.seed)
