@@ -49,6 +49,12 @@ class Settings(BaseSettings):
         description="Run the planners' validity, motion and cost callbacks as compiled code inside OMPL "
         "(checked at first use, Python fallback with a warning); false: always the Python callbacks.",
     )
+    plan_cache_bytes: int = Field(
+        256 * 2**20, ge=0,
+        description="Bytes of map grids kept for the planner workers: the files of the map versions planned on "
+        "(<data dir>/plan-grids), and, in each worker, the fields built from them with their dilations; 0: "
+        "every plan ships its grid to a worker, which keeps nothing.",
+    )
     max_pending_batches: int = Field(
         32, ge=1, description="Scan batches one map may hold in line (parsed, committing or fusing) before 503."
     )

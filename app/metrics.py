@@ -43,6 +43,16 @@ class Metrics:
             "fuzzyrisk_plan_duration_seconds", "Time to answer a plan, queueing included", ["planner", "outcome"],
             buckets=_LATENCY_BUCKETS, registry=r,
         )
+        self.plan_grids = Counter(
+            "fuzzyrisk_plan_grids",
+            "Plans by how their map grid reached the worker: shared (already published for that map version), "
+            "published (the first plans on a version: its grid was written for them), shipped (sent with the plan: "
+            "publishing off, over FUZZYRISK_PLAN_CACHE_BYTES, or the data directory refused the file)",
+            ["source"], registry=r,
+        )
+        self.plan_grid_bytes = Gauge(
+            "fuzzyrisk_plan_grid_bytes", "Bytes of map grids published for the planner workers", registry=r
+        )
         self.maps = Gauge("fuzzyrisk_maps", "Maps held", registry=r)
         self.snapshots = Counter("fuzzyrisk_snapshots", "Map snapshots written", registry=r)
         self.snapshot_failures = Counter(

@@ -6,6 +6,11 @@ there is no forkserver) receives the risk grid and the parameters, and returns
 plain data. The forkserver imports the planner stack (OMPL, and numba's kernels compiled
 at import) once; each worker forked from it warms the rest up as it starts.
 
+A plan on a published grid (``app.plangrids``) gets only the grid's files with its parameters
+(``run_shared_plan``), and the worker keeps the ``RiskField`` of each grid it planned on (with the
+dilations computed for it) for the next plans on that map version; otherwise the arrays come with
+the plan (``run_plan``).
+
 The processes end with the server, however it ends: the forkserver is started from a
 thread that lives as long as the server and asks Linux to kill it when the server ends
 (``app.forkserver_preload``), each worker asks the same of the forkserver and also
@@ -32,6 +37,7 @@ import numpy as np
 
 from app import lifecycle
 from app.errors import Unavailable
+from app.plangrids import FieldCache, GridRef
 
 LOG = logging.getLogger("fuzzyrisk.plans")
 T = TypeVar("T")
@@ -58,15 +64,20 @@ def _ensure_forkserver(context: multiprocessing.context.BaseContext) -> None:
 _STARTED_TOGETHER: Any = None
 #: Seconds the warm-up waits for all workers to be up (from numba's cache they start in seconds).
 WARM_BARRIER_TIMEOUT_S = 120.0
+#: Bytes of fields a worker keeps when its pool is not told (``PlanPool(field_cache_bytes=...)``).
+DEFAULT_FIELD_CACHE_BYTES = 256 * 2**20
+#: In a worker: the fields of the published grids it planned on (``run_shared_plan``).
+_FIELDS = FieldCache(DEFAULT_FIELD_CACHE_BYTES)
 
 
-def _init_worker(native: bool, together: Any = None) -> None:
+def _init_worker(native: bool, together: Any = None, field_cache_bytes: int = DEFAULT_FIELD_CACHE_BYTES) -> None:
     """In each new worker: end with the server, use the compiled planner callbacks (``planning/native.py``)
     or not, and compile or load every kernel now, so that no plan waits for it."""
-    global _STARTED_TOGETHER
+    global _STARTED_TOGETHER, _FIELDS
     lifecycle.die_with_parent()  # the forkserver, which dies with the server
     lifecycle.exit_with_parent()  # the server itself: other systems, or the forkserver gone before the line above
     _STARTED_TOGETHER = together
+    _FIELDS = FieldCache(field_cache_bytes)
     import planning
     from planning import native as compiled
 
@@ -102,10 +113,37 @@ def run_plan(
     cannot use comes back as ``{"error": {"code": <Nav2 name>, "message": ...}}``, any
     other refusal of the parameters as ``{"invalid": message}``.
     """
-    from planning import PlanError, RiskField, plan
+    from planning import RiskField
 
     try:
         field = RiskField(risk, resolution, origin, observed=observed)
+    except ValueError as exc:
+        return {"invalid": str(exc)}
+    return _plan_on(field, params)
+
+
+def run_shared_plan(ref: GridRef, params: dict[str, Any]) -> dict[str, Any]:
+    """``run_plan`` on a published grid: the field this worker kept for it, or one read from its files.
+
+    The field keeps its dilations for the next plan on the same grid (``app.plangrids.FieldCache``).
+    """
+    field = _FIELDS.field(ref)
+    try:
+        return _plan_on(field, params)
+    finally:
+        _FIELDS.used(ref, params.get("robot_radius", 0.2), params.get("allow_unknown", True))
+
+
+def worker_fields() -> dict[str, Any]:
+    """What this worker keeps (for tests): the grids' risk files, their bytes, and how many fields it read."""
+    return {"paths": _FIELDS.paths, "bytes": _FIELDS.nbytes, "loads": _FIELDS.loads, "max_bytes": _FIELDS.max_bytes,
+            "pid": os.getpid()}
+
+
+def _plan_on(field: Any, params: dict[str, Any]) -> dict[str, Any]:
+    from planning import PlanError, plan
+
+    try:
         result = plan(field, **params)
     except PlanError as exc:
         return {"error": {"code": str(exc.code), "message": str(exc)}}
@@ -125,6 +163,9 @@ def run_plan(
             "planning_time": float(result.planning_time),
             "message": str(result.message),
             "error_code": str(result.error_code) or None,
+            "stopped_by": str(result.stopped_by),
+            "iterations": int(result.iterations),
+            "first_solution_time": _number(result.first_solution_time),
         }
     }
 
@@ -140,12 +181,17 @@ def _context() -> multiprocessing.context.BaseContext:
 
 
 class PlanPool:
-    """At most ``workers`` plans run at once; up to ``queue`` more wait; beyond that, 503."""
+    """At most ``workers`` plans run at once; up to ``queue`` more wait; beyond that, 503.
 
-    def __init__(self, *, workers: int, queue: int, native: bool = True) -> None:
+    ``field_cache_bytes``: what each worker may keep of the fields of published grids (``run_shared_plan``).
+    """
+
+    def __init__(self, *, workers: int, queue: int, native: bool = True,
+                 field_cache_bytes: int = DEFAULT_FIELD_CACHE_BYTES) -> None:
         self._workers = workers
         self._queue = queue
         self._native = native
+        self._field_cache_bytes = field_cache_bytes
         self._waiting = 0
         self._running = asyncio.Semaphore(workers)
         self._executor: concurrent.futures.ProcessPoolExecutor | None = None
@@ -207,7 +253,8 @@ class PlanPool:
             # creating the executor starts no process; submit() does
             together = self._context.Barrier(self._workers)  # passed at start: a barrier cannot travel in a task
             self._executor = concurrent.futures.ProcessPoolExecutor(
-                self._workers, mp_context=self._context, initializer=_init_worker, initargs=(self._native, together)
+                self._workers, mp_context=self._context, initializer=_init_worker,
+                initargs=(self._native, together, self._field_cache_bytes),
             )
         return self._executor
 
@@ -231,9 +278,19 @@ class PlanPool:
         self._waiting += 1
         try:
             async with self._running:
-                executor = self._ensure()
                 loop = asyncio.get_running_loop()
-                future = await loop.run_in_executor(None, self._submit, executor, fn, *args)
+                for attempt in (1, 2):
+                    executor = self._ensure()
+                    try:
+                        future = await loop.run_in_executor(None, self._submit, executor, fn, *args)
+                        break
+                    except BrokenProcessPool:
+                        # a worker died while idle (the OOM killer, a kill): this plan has not run, so it
+                        # may go to a new pool; without this, every later plan would fail the same way
+                        LOG.error("a planner worker had died; restarting the workers")
+                        self._restart(executor)
+                        if attempt == 2:
+                            raise Unavailable("the planner workers stopped unexpectedly; retry") from None
                 try:
                     return await asyncio.wait_for(asyncio.wrap_future(future), timeout_s)
                 except TimeoutError:

@@ -476,7 +476,9 @@ class PlanRequest(BaseModel):
     goal: Vector
     state_space: str | None = Field(None, description="R2 (default on 2-D maps), SE2, Dubins, ReedsShepp, R3 (3-D)")
     planner: str = "RRTstar"
-    time_limit: PositiveFinite = Field(1.0, description="seconds; at most FUZZYRISK_MAX_PLAN_TIME_S")
+    time_limit: PositiveFinite = Field(
+        1.0, description="seconds; at most FUZZYRISK_MAX_PLAN_TIME_S. A seeded plan is ended by an iteration budget "
+        "that fits this on an idle machine, so that it repeats; its clock bound is 3 x time_limit")
     robot_radius: NonNegativeFinite = 0.2
     max_risk: Annotated[float, Field(ge=0.0, le=1.0, allow_inf_nan=False)] = 0.6
     risk_weight: NonNegativeFinite = 1.0
@@ -504,6 +506,14 @@ class PlanResult(BaseModel):
         "goal) or NO_VALID_PATH (the grid "
         "planner's complete search found no path, or no candidate path passed verification)",
     )
+    stopped_by: Literal["complete", "solution", "iterations", "time_limit"] = Field(
+        description="what ended the search: the grid search ran to its end (complete), a planner that stops at its "
+        "first solution found one (solution), the iteration budget ran out (iterations: a seeded plan's, which "
+        "makes it repeat), or the clock did (time_limit; a seeded plan's clock bound is 3 x time_limit)",
+    )
+    iterations: int = Field(description="planner iterations where the planner counts them, else 0")
+    first_solution_time: float | None = Field(
+        description="seconds until the planner first held a path (null without one)")
     version: int = Field(description="the map version planned on")
 
 

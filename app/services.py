@@ -53,7 +53,7 @@ import numpy as np
 from fastapi.exceptions import RequestValidationError
 from pydantic import ValidationError
 
-from app import batches, engines, exports, warmup
+from app import batches, engines, exports, plangrids, warmup
 from app.committer import GroupCommitter
 from app.config import Settings
 from app.errors import (
@@ -66,7 +66,8 @@ from app.errors import (
     UnsupportedMediaType,
 )
 from app.metrics import Metrics
-from app.planworker import PlanPool, run_plan
+from app.plangrids import Lease, PlanGrids
+from app.planworker import PlanPool, run_plan, run_shared_plan
 from app.schemas import (
     BatchResult,
     EngineInfo,
@@ -85,6 +86,7 @@ from app.schemas import (
 )
 from app.storage import BatchRecord, NameTaken, Storage, StorageUnavailable, StoredMap
 from fuzzyocc import BayesMap, FuzzyMap, GridSpec, SensorModel
+from planning.budget import wall_clock_limit
 from planning.planners import planner_spec
 
 LOG = logging.getLogger("fuzzyrisk.maps")
@@ -223,6 +225,8 @@ class MapEntry:
     #: version at the last failed snapshot attempt (the next attempt waits snapshot_every batches more)
     snapshot_failed_version: int = 0
     deleted: bool = False
+    #: names this map among every map the process held (a deleted map's name may come back; its uid does not)
+    uid: int = field(default_factory=plangrids.new_uid)
 
     @property
     def name(self) -> str:
@@ -339,8 +343,12 @@ class MapService:
         self._parsers = ThreadPoolExecutor(settings.fusion_threads, thread_name_prefix="parse")
         self._committer = GroupCommitter(storage, metrics)
         self._plans = PlanPool(
-            workers=settings.plan_workers, queue=settings.plan_queue, native=settings.native_planning
+            workers=settings.plan_workers, queue=settings.plan_queue, native=settings.native_planning,
+            field_cache_bytes=settings.plan_cache_bytes,
         )
+        # map versions published for the planner workers, so that a plan does not copy its map's grid
+        self._grids = PlanGrids(settings.data_dir / plangrids.DIRECTORY, settings.plan_cache_bytes, self._run,
+                                metrics.plan_grid_bytes.set)
         self._limits = batches.Limits(max_scans=settings.max_scans_per_batch, max_rays=settings.max_rays_per_scan)
         self._kernels: asyncio.Task[None] | None = None
         self._kernels_error: str | None = None
@@ -356,6 +364,7 @@ class MapService:
     async def start(self) -> None:
         """Load every stored map (snapshot + replay) and, if configured, start the planner workers."""
         started = time.perf_counter()
+        await self._run(self._grids.open)  # and remove what a killed run left
         stored = await self._run(self.storage.load_all)
         for item in stored:
             entry = await self._run(_restore, item)
@@ -422,7 +431,8 @@ class MapService:
         self._committer.shutdown()
         self._plans.shutdown()
         self._parsers.shutdown(wait=True)
-        self._threads.shutdown(wait=True)
+        self._threads.shutdown(wait=True)  # grids being written included
+        self._grids.close()
         self.storage.close()
 
     async def _snapshot(self, entry: MapEntry) -> None:
@@ -515,6 +525,7 @@ class MapService:
             await self._run(self.storage.delete_map, entry.name)
             entry.deleted = True
             del self._maps[entry.name]
+            self._grids.retire(entry.uid)  # its files go now, or when the last plan on them ends
         finally:
             entry.line.done(ticket)
         self.metrics.maps.set(len(self._maps))
@@ -639,6 +650,7 @@ class MapService:
                 # MapInfo never pair the new arrays with the old version (or mix two versions)
                 entry.version, entry.scans_fused, entry.updated = result.version, entry.map.scans_fused, updated
                 entry.last_scan, entry.last_view = scans[-1], None
+                self._grids.retire(entry.uid, below=entry.version)  # no plan will ask for an older one
             if self._snapshot_due(entry):
                 await self._snapshot(entry)
             return result
@@ -665,7 +677,9 @@ class MapService:
 
         ``risk()`` and ``observed()`` already hand out new read-only arrays, so no copy is needed.
         """
-        entry = self._entry(name)
+        return await self._read_grid(self._entry(name))
+
+    async def _read_grid(self, entry: MapEntry) -> GridSnapshot:
         async with entry.apply_lock:
             risk, observed = await self._run(lambda: (entry.map.risk(), entry.map.observed()))
             return GridSnapshot(entry.spec, entry.version, risk, observed)
@@ -774,17 +788,35 @@ class MapService:
     # ---------------------------------------------------------------- plans
 
     async def plan(self, name: str, request: PlanRequest) -> PlanResult:
-        """Plan on the map's current risk in a worker process (``planning.plan`` checks the parameters)."""
+        """Plan on the map's current risk in a worker process (``planning.plan`` checks the parameters).
+
+        The worker gets the map version's published grid (``app.plangrids``), written by the first plan
+        on that version; or, when it cannot be published, the arrays themselves.
+        """
         self._check_plan(request)
         started = time.perf_counter()  # the wait for the grid is part of what the client waits for
-        grid = await self.read_grid(name)
+        entry = self._entry(name)
         params = request.model_dump(exclude_none=True)
-        outcome = "error"
+        timeout = wall_clock_limit(request.time_limit, request.seed is not None) + PLAN_GRACE_S
+        outcome, source, version = "error", "shared", entry.version
+        lease: Lease | None = self._grids.lease(entry.uid, version)  # no await since the version was read
+        grid: GridSnapshot | None = None
         try:
-            answer = await self._plans.run(
-                run_plan, request.time_limit + PLAN_GRACE_S, grid.risk, grid.observed, grid.spec.resolution,
-                grid.spec.origin, params,
-            )
+            if lease is None:
+                grid = await self._read_grid(entry)
+                source, version = "published", grid.version
+                lease = await self._grids.publish(
+                    entry.uid, grid.version, grid.risk, grid.observed, grid.spec.resolution, grid.spec.origin,
+                    current=functools.partial(_is_current, entry, grid.version),
+                )
+            self.metrics.plan_grids.labels("shipped" if lease is None else source).inc()
+            if lease is not None:
+                answer = await self._plans.run(run_shared_plan, timeout, lease.ref, params)
+            else:
+                assert grid is not None
+                answer = await self._plans.run(
+                    run_plan, timeout, grid.risk, grid.observed, grid.spec.resolution, grid.spec.origin, params
+                )
             if "error" in answer:
                 outcome = "rejected"
                 raise PlanRejected(answer["error"]["code"], answer["error"]["message"])
@@ -793,8 +825,10 @@ class MapService:
                 raise Invalid(answer["invalid"])
             result = answer["result"]
             outcome = result["status"]
-            return PlanResult(**result, version=grid.version)
+            return PlanResult(**result, version=version)
         finally:
+            if lease is not None:
+                lease.release()
             self.metrics.plan_seconds.labels(request.planner, outcome).observe(time.perf_counter() - started)
 
     def _check_plan(self, request: PlanRequest) -> None:
@@ -808,6 +842,11 @@ class MapService:
             planner_spec(request.planner)  # lists the planners that work
         except ValueError as exc:
             raise Invalid(str(exc)) from None
+
+
+def _is_current(entry: MapEntry, version: int) -> bool:
+    """Is ``version`` still the version of the map that ``entry`` holds?"""
+    return not entry.deleted and entry.version == version
 
 
 async def _shielded(work: Coroutine[Any, Any, T]) -> T:

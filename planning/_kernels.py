@@ -408,7 +408,15 @@ def _octile(a0: int, a1: int, a2: int, b0: int, b1: int, b2: int) -> float:
 
 @njit(cache=True)
 def grid_search(
-    buf: np.ndarray, start: int, goal: int, parent: np.ndarray, pos: np.ndarray, keys: np.ndarray, nodes: np.ndarray
+    buf: np.ndarray,
+    risk: np.ndarray,
+    valid: np.ndarray,
+    start: int,
+    goal: int,
+    parent: np.ndarray,
+    pos: np.ndarray,
+    keys: np.ndarray,
+    nodes: np.ndarray,
 ) -> tuple[np.ndarray, bool, float]:
     """A* over valid cells, 8-connected in a plane and 26-connected in 3-D.
 
@@ -419,10 +427,13 @@ def grid_search(
     because every edge costs at least that much per metre (on a building's map free space is
     at risk 0.033, not 0: the floor saves a tenth of the expansions).
 
-    ``parent``, ``pos``, ``nodes`` (int64) and ``keys`` (float64) are scratch arrays of one
-    entry per cell, left uninitialised: :func:`planning.grid_search.grid_path` makes them
+    ``buf`` gives the header (shape, resolution, weight, risk floor); ``risk`` (float32) and
+    ``valid`` (bool) are the packed grid's own flat arrays, read instead of the buffer's
+    float64 copies: a quarter of the bytes per neighbour for the validity test, half for the
+    risk. ``parent``, ``pos``, ``nodes`` (int32) and ``keys`` (float64) are scratch arrays of
+    one entry per cell, left uninitialised: :func:`planning.grid_search.grid_path` makes them
     with NumPy's ``empty``, which does not write them (numba's fills every new array with a
-    debug pattern: 9 ms for these four on a 2 M-cell map, more than most searches take).
+    debug pattern: 9 ms for four of them on a 2 M-cell map, more than most searches take).
 
     Returns (cell indices from ``start`` to the goal, or to the reached cell nearest to
     it when the goal is unreachable; reached the goal; cost of that cell chain).
@@ -434,8 +445,6 @@ def grid_search(
     res = 1.0 / buf[H_INV_RES]
     w = buf[H_WEIGHT]
     h_scale = res * (1.0 + w * buf[H_RISK_FLOOR])
-    risk = buf[HEADER : HEADER + n]
-    valid = buf[HEADER + n : HEADER + 2 * n]
 
     # neighbour offsets: in-plane only when the grid is one cell deep
     zr = 1 if nz > 1 else 0
@@ -474,7 +483,7 @@ def grid_search(
     pos[start] = 0
     size = 1
     best = start
-    best_h = keys[0]
+    best_h = np.inf  # squared distance in cells from the goal of the nearest expanded cell
     reached = False
     while size > 0:
         c = nodes[0]
@@ -489,14 +498,19 @@ def grid_search(
             reached = True
             best = c
             break
-        ck = c % nz
-        cj = (c // nz) % ny
-        ci = c // (nz * ny)
-        hc = res * math.sqrt((ci - gi) ** 2 + (cj - gj) ** 2 + (ck - gk) ** 2)
+        if nz == 1:  # a plane: one division instead of three
+            ci = c // ny
+            cj = c - ci * ny
+            ck = 0
+        else:
+            ck = c % nz
+            cj = (c // nz) % ny
+            ci = c // (nz * ny)
+        hc = (ci - gi) ** 2 + (cj - gj) ** 2 + (ck - gk) ** 2
         if hc < best_h:
             best_h = hc
             best = c
-        rc = risk[c]
+        rc = float(risk[c])  # float64 sums, as the cost of a path is measured
         for e in range(m):
             ni = ci + off_i[e]
             nj = cj + off_j[e]
@@ -506,9 +520,9 @@ def grid_search(
             nb = (ni * ny + nj) * nz + nk
             gn = g[nb]
             seen = gn < np.inf
-            if (seen and pos[nb] == _CLOSED) or valid[nb] == 0.0:
+            if (seen and pos[nb] == _CLOSED) or not valid[nb]:
                 continue
-            ng = g[c] + off_len[e] * (1.0 + w * 0.5 * (rc + risk[nb]))
+            ng = g[c] + off_len[e] * (1.0 + w * 0.5 * (rc + float(risk[nb])))
             if ng < gn:
                 g[nb] = ng
                 parent[nb] = c

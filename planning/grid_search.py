@@ -34,9 +34,11 @@ def grid_path(grid: PackedGrid, start: tuple[float, ...], goal: tuple[float, ...
     g = grid.cell_index(goal)
     assert s is not None and g is not None
     n = grid.valid.size
-    scratch = [np.empty(n, dtype=np.int64) for _ in range(3)]  # parent, pos, nodes: never written here
-    chain, reached, graph_cost = _kernels.grid_search(grid.buffer, s, g, scratch[0], scratch[1], np.empty(n),
-                                                      scratch[2])
+    index = np.int32 if n < 2**31 else np.int64  # half the bytes the search touches per cell
+    parent, pos, nodes = (np.empty(n, dtype=index) for _ in range(3))  # never written here
+    chain, reached, graph_cost = _kernels.grid_search(
+        grid.buffer, grid.risk.reshape(-1), grid.valid.reshape(-1), s, g, parent, pos, np.empty(n), nodes
+    )
     cells = np.stack(np.unravel_index(chain, grid.shape), axis=1)
     centres = np.asarray(grid.origin) + (cells + 0.5) * grid.resolution
     # the start (goal) and its cell's centre share one convex valid cell: the joins are valid

@@ -453,6 +453,7 @@ def _result(
         return PlanResult("none", empty, nan, nan, nan, nan, planner, sspec.name,
                           time.perf_counter() - t0, message, iterations, nan, error_code, stopped_by)  # fmt: skip
     m = grid.evaluate(measure_points[:, : grid.ndim])
+    elapsed = time.perf_counter() - t0
     if m.length > 0:
         mean = m.integral / m.length
     else:
@@ -466,10 +467,10 @@ def _result(
         m.length + grid.risk_weight * m.integral,
         planner,
         sspec.name,
-        time.perf_counter() - t0,
+        elapsed,
         message,
         iterations,
-        first_solution_time if first_solution_time is not None else time.perf_counter() - t0,
+        first_solution_time if first_solution_time is not None else elapsed,
         error_code,
         stopped_by,  # type: ignore[arg-type]
     )

@@ -5,6 +5,7 @@ from __future__ import annotations
 import asyncio
 import math
 import os
+import signal
 import time
 
 import numpy as np
@@ -34,6 +35,24 @@ def test_a_crashed_worker_is_replaced() -> None:
             with pytest.raises(Unavailable, match="stopped unexpectedly"):
                 await pool.run(os._exit, 30.0, 3)  # as a segfault in OMPL would
             assert await pool.run(math.sqrt, 30.0, 9.0) == 3.0
+        finally:
+            pool.shutdown()
+
+    asyncio.run(scenario())
+
+
+def test_a_worker_that_died_while_idle_is_replaced_for_the_next_task() -> None:
+    async def scenario() -> None:
+        pool = PlanPool(workers=1, queue=1)
+        try:
+            pid = await pool.run(os.getpid, 30.0)
+            os.kill(pid, signal.SIGKILL)  # the OOM killer, between two plans
+            for _ in range(100):  # until the pool has noticed (it is then broken for every later task)
+                if pool._executor is not None and pool._executor._broken:  # type: ignore[attr-defined]
+                    break
+                await asyncio.sleep(0.05)
+            assert await pool.run(math.sqrt, 30.0, 25.0) == 5.0  # this task had not run: it goes to a new worker
+            assert await pool.run(os.getpid, 30.0) != pid
         finally:
             pool.shutdown()
 

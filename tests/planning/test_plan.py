@@ -438,6 +438,7 @@ def test_a_result_says_what_ended_the_search(kwargs: dict, stopped_by: str) -> N
     field = _maze_field()
     result = plan(field, (0.5, 0.5), (0.5, 3.6), robot_radius=0.05, **kwargs)
     assert result.status == "exact" and result.stopped_by == stopped_by
+    assert 0.0 < result.first_solution_time <= result.planning_time
 
 
 def test_a_seeded_plans_clock_bound_is_a_multiple_of_its_time_limit() -> None:
