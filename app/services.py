@@ -645,7 +645,13 @@ class MapService:
                 # a batch that fails here keeps its version taken (the map's version skips it): a
                 # later batch may have committed with the next one meanwhile, and should its
                 # removal from the log have failed too, the row is still there under this version
-                result = await self._run(self._apply, entry, version, scans)
+                try:
+                    result = await self._run(self._apply, entry, version, scans)
+                except BaseException:
+                    # the map may have changed in part (issue 11): a grid published for its
+                    # current version would no longer be that map
+                    self._grids.retire(entry.uid)
+                    raise
                 # assigned here, on the event loop and under the apply lock, so that a reader and
                 # MapInfo never pair the new arrays with the old version (or mix two versions)
                 entry.version, entry.scans_fused, entry.updated = result.version, entry.map.scans_fused, updated

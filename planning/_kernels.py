@@ -417,6 +417,7 @@ def grid_search(
     pos: np.ndarray,
     keys: np.ndarray,
     nodes: np.ndarray,
+    max_expansions: int,
 ) -> tuple[np.ndarray, bool, float]:
     """A* over valid cells, 8-connected in a plane and 26-connected in 3-D.
 
@@ -434,6 +435,9 @@ def grid_search(
     one entry per cell, left uninitialised: :func:`planning.grid_search.grid_path` makes them
     with NumPy's ``empty``, which does not write them (numba's fills every new array with a
     debug pattern: 9 ms for four of them on a 2 M-cell map, more than most searches take).
+
+    ``max_expansions`` > 0 ends the search after that many expansions, as if the goal were
+    unreachable (the bound of a grid seed's time); -1 searches to the end.
 
     Returns (cell indices from ``start`` to the goal, or to the reached cell nearest to
     it when the goal is unreachable; reached the goal; cost of that cell chain).
@@ -485,7 +489,11 @@ def grid_search(
     best = start
     best_h = np.inf  # squared distance in cells from the goal of the nearest expanded cell
     reached = False
+    expansions = 0
     while size > 0:
+        if expansions == max_expansions:
+            break
+        expansions += 1
         c = nodes[0]
         size -= 1
         pos[c] = _CLOSED
@@ -510,7 +518,7 @@ def grid_search(
         if hc < best_h:
             best_h = hc
             best = c
-        rc = float(risk[c])  # float64 sums, as the cost of a path is measured
+        rc = np.float64(risk[c])  # float64 sums, as the cost of a path is measured
         for e in range(m):
             ni = ci + off_i[e]
             nj = cj + off_j[e]
@@ -522,7 +530,7 @@ def grid_search(
             seen = gn < np.inf
             if (seen and pos[nb] == _CLOSED) or not valid[nb]:
                 continue
-            ng = g[c] + off_len[e] * (1.0 + w * 0.5 * (rc + float(risk[nb])))
+            ng = g[c] + off_len[e] * (1.0 + w * 0.5 * (rc + np.float64(risk[nb])))
             if ng < gn:
                 g[nb] = ng
                 parent[nb] = c

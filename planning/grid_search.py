@@ -24,11 +24,14 @@ class GridPath:
     graph_cost: float  # cost of the cell chain alone, as the search summed it
 
 
-def grid_path(grid: PackedGrid, start: tuple[float, ...], goal: tuple[float, ...]) -> GridPath:
+def grid_path(
+    grid: PackedGrid, start: tuple[float, ...], goal: tuple[float, ...], max_expansions: int | None = None
+) -> GridPath:
     """Cheapest chain of valid cells from the start's cell to the goal's.
 
     Start and goal must lie in valid cells (``plan`` checks them first). When the goal is
-    unreachable the chain ends at the reached cell nearest to it (an approximate path).
+    unreachable, or not reached within ``max_expansions`` expanded cells, the chain ends at
+    the expanded cell nearest to it (an approximate path).
     """
     s = grid.cell_index(start)
     g = grid.cell_index(goal)
@@ -37,7 +40,8 @@ def grid_path(grid: PackedGrid, start: tuple[float, ...], goal: tuple[float, ...
     index = np.int32 if n < 2**31 else np.int64  # half the bytes the search touches per cell
     parent, pos, nodes = (np.empty(n, dtype=index) for _ in range(3))  # never written here
     chain, reached, graph_cost = _kernels.grid_search(
-        grid.buffer, grid.risk.reshape(-1), grid.valid.reshape(-1), s, g, parent, pos, np.empty(n), nodes
+        grid.buffer, grid.risk.reshape(-1), grid.valid.reshape(-1), s, g, parent, pos, np.empty(n), nodes,
+        -1 if max_expansions is None else max(1, int(max_expansions)),
     )
     cells = np.stack(np.unravel_index(chain, grid.shape), axis=1)
     centres = np.asarray(grid.origin) + (cells + 0.5) * grid.resolution

@@ -73,10 +73,12 @@ SEEDED_BUDGET_SHARE = 0.6
 #: Spaces where a sampling plan is seeded with the grid planner's path (``_grid_seed``); curved
 #: motions cannot follow a cell chain, and a 26-connected search of a large 3-D map is not cheap.
 GRID_SEEDED_SPACES = ("R2", "SE2")
-#: Seconds the grid search spends per cell when it explores every one (measured on a 2 M-cell
-#: building map, about 45 ns; rounded up), and the share of a plan's time limit it may take.
-GRID_SEED_S_PER_CELL = 60e-9
-GRID_SEED_SHARE = 0.5
+#: Seconds the grid search spends per expanded cell, at most (measured: 160-240 ns on open maps
+#: of 40 k and 2 M cells on a loaded 2-core machine, 250 ns on building maps), and the share of a
+#: plan's time limit a grid seed may take (building maps' searches need 40-220 k expansions, a
+#: quarter of 1 s buys 830 k): its search stops after that many expansions.
+GRID_SEED_S_PER_EXPANSION = 300e-9
+GRID_SEED_SHARE = 0.25
 CLOCK_NOTE = ("stopped by the wall-clock bound (3 x time_limit for a seeded plan) before the seeded iteration "
               "budget; the path may differ between runs")
 
@@ -504,13 +506,15 @@ def _grid_seed(
     In the planar spaces with straight motions (``GRID_SEEDED_SPACES``) a sampling plan first
     runs the grid search (tens of milliseconds on a building's map): its path is a candidate
     beside the sampling planner's, so a plan is exact wherever the cell graph reaches the goal,
-    and the cheaper verified path wins. The search cannot be interrupted, so it runs only when
-    even a search of every cell fits in ``GRID_SEED_SHARE`` of the time limit. (None, None)
-    when it does not run, or when the goal is unreachable.
+    and the cheaper verified path wins. The search reads no clock, so it is bounded by a count
+    of expansions worth ``GRID_SEED_SHARE`` of the time limit (a count, not the clock: a seeded
+    plan gets the same seed on a loaded machine). (None, None) in other spaces, or when the
+    goal is unreachable or not reached within that count.
     """
-    if sspec.name not in GRID_SEEDED_SPACES or grid.valid.size * GRID_SEED_S_PER_CELL > GRID_SEED_SHARE * time_limit:
+    if sspec.name not in GRID_SEEDED_SPACES:
         return None, None
-    found = grid_path(grid, start[: grid.ndim], goal[: grid.ndim])
+    budget = int(GRID_SEED_SHARE * time_limit / GRID_SEED_S_PER_EXPANSION)
+    found = grid_path(grid, start[: grid.ndim], goal[: grid.ndim], max_expansions=budget)
     if not found.reached:
         return None, None
     return _drop_collinear(found.positions), time.perf_counter() - t0
@@ -645,8 +649,9 @@ def _pick(
     """
     res = grid.resolution
     options: list[tuple[float, np.ndarray, np.ndarray]] = []
-    polylines: list[tuple[np.ndarray, float, float]] = [  # positions, start and end heading (SE2)
-        (seed[:, : grid.ndim], start[-1], goal[-1]) for seed in seeds
+    se2 = sspec.name == "SE2"
+    polylines: list[tuple[np.ndarray, float, float]] = [  # positions, start and end heading (SE2 only)
+        (seed[:, : grid.ndim], start[2] if se2 else 0.0, goal[2] if se2 else 0.0) for seed in seeds
     ]
     for path in candidates:
         if exact_pdef is not None and not exact_pdef.getGoal().isSatisfied(path.getState(path.getStateCount() - 1)):
@@ -667,12 +672,14 @@ def _pick(
             target = np.asarray(goal[: grid.ndim])
             if np.any(positions[-1] != target) and grid.evaluate(np.vstack([positions[-1], target])).valid:
                 positions = np.vstack([positions, target])
-        end_yaw = goal[-1] if exact_pdef is not None else vertices[-1, -1]
-        polylines.append((positions, vertices[0, -1], end_yaw))
+        if se2:
+            polylines.append((positions, vertices[0, 2], goal[2] if exact_pdef is not None else vertices[-1, 2]))
+        else:
+            polylines.append((positions, 0.0, 0.0))
     for positions, yaw0, yaw1 in polylines:
         for pts in (positions[grid.shortcut(positions)], positions):
             dense = _interpolate_straight(pts, res)
-            if sspec.name == "SE2":
+            if se2:
                 # heading is free in plain SE2 (position-only cost, footprint a disk): turn
                 # steadily from the start's heading to the goal's (or the last state's)
                 dense = np.column_stack([dense, _steady_heading(dense, yaw0, yaw1)])

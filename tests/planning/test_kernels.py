@@ -77,12 +77,13 @@ def test_a_segment_through_a_corner_touches_the_side_cells_for_no_length() -> No
     assert not _kernels.segment_free_2d(buf.ctypes.data, 1.5, 1.5, 2.5, 2.6)
 
 
-def test_grid_search_cost_is_the_shortest_path_of_the_cell_graph() -> None:
+@pytest.mark.parametrize("floor", [0.0, 0.3])  # 0.3: every cell risky, the heuristic scaled by 1 + w 0.3
+def test_grid_search_cost_is_the_shortest_path_of_the_cell_graph(floor: float) -> None:
     rng = np.random.default_rng(8)
     n = 30
-    risk = (rng.random((n, n)) * 0.5).astype(np.float32)
+    risk = (floor + rng.random((n, n)) * 0.25).astype(np.float32)
     risk[rng.random((n, n)) < 0.25] = 1.0
-    risk[0, 0] = risk[-1, -1] = 0.0
+    risk[0, 0] = risk[-1, -1] = floor
     field = RiskField(risk, RES, (0.0, 0.0))
     grid = PackedGrid(field, 0.0, 0.6, True, 1.5)
     found = grid_path(grid, (0.05, 0.05), ((n - 0.5) * RES, (n - 0.5) * RES))
@@ -104,6 +105,15 @@ def test_grid_search_cost_is_the_shortest_path_of_the_cell_graph() -> None:
     dist = csgraph.dijkstra(graph.tocsr(), directed=False, indices=0)
     assert found.reached
     assert found.graph_cost == pytest.approx(dist[n * n - 1], rel=1e-9)
+
+
+def test_grid_search_stops_after_its_expansion_budget() -> None:
+    field = RiskField(np.zeros((40, 40), np.float32), RES, (0.0, 0.0))
+    grid = PackedGrid(field, 0.0, 0.6, True, 1.0)
+    start, goal = (0.05, 0.05), (3.95, 3.95)  # 39 diagonal steps apart: 40 expansions on open floor
+    assert not grid_path(grid, start, goal, max_expansions=39).reached
+    found = grid_path(grid, start, goal, max_expansions=40)
+    assert found.reached and found.graph_cost == pytest.approx(39 * math.sqrt(2) * RES)
 
 
 def test_grid_search_reports_an_unreachable_goal() -> None:

@@ -231,13 +231,13 @@ def _maze_field() -> RiskField:
 @pytest.mark.parametrize(("planner", "space"), [("RRTstar", "R2"), ("RRTstar", "SE2")])
 def test_a_sampling_plan_is_exact_wherever_the_grid_reaches_the_goal(planner: str, space: str) -> None:
     field = _maze_field()
-    start, goal = ((0.5, 0.5), (0.5, 3.6)) if space == "R2" else ((0.5, 0.5, 0.0), (0.5, 3.6, 1.0))
+    start, goal = ((0.5, 0.5), (3.6, 0.5)) if space == "R2" else ((0.5, 0.5, 0.0), (3.6, 0.5, 1.0))
     kwargs = dict(planner=planner, state_space=space, time_limit=10.0, max_iterations=20, robot_radius=0.05,
                   seed=3)  # fmt: skip
     alone = plan(field, start, goal, grid_seed=False, **kwargs)
     seeded = plan(field, start, goal, **kwargs)
     grid = plan(field, start[:2], goal[:2], planner="grid", robot_radius=0.05)
-    assert alone.status != "exact"  # 20 iterations do not find the way through the bends
+    assert alone.status != "exact"  # 20 iterations do not find the way round the three walls
     assert seeded.status == "exact" and seeded.error_code == ""
     assert "grid planner's seed" in seeded.message
     assert np.allclose(seeded.path[-1, :2], goal[:2]) and np.allclose(seeded.path[0, :2], start[:2])
@@ -260,15 +260,27 @@ def test_a_seeded_sampling_plan_keeps_its_own_path_when_cheaper() -> None:
     assert seeded.cost == pytest.approx(min(alone.cost, grid.cost), abs=1e-9)
 
 
-def test_no_grid_seed_when_a_search_of_the_map_may_not_fit_in_the_time_limit() -> None:
-    field = _maze_field()  # 6400 cells: a full search may take 0.4 ms, more than half of 0.5 ms
-    result = plan(field, (0.5, 0.5), (0.5, 3.6), planner="RRTstar", time_limit=0.0005, seed=3, max_iterations=20)
+def test_no_grid_seed_when_its_search_does_not_reach_the_goal_in_its_share_of_the_time_limit() -> None:
+    field = _maze_field()  # the way is about 280 cells long: more than the 166 expansions half of 0.1 ms buys
+    result = plan(field, (0.5, 0.5), (3.6, 0.5), planner="RRTstar", time_limit=0.0001, seed=3, max_iterations=20)
     assert result.status != "exact" and "grid planner's seed" not in result.message
+
+
+def test_a_grid_seed_keeps_to_its_share_of_the_time_limit_when_the_goal_is_unreachable() -> None:
+    # 2 M open cells and a goal walled in: a full search would take most of a second
+    risk = np.zeros((1414, 1414), np.float32)
+    risk[1300:1310, 1300:] = risk[1300:, 1300:1310] = 1.0
+    field = RiskField(risk, RES, (0.0, 0.0))
+    planning.warm_up("R2")  # the one-time compilation is not the plan's
+    began = time.perf_counter()
+    result = plan(field, (1.0, 1.0), (70.0, 70.0), planner="RRTConnect", time_limit=0.25, robot_radius=0.0)
+    assert time.perf_counter() - began <= 0.25 + 0.15 and result.planning_time <= 0.25 + 0.1
+    assert "grid planner's seed" not in result.message and result.status != "exact"
 
 
 def test_grid_seed_must_be_a_bool() -> None:
     with pytest.raises(ValueError, match="grid_seed"):
-        plan(_maze_field(), (0.5, 0.5), (0.5, 3.6), grid_seed="yes")  # type: ignore[arg-type]
+        plan(_maze_field(), (0.5, 0.5), (3.6, 0.5), grid_seed="yes")  # type: ignore[arg-type]
 
 
 # ---------------------------------------------------------------- the time limit
@@ -436,7 +448,7 @@ def test_the_first_plan_on_a_cold_compiler_cache_is_not_cut_short_by_compilation
 ])  # fmt: skip
 def test_a_result_says_what_ended_the_search(kwargs: dict, stopped_by: str) -> None:
     field = _maze_field()
-    result = plan(field, (0.5, 0.5), (0.5, 3.6), robot_radius=0.05, **kwargs)
+    result = plan(field, (0.5, 0.5), (3.6, 0.5), robot_radius=0.05, **kwargs)
     assert result.status == "exact" and result.stopped_by == stopped_by
     assert 0.0 < result.first_solution_time <= result.planning_time
 
