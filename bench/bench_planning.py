@@ -547,9 +547,12 @@ def real_maps(logs: list[str], pairs: int, planners: list[str], time_limit: floa
         mine = [r for r in runs if r.label == p]
         k = sum(r.in_time(time_limit) for r in mine)
         ok = bool(mine) and k >= 0.95 * len(mine)
+        # the target is on what plan() gives by default; a sampler alone is printed for reference
+        verdict = ("at or above 95 %" if ok else "below 95 %") + " (for reference: not a target)" if any(
+            r.alone for r in mine) else ("met" if ok else "NOT met")
         print(f"  {p} exact on >= 95 % of queries within {time_limit:g} s (+ {1000 * _real_plans.OVERRUN_S:.0f} ms): "
               f"{_frac(k, len(mine))}, longest plan {_ms(max((r.plan_s for r in mine), default=math.nan))} ms: "
-              f"{'met' if ok else 'NOT met'}")
+              f"{verdict}")
     if timings:
         ratio = statistics.median([t.ratio for t in timings])
         n_ok = sum(t.ratio <= 1.0 for t in timings)
