@@ -542,10 +542,12 @@ class MapService:
         media = content_type.split(";")[0].strip().lower()
         if media in batches.BINARY_TYPES:
             return batches.from_binary(body, params, dims, self._limits)
-        if media not in ("application/json", ""):
+        if media != "application/json":
+            # none at all is refused too: a web page can send a body without one, and without a
+            # CORS preflight (issue 11: a browser's no-cors fetch injected scans)
+            given = f"Content-Type {media!r} is not accepted" if media else "a scan upload needs a Content-Type"
             raise UnsupportedMediaType(
-                f"Content-Type {media!r} is not accepted: send application/json, or a binary scan as "
-                f"{' or '.join(batches.BINARY_TYPES)}"
+                f"{given}: send application/json, or a binary scan as {' or '.join(batches.BINARY_TYPES)}"
             )
         try:
             batch = ScanBatch.model_validate_json(body)

@@ -13,6 +13,15 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+#: Largest |coordinate| of a map's box, metres: UTM northings (10,000 km) fit; beyond, float64 cell
+#: centres lose sub-millimetre precision and the box stops meaning anything (an origin of 1e300
+#: made every cell of a 10 m map the same point).
+MAX_COORDINATE_M = 1e7
+#: Largest sensor uncertainty accepted, metres (and metres per metre of range): beyond it every
+#: beam is evidence of nothing.
+MAX_SIGMA_M = 10.0
+MAX_SIGMA_PER_M = 1.0
+
 #: Default bound on the number of cells of one map (dense storage, about L + 2 bytes a cell for a
 #: fuzzy map of L labels: 13 for the default engine).
 DEFAULT_MAX_CELLS = 64_000_000
@@ -37,7 +46,8 @@ class GridSpec:
     Parameters
     ----------
     origin : sequence of 2 or 3 float
-        Corner of cell 0 in the map frame, metres.
+        Corner of cell 0 in the map frame, metres; the box must lie within
+        ``MAX_COORDINATE_M`` of the frame's origin.
     size : sequence of 2 or 3 float
         Extent of the region along x, y[, z], metres; rounded up to whole cells.
     resolution : float
@@ -61,6 +71,17 @@ class GridSpec:
             raise ValueError(f"resolution must be a positive number of metres, got {self.resolution!r}")
         if any(s <= 0.0 for s in size):
             raise ValueError(f"size must be positive along every axis, got {size}")
+        far = max(max(abs(o), abs(o + s)) for o, s in zip(origin, size))
+        if far > MAX_COORDINATE_M:
+            raise ValueError(f"origin {origin} and size {size} reach {far:.3g} m from the frame's origin, beyond "
+                             f"{MAX_COORDINATE_M:.0e} m: use a local map frame")
+        # counted in floats first: size / resolution can overflow an integer (1e300 / 1e-300)
+        along = [s / res for s in size]
+        if math.prod(along) > self.max_cells:
+            raise ValueError(
+                f"size {size} at resolution {res} m needs about {math.prod(along):.3g} cells, more than the limit "
+                f"of {self.max_cells}; use a coarser resolution or a smaller region"
+            )
         object.__setattr__(self, "origin", origin)
         object.__setattr__(self, "size", size)
         object.__setattr__(self, "resolution", res)
@@ -108,11 +129,13 @@ class SensorModel:
     Parameters
     ----------
     range_sigma : float
-        Standard deviation of a range reading, metres (0.03 is a typical 2-D lidar).
+        Standard deviation of a range reading, metres (0.03 is a typical 2-D lidar); at most
+        ``MAX_SIGMA_M``.
     registration_sigma : float
-        Standard deviation of the pose estimate along the beam, metres.
+        Standard deviation of the pose estimate along the beam, metres; at most ``MAX_SIGMA_M``.
     range_sigma_per_m : float
-        Growth of ``range_sigma`` with range, metres per metre (0 for a constant).
+        Growth of ``range_sigma`` with range, metres per metre (0 for a constant); at most
+        ``MAX_SIGMA_PER_M``.
     """
 
     range_sigma: float = 0.03
@@ -120,10 +143,11 @@ class SensorModel:
     range_sigma_per_m: float = 0.0
 
     def __post_init__(self) -> None:
-        for name in ("range_sigma", "registration_sigma", "range_sigma_per_m"):
+        for name, high, unit in (("range_sigma", MAX_SIGMA_M, "m"), ("registration_sigma", MAX_SIGMA_M, "m"),
+                                 ("range_sigma_per_m", MAX_SIGMA_PER_M, "m per m")):
             value = float(getattr(self, name))
-            if not math.isfinite(value) or value < 0.0:
-                raise ValueError(f"{name} must be a finite number >= 0, got {getattr(self, name)!r}")
+            if not math.isfinite(value) or value < 0.0 or value > high:
+                raise ValueError(f"{name} must be a number in [0, {high:g}] {unit}, got {getattr(self, name)!r}")
             object.__setattr__(self, name, value)
 
     def sigma(self, ranges: np.ndarray, extra_registration_sigma: float = 0.0) -> np.ndarray:

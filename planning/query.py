@@ -70,6 +70,10 @@ SEEDED_SIMPLIFY_CHECKS = 20_000  # termination checks a seeded simplification ma
 # a seeded solve's default count is this share of what the calibrated rate fits in the solve's
 # seconds: headroom so that the count, not the clock, ends it on an unloaded machine
 SEEDED_BUDGET_SHARE = 0.6
+#: Bounds a plan's parameters get from its map (``_max_robot_radius``): a robot's dilation may
+#: cost at most this many (cell x cell of radius), about 10 s; the risk weight at most this.
+MAX_DILATION_WORK = 1e9
+MAX_RISK_WEIGHT = 1e4
 #: Spaces where a sampling plan is seeded with the grid planner's path (``_grid_seed``); curved
 #: motions cannot follow a cell chain, and a 26-connected search of a large 3-D map is not cheap.
 GRID_SEEDED_SPACES = ("R2", "SE2")
@@ -97,6 +101,17 @@ def _number(name: str, value: Any, *, low: float, low_open: bool = False, high: 
             bound += f" and <= {high}"
         raise ValueError(f"{name}: must be a finite number {bound}, got {value!r}")
     return x
+
+
+def _max_robot_radius(field: RiskField, diagonal: float) -> float:
+    """Half the map's diagonal, and no wider than a dilation of ``MAX_DILATION_WORK`` cell-radii.
+
+    The dilation by the robot (``field.py``) costs about the map's cells times the radius in
+    cells (1 s for 1 M cells and 100 cells of radius on 2 cores): a radius of a million metres
+    asked for petabytes, so the bound is what the map makes sensible, checked before any work.
+    """
+    cells = max(1, math.prod(field.shape))
+    return min(0.5 * diagonal, field.resolution * max(1.0, MAX_DILATION_WORK / cells))
 
 
 def _point(name: str, value: Any, size: int, space: str) -> tuple[float, ...]:
@@ -292,11 +307,12 @@ def plan(
         seeded plan is ended by its iteration budget, sized to fit this on an idle machine;
         its clock bound is ``SEEDED_CLOCK_FACTOR`` (3) times this (``planning.wall_clock_limit``).
     robot_radius : float
-        Metres, >= 0.
+        Metres, >= 0, at most half the map's diagonal and what a dilation of
+        ``MAX_DILATION_WORK`` cell-radii allows on this map (``_max_robot_radius``).
     max_risk : float
         In [0, 1]: a position is valid when the dilated risk there is at most this.
     risk_weight : float
-        >= 0: cost is ``length + risk_weight * integral of dilated risk`` (metres x risk).
+        In [0, ``MAX_RISK_WEIGHT``]: cost is ``length + risk_weight * integral of dilated risk`` (metres x risk).
     allow_unknown : bool
         False forbids positions whose footprint overlaps never-observed cells, whatever
         ``max_risk`` says.
@@ -305,9 +321,10 @@ def plan(
         docstring) so the same seed gives the same path.
     goal_tolerance : float or None
         Distance (in the state space's metric) within which the goal counts as reached;
-        default one cell.
+        default one cell; at most the map's diagonal.
     turning_radius : float or None
-        Metres, > 0; required by Dubins and ReedsShepp, ignored otherwise.
+        Metres, > 0 and at most the map's diagonal; required by Dubins and ReedsShepp,
+        ignored otherwise.
     max_iterations : int or None
         Bound the solve by this many termination checks (about planner iterations) as well
         as by time; with a seed, replaces the default budget.
@@ -338,16 +355,19 @@ def plan(
     if pspec.make is None and sspec.name not in ("R2", "R3"):
         raise ValueError(f"planner: {GRID!r} plans in R2 and R3 only, not in {sspec.name}")
     time_limit = _number("time_limit", time_limit, low=0.0, low_open=True)
-    robot_radius = _number("robot_radius", robot_radius, low=0.0)
+    diagonal = math.hypot(*(n * field.resolution for n in field.shape))
+    robot_radius = _number("robot_radius", robot_radius, low=0.0, high=_max_robot_radius(field, diagonal))
     max_risk = _number("max_risk", max_risk, low=0.0, high=1.0)
-    risk_weight = _number("risk_weight", risk_weight, low=0.0)
+    risk_weight = _number("risk_weight", risk_weight, low=0.0, high=MAX_RISK_WEIGHT)
     tolerance = (
-        field.resolution if goal_tolerance is None else _number("goal_tolerance", goal_tolerance, low=0.0, low_open=True)
+        field.resolution if goal_tolerance is None
+        else _number("goal_tolerance", goal_tolerance, low=0.0, low_open=True, high=diagonal)
     )
     if sspec.curved:
         if turning_radius is None:
             raise ValueError(f"turning_radius: required by {sspec.name}")
-        turning_radius = _number("turning_radius", turning_radius, low=0.0, low_open=True)
+        # a turning circle wider than the map cannot turn in it (and OMPL's curves lose precision)
+        turning_radius = _number("turning_radius", turning_radius, low=0.0, low_open=True, high=diagonal)
     if seed is not None and (isinstance(seed, bool) or not isinstance(seed, int | np.integer) or not 0 <= seed < 2**32):
         raise ValueError(f"seed: must be an integer in [0, 2**32), got {seed!r}")
     if max_iterations is not None and (

@@ -1,5 +1,6 @@
 from fastapi.testclient import TestClient
 
+from app.config import Settings
 from app.main import create_app
 
 
@@ -8,3 +9,12 @@ def test_health_answers_ok() -> None:
     response = client.get("/health")
     assert response.status_code == 200
     assert response.json() == {"status": "ok"}
+
+
+def test_health_and_ready_answer_head_as_get_without_a_body(tmp_path) -> None:
+    # load balancers and `curl -I` probe with HEAD (it was 405)
+    with TestClient(create_app(Settings(data_dir=tmp_path, plan_warmup=False, plan_workers=1))) as client:
+        head, get = client.head("/health"), client.get("/health")
+        assert head.status_code == get.status_code == 200 and head.content == b""
+        ready_head, ready_get = client.head("/ready"), client.get("/ready")
+        assert ready_head.status_code == ready_get.status_code and ready_head.content == b""

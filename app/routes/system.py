@@ -17,6 +17,12 @@ async def health() -> Health:
     return Health(status="ok")
 
 
+# HEAD too, for load balancers and `curl -I` (a route of its own: one method per OpenAPI operation id)
+@router.head("/health", include_in_schema=False)
+async def health_head() -> Response:
+    return Response(status_code=200)
+
+
 @router.get("/ready", response_model=Readiness, responses={503: {"model": Readiness, "description": "not ready yet"}})
 async def ready(service: ServiceDep, response: Response) -> Readiness:
     """200 once the maps are loaded, the fusion kernels compiled and the planner workers up; 503 until then
@@ -26,6 +32,12 @@ async def ready(service: ServiceDep, response: Response) -> Readiness:
         response.status_code = 503
         response.headers["Retry-After"] = "1"
     return readiness
+
+
+@router.head("/ready", include_in_schema=False)
+async def ready_head(service: ServiceDep) -> Response:
+    ready_now = service.readiness().status == "ready"
+    return Response(status_code=200 if ready_now else 503, headers={} if ready_now else {"Retry-After": "1"})
 
 
 @router.get("/metrics", response_class=Response, responses={200: {"content": {CONTENT_TYPE_LATEST: {}}}})

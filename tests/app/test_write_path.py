@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import asyncio
 import io
+import json
 import sqlite3
 import struct
 import threading
@@ -294,6 +295,16 @@ def test_the_query_is_checked_before_the_content_type_and_for_json_too(lab: Test
     body = _bodies(kit, 1)[0]
     assert lab.post("/maps/lab/scans", params={"x": "inf"}, json=body).status_code == 422
     assert lab.post("/maps/lab/scans", params={"unknown": "nan"}, json=body).json()["version"] == 1
+
+
+@pytest.mark.parametrize("headers", [{}, {"content-type": ""}])
+def test_a_scan_upload_without_a_content_type_is_refused_and_changes_nothing(lab: TestClient, kit: Any,
+                                                                             headers: dict) -> None:
+    # what a web page's no-cors fetch sends, with no preflight: it must not reach the map (issue 11)
+    body = json.dumps(_bodies(kit, 1)[0]).encode()
+    response = lab.post("/maps/lab/scans", content=body, headers=headers)
+    assert response.status_code == 415 and "needs a Content-Type" in response.json()["detail"]
+    assert kit.version(lab, "lab") == 0
 
 
 def test_the_scan_query_is_documented_as_before(client: TestClient) -> None:
