@@ -31,7 +31,12 @@ class Settings(BaseSettings):
         None,
         description="Bearer token every API call must carry; unset or empty = no authentication.",
     )
-    max_body_bytes: int = Field(64 * 2**20, ge=1024, description="Largest request body, bytes (413 beyond).")
+    max_body_bytes: int = Field(64 * 2**20, ge=1024, description="Largest scan upload body, bytes (413 beyond).")
+    max_json_body_bytes: int = Field(
+        8 * 2**20, ge=1024,
+        description="Largest body of every other route (maps, risk queries, plans), bytes (413 beyond): "
+        "100,000 query points as JSON take about 4 MB.",
+    )
     max_scans_per_batch: int = Field(256, ge=1, description="Most scans in one POST /maps/{name}/scans.")
     max_rays_per_scan: int = Field(
         2_000_000, ge=1, description="Most ranges in a LaserScan, or points in a point cloud."

@@ -47,6 +47,29 @@ def test_the_right_key_works_and_probes_stay_open(locked: TestClient, kit: Any) 
     assert locked.get("/ui/", follow_redirects=False).status_code == 200  # the page asks for the key itself
 
 
+def test_the_key_is_checked_before_the_body_is_read(locked: TestClient) -> None:
+    # a body far over every limit, with no key or the wrong one: 401, not 413 (nor a parse of it:
+    # issue 11, a 66 MB query body with a wrong key was parsed before its 401)
+    huge = b'{"points": [' + b"[0.0, 0.0]," * 2_000_000 + b"[0.0, 0.0]]}"
+    for headers in ({}, {"Authorization": f"Bearer {KEY}x"}):
+        response = locked.post("/maps/lab/risk/query", content=huge, headers={"Content-Type": "application/json",
+                                                                              **headers})
+        assert response.status_code == 401, response.text
+    auth = {"Authorization": f"Bearer {KEY}", "Content-Type": "application/json"}
+    response = locked.post("/maps/lab/risk/query", content=huge, headers=auth)
+    assert response.status_code == 413 and "FUZZYRISK_MAX_JSON_BODY_BYTES" in response.json()["detail"]
+
+
+def test_routes_other_than_scan_uploads_have_the_small_body_limit(make_client: Any, kit: Any) -> None:
+    client = make_client(max_json_body_bytes=2048)
+    assert client.post("/maps", json=kit.MAP_2D).status_code == 201
+    points = {"points": [[0.0, 0.0]] * 500}  # about 6 KB
+    query = client.post("/maps/lab/risk/query", json=points)
+    assert query.status_code == 413 and "FUZZYRISK_MAX_JSON_BODY_BYTES" in query.json()["detail"]
+    upload = client.post("/maps/lab/scans", json={"scans": [kit.laser(beams=400)]})  # about 8 KB: the big limit
+    assert upload.status_code == 200 and upload.json()["version"] == 1
+
+
 def test_no_key_configured_means_no_check(lab: TestClient) -> None:
     assert lab.get("/maps/lab").status_code == 200
 
