@@ -23,6 +23,16 @@ from PIL import Image, PngImagePlugin
 #: 0.3; map_saver's 0.25 would export space seen free once or twice as unknown). Unknown is 0.5.
 NAV2_OCCUPIED_THRESH = 0.6
 NAV2_FREE_THRESH = 0.45
+#: Smallest ``occupied_thresh - free_thresh``: a trinary image needs an 8-bit grey (steps of 1/255)
+#: strictly between the thresholds for "unknown"; 0.01 leaves two or three.
+MIN_THRESH_GAP = 0.01
+#: Slack of the gap comparison: 0.07 + 0.01 > 0.08 in binary floating point, yet the gap is 0.01.
+_THRESH_GAP_TOLERANCE = 1e-9
+#: The pixel of an unknown cell in a ``raw`` image: map_server reads any pixel above 100 as -1
+#: (map_saver writes 255 too).
+RAW_UNKNOWN_PIXEL = 255
+
+Nav2Mode = Literal["trinary", "scale", "raw"]
 
 #: Never-observed cells in the PNG: a grey-blue that is not on the risk scale, hatched when scale >= 4.
 UNKNOWN_RGB = (138, 154, 181)
@@ -118,9 +128,61 @@ def npy_bytes(array: np.ndarray) -> bytes:
     return out.getvalue()
 
 
+def check_thresholds(free_thresh: float, occupied_thresh: float) -> None:
+    """Raise ValueError unless ``0 <= free_thresh``, ``free_thresh + 0.01 <= occupied_thresh <= 1``.
+
+    The gap is compared with a tolerance of 1e-9: every pair of hundredths 0.01 apart passes (a plain
+    ``free + 0.01 <= occupied`` refuses 13 of the 99, e.g. 0.07 and 0.08).
+    """
+    if not (0.0 <= free_thresh and occupied_thresh <= 1.0
+            and occupied_thresh - free_thresh >= MIN_THRESH_GAP - _THRESH_GAP_TOLERANCE):
+        raise ValueError(f"need 0 <= free_thresh, free_thresh + 0.01 <= occupied_thresh <= 1, got {free_thresh} "
+                         f"and {occupied_thresh}")
+
+
+def check_nav2_format(mode: str, image_format: str) -> None:
+    """Raise ValueError for a mode and image format whose files map_server would not read as our map.
+
+    ``scale`` + ``pgm``: in scale mode map_server marks a cell unknown only by its alpha, and a PGM
+    has none; every grey reads as 0..100 (risk 0.5 reads 71 at the default thresholds), so no PGM
+    can say "never observed".
+    """
+    if mode == "scale" and image_format == "pgm":
+        raise ValueError("mode=scale cannot be written as a PGM: map_server's scale mode reads unknown only from "
+                         "transparency and PGM has no alpha channel, so never-observed cells would load as "
+                         "observed; use format=png (unknown cells transparent), or mode=trinary or mode=raw")
+
+
 def _scale_grey(risk: np.ndarray) -> np.ndarray:
-    """The grey ``round(255 * (1 - risk))`` of a scale-mode image (float, 0..255)."""
-    return np.rint(255.0 * (1.0 - np.clip(risk, 0.0, 1.0)))
+    """The grey ``round(255 * (1 - risk))`` of a scale-mode image (uint8)."""
+    return np.rint(255.0 * (1.0 - np.clip(risk, 0.0, 1.0))).astype(np.uint8)
+
+
+def _round_half_away(x: np.ndarray) -> np.ndarray:
+    """``std::round`` (what Eigen's ``round()`` does): halves away from zero, unlike ``np.rint``."""
+    wide = x.astype(np.float64)  # exact for float32 input: adding 0.5 rounds nothing
+    return np.copysign(np.floor(np.abs(wide) + 0.5), wide)
+
+
+def map_server_scale(grey: np.ndarray, *, free_thresh: float, occupied_thresh: float) -> np.ndarray:
+    """What Nav2 Jazzy's map_server makes of opaque 8-bit greys in ``mode: scale``, ``negate: 0`` (int8).
+
+    A port of ``loadMapFromFile`` in nav2_map_server/src/map_io.cpp (the Eigen implementation):
+    float32 throughout, the double thresholds converted to float as Eigen does with a scalar,
+    ``occ >= occupied`` 100, ``occ <= free`` 0 (applied second), strictly between
+    ``round((occ - free) / (occupied - free) * 100)`` with halves away from zero. Transparency
+    (unknown) is the caller's business.
+    """
+    occ = np.float32(1.0) - np.asarray(grey).astype(np.float32) / np.float32(255.0)
+    free, occupied = np.float32(free_thresh), np.float32(occupied_thresh)
+    span = np.float32(occupied_thresh - free_thresh)  # subtracted in double, then made a float scalar
+    values = np.full(occ.shape, -1, dtype=np.int8)
+    values[occ >= occupied] = 100
+    values[occ <= free] = 0
+    between = (occ > free) & (occ < occupied)
+    scaled = (occ[between] - free) / span * np.float32(100.0)
+    values[between] = _round_half_away(scaled).astype(np.int8)
+    return values
 
 
 def occupancy_data(
@@ -134,11 +196,12 @@ def occupancy_data(
     """``nav_msgs/OccupancyGrid.data``: int8, ``data[j * width + i]``, -1 for never-observed cells.
 
     As Nav2's map_server reads the ``nav2_zip`` image of the same mode: ``trinary`` 100 above
-    ``occupied_thresh``, 0 below ``free_thresh``, -1 between; ``scale`` (the PNG) 100 above, 0
-    below, ``rint(100 * (occ - free) / (occupied - free))`` between, ``occ`` being the risk as
-    the image's 8-bit grey holds it. ``probability``: the raw
-    ``round(100 * risk)``, for tools of one's own: no cell reaches 100, so a costmap with
-    Nav2's defaults (lethal at 100) would see none of it as lethal.
+    ``occupied_thresh``, 0 below ``free_thresh``, -1 between; ``scale`` (the PNG) what
+    map_server's scale mode makes of the image's 8-bit grey ``round(255 * (1 - risk))``
+    (``map_server_scale``: 100 from ``occupied_thresh`` up, 0 up to ``free_thresh``, graded
+    between). ``probability``: the raw ``round(100 * risk)``, which is also what map_server
+    loads from the ``raw`` export; for tools of one's own: no cell below risk 0.995 reaches 100,
+    so a costmap with Nav2's defaults (lethal at 100) would see almost none of it as lethal.
     """
     if mode == "probability":
         values = np.rint(np.clip(risk, 0.0, 1.0) * 100.0).astype(np.int8)
@@ -147,12 +210,7 @@ def occupancy_data(
         values[risk > occupied_thresh] = 100
         values[risk < free_thresh] = 0
     else:
-        # graded from the 8-bit grey the scale image holds, as map_server reads it (map_io.cpp)
-        occ = 1.0 - _scale_grey(risk) / 255.0
-        graded = np.rint((occ - free_thresh) / (occupied_thresh - free_thresh) * 100.0)
-        values = np.clip(graded, 0.0, 100.0).astype(np.int8)
-        values[occ > occupied_thresh] = 100
-        values[occ < free_thresh] = 0
+        values = map_server_scale(_scale_grey(risk), free_thresh=free_thresh, occupied_thresh=occupied_thresh)
     values[~observed] = -1
     # row-major from the origin cell: j (y) is the slow axis
     return np.ascontiguousarray(values.T).reshape(-1)
@@ -162,26 +220,30 @@ def nav2_pixels(
     risk: np.ndarray,
     observed: np.ndarray,
     *,
-    mode: Literal["trinary", "scale"],
+    mode: Nav2Mode,
     free_thresh: float = NAV2_FREE_THRESH,
     occupied_thresh: float = NAV2_OCCUPIED_THRESH,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Grey levels (uint8, image rows) and an opacity mask that Nav2's map_server reads back as our map.
 
-    Nav2 reads ``occ = (255 - p) / 255`` (negate 0). ``trinary``: occupied (risk above
+    Nav2 reads ``occ = 1 - p / 255`` (negate 0). ``trinary``: occupied (risk above
     ``occupied_thresh``) is 0, free (below ``free_thresh``) is 255, the rest is the grey whose
     ``occ`` lies midway between the thresholds, so it reads back as unknown. (map_saver's 205
     reads back as *free* under free_thresh 0.25: 50/255 = 0.196.) ``scale``:
-    ``p = round(255 * (1 - risk))``; never-observed cells are transparent (Nav2's unknown in
-    scale mode) and, where there is no alpha (PGM), risk 0.5.
+    ``p = round(255 * (1 - risk))``; never-observed cells are transparent (map_server's only
+    unknown in scale mode). ``raw``: ``p`` is the cell's ``probability`` value 0..100, unknown
+    255 (map_server copies 0..100 and reads anything else as -1).
     """
     if mode == "trinary":
         unknown_grey = round(255.0 * (1.0 - 0.5 * (free_thresh + occupied_thresh)))
         grey = np.full(risk.shape, unknown_grey, dtype=np.uint8)
-        grey[(risk > occupied_thresh) & observed] = 0
-        grey[(risk < free_thresh) & observed] = 255  # occ 0: free under any free_thresh > 0
+        grey[(risk > occupied_thresh) & observed] = 0  # occ 1: occupied under any occupied_thresh <= 1
+        grey[(risk < free_thresh) & observed] = 255  # occ 0: free under any free_thresh >= 0
+    elif mode == "raw":
+        grey = np.rint(np.clip(risk, 0.0, 1.0) * 100.0).astype(np.uint8)
+        grey[~observed] = RAW_UNKNOWN_PIXEL
     else:
-        grey = _scale_grey(np.where(observed, risk, np.float32(0.5))).astype(np.uint8)
+        grey = _scale_grey(np.where(observed, risk, np.float32(0.5)))
     return _image_rows(grey), _image_rows(observed)
 
 
@@ -197,12 +259,18 @@ def nav2_zip(
     *,
     resolution: float,
     origin_xy: tuple[float, float],
-    mode: Literal["trinary", "scale"] = "trinary",
+    mode: Nav2Mode = "trinary",
     image_format: Literal["pgm", "png"] = "pgm",
     free_thresh: float = NAV2_FREE_THRESH,
     occupied_thresh: float = NAV2_OCCUPIED_THRESH,
 ) -> bytes:
-    """A zip of ``map.yaml`` and ``map.pgm`` (or ``map.png``) that Nav2's map_server loads as is."""
+    """A zip of ``map.yaml`` and ``map.pgm`` (or ``map.png``) that Nav2's map_server loads as is.
+
+    map_server publishes ``occupancy_data`` of the same mode (``probability`` for ``raw``), unknown
+    included. ValueError for thresholds ``check_thresholds`` refuses and for ``scale`` as PGM.
+    """
+    check_thresholds(free_thresh, occupied_thresh)
+    check_nav2_format(mode, image_format)
     grey, opaque = nav2_pixels(risk, observed, mode=mode, free_thresh=free_thresh, occupied_thresh=occupied_thresh)
     image_name = f"map.{image_format}"
     if image_format == "pgm":
@@ -213,7 +281,8 @@ def nav2_zip(
             alpha = np.where(opaque, 255, 0).astype(np.uint8)
             Image.fromarray(np.stack([grey, alpha], axis=2), mode="LA").save(out, format="PNG")
         else:
-            # trinary PNG without alpha: Nav2 averages alpha into the grey in trinary mode
+            # trinary and raw PNGs without alpha: Jazzy's map_server reads any alpha below 255 as
+            # unknown in trinary mode too, older releases average it into the grey; raw ignores it
             Image.fromarray(grey, mode="L").save(out, format="PNG")
         image = out.getvalue()
     meta = {

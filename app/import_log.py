@@ -275,7 +275,8 @@ def _parser() -> argparse.ArgumentParser:
     o.add_argument("--png", type=Path, help="write the risk picture (PNG) here")
     o.add_argument("--scale", type=_positive(int), default=1, help="PNG pixels per cell (default 1)")
     o.add_argument("--nav2", type=Path, metavar="FILE.zip", help="write a Nav2 map_server zip (map.yaml + image) here")
-    o.add_argument("--nav2-mode", choices=("trinary", "scale"), default="trinary", help="default trinary")
+    o.add_argument("--nav2-mode", choices=("trinary", "scale", "raw"), default="trinary",
+                   help="default trinary (scale needs --nav2-format png)")
     o.add_argument("--nav2-format", choices=("pgm", "png"), default="pgm", help="default pgm")
     o.add_argument("--npy", type=Path, help="write the risk grid (float32 .npy, index [i, j] along x, y) here")
     s = p.add_argument_group("through the service")
@@ -292,6 +293,11 @@ def _check_options(p: argparse.ArgumentParser, args: argparse.Namespace) -> None
         p.error("--url needs --map NAME")
     if not args.url and (args.map or args.append):
         p.error("--map and --append need --url (without it the map is built in-process)")
+    if args.nav2 is not None:
+        try:
+            exports.check_nav2_format(args.nav2_mode, args.nav2_format)
+        except ValueError as exc:
+            p.error(f"--nav2-mode {args.nav2_mode} --nav2-format {args.nav2_format}: {exc}")
     for option in ("png", "nav2", "npy"):
         path = getattr(args, option)
         if path is not None and not path.parent.is_dir():  # before minutes of fusion, not after

@@ -873,9 +873,10 @@ def _retrieve(task: asyncio.Future[Any]) -> None:
 
 def _check_thresholds(free_thresh: float, occupied_thresh: float) -> None:
     # an 8-bit map image needs a grey strictly between the thresholds for "unknown"
-    if not (0.0 <= free_thresh and free_thresh + 0.01 <= occupied_thresh <= 1.0):
-        raise Invalid(f"need 0 <= free_thresh, free_thresh + 0.01 <= occupied_thresh <= 1, got {free_thresh} and "
-                      f"{occupied_thresh}")
+    try:
+        exports.check_thresholds(free_thresh, occupied_thresh)
+    except ValueError as exc:
+        raise Invalid(str(exc)) from None
 
 
 def _check_band(z_min: float | None, z_max: float | None) -> None:

@@ -6,8 +6,11 @@ from typing import Annotated, Literal
 
 from fastapi import APIRouter, Query, Response
 from pydantic import FiniteFloat
+from starlette.concurrency import run_in_threadpool
 
+from app import exports
 from app.deps import MapNamePath, ServiceDep
+from app.errors import Invalid
 from app.exports import NAV2_FREE_THRESH, NAV2_OCCUPIED_THRESH
 from app.schemas import OccupancyGrid, RiskQuery, RiskValues
 
@@ -18,6 +21,13 @@ ZBand = Annotated[
 ]
 Threshold = Annotated[float, Query(ge=0.0, le=1.0, allow_inf_nan=False)]
 _NOT_FOUND = {404: {"description": "no map of that name"}}
+
+
+def _check_thresholds(free_thresh: float, occupied_thresh: float) -> None:
+    try:
+        exports.check_thresholds(free_thresh, occupied_thresh)
+    except ValueError as exc:
+        raise Invalid(str(exc)) from None
 
 
 def _grid_headers(name: str, version: int, resolution: float, origin: tuple[float, ...]) -> dict[str, str]:
@@ -35,8 +45,9 @@ def _grid_headers(name: str, version: int, resolution: float, origin: tuple[floa
     responses={
         **_NOT_FOUND,
         200: {
-            "description": "json: RiskGridJSON; npy: float32 array of shape (nx, ny[, nz]), index [i, j(, k)] "
-            "along x, y(, z); png: one pixel a cell (scale x scale), top row = highest y",
+            "description": "json: RiskGridJSON; npy: float32 risk (layer=risk) or bool observed mask "
+            "(layer=observed) of shape (nx, ny[, nz]), index [i, j(, k)] along x, y(, z); png: one pixel a "
+            "cell (scale x scale), top row = highest y",
             "content": {
                 "application/json": {"schema": {"$ref": "#/components/schemas/RiskGridJSON"}},
                 "application/x-npy": {"schema": {"type": "string", "format": "binary"}},
@@ -49,16 +60,31 @@ async def get_risk(
     name: MapNamePath,
     service: ServiceDep,
     format: Literal["json", "npy", "png"] = "json",
+    layer: Annotated[
+        Literal["risk", "observed"],
+        Query(description="npy: `risk` (float32) or `observed` (bool: True where a beam ever reached the cell)"),
+    ] = "risk",
     scale: Annotated[int, Query(ge=1, le=64, description="png: pixels per cell")] = 1,
     z_min: ZBand = None,
     z_max: ZBand = None,
 ) -> Response:
     """The defuzzified risk of every cell (0.5 = unknown) as JSON, ``.npy`` or a PNG a person can read.
 
+    ``format=npy&layer=observed``: the observed mask beside the ``.npy`` risk, a bool array of the
+    same shape and order (the JSON grid carries it as ``observed``; the PNG draws it grey-blue).
     PNG colours: white (risk 0) through yellow, orange and red to dark crimson (risk 1); cells no
     beam ever reached are grey-blue, hatched at ``scale >= 4``. A 3-D map is drawn as the
     largest risk of the observed cells of each column within ``[z_min, z_max]``.
     """
+    if layer == "observed":
+        if format != "npy":
+            raise Invalid(f"layer=observed is for format=npy; format={format} has the observed cells already "
+                          "(json: `observed`, png: grey-blue)")
+        grid = await service.read_grid(name)
+        headers = _grid_headers(name, grid.version, grid.spec.resolution, grid.spec.origin)
+        headers["Content-Disposition"] = f'attachment; filename="{name}-observed-v{grid.version}.npy"'
+        return Response(await run_in_threadpool(exports.npy_bytes, grid.observed), media_type="application/x-npy",
+                        headers=headers)
     if format == "json":
         return Response(await service.risk_json(name), media_type="application/json")
     if format == "npy":
@@ -92,10 +118,12 @@ async def occupancy_grid(
     The grid map_server would publish from ``export/nav2`` with the same mode and thresholds:
     ``trinary`` (the default, as map_server's): 100 above ``occupied_thresh`` (0.6, the planner's
     default ``max_risk``), 0 below ``free_thresh`` (0.45), else -1; ``scale``: 100 above, 0 below,
-    graded 0..100 between. ``probability``: raw ``round(100 * risk)``; never 100, so not for a
-    costmap with Nav2's defaults. A 3-D map is projected over ``[z_min, z_max]`` as
-    octomap_server's projected map.
+    graded 0..100 between, with Nav2 Jazzy's arithmetic (float32, halves rounded away from zero);
+    ``probability``: raw ``round(100 * risk)``, what map_server loads from the ``raw`` export;
+    below risk 0.995 never 100, so not for a costmap with Nav2's defaults. A 3-D map is projected
+    over ``[z_min, z_max]`` as octomap_server's projected map.
     """
+    _check_thresholds(free_thresh, occupied_thresh)
     return await service.occupancy_grid(name, mode=mode, free_thresh=free_thresh, occupied_thresh=occupied_thresh,
                                         z_min=z_min, z_max=z_max)
 
@@ -108,7 +136,7 @@ async def occupancy_grid(
 async def export_nav2(
     name: MapNamePath,
     service: ServiceDep,
-    mode: Literal["trinary", "scale"] = "trinary",
+    mode: Literal["trinary", "scale", "raw"] = "trinary",
     format: Literal["pgm", "png"] = "pgm",
     free_thresh: Threshold = NAV2_FREE_THRESH,
     occupied_thresh: Threshold = NAV2_OCCUPIED_THRESH,
@@ -117,11 +145,19 @@ async def export_nav2(
 ) -> Response:
     """A zip of ``map.yaml`` + ``map.pgm`` (or ``.png``) for Nav2's map_server (``yaml_filename``).
 
-    ``trinary``: occupied black, free white, the rest a grey that reads back as unknown.
-    ``scale``: grey = 255 * (1 - risk), so Nav2 keeps the grades between the thresholds; unknown
-    cells are transparent in PNG (PGM has no alpha: they are written as risk 0.5). Nav2's static
-    layer flattens a graded map unless ``trinary_costmap: false``.
+    map_server publishes exactly ``occupancy_grid`` of the same mode (``probability`` for ``raw``),
+    unknown cells included. ``trinary``: occupied black, free white, the rest a grey that reads
+    back as unknown. ``scale`` (PNG only): grey = 255 * (1 - risk), so Nav2 keeps the grades
+    between the thresholds; unknown cells are transparent, map_server's only unknown in scale
+    mode (a PGM has no alpha, hence 422). ``raw``: the pixel is ``round(100 * risk)``, unknown
+    255 (map_server copies 0..100, reads the rest as -1; thresholds are written but unused).
+    Nav2's static layer flattens a graded map unless ``trinary_costmap: false``.
     """
+    _check_thresholds(free_thresh, occupied_thresh)
+    try:
+        exports.check_nav2_format(mode, format)
+    except ValueError as exc:
+        raise Invalid(str(exc)) from None
     data = await service.nav2_zip(
         name, mode=mode, image_format=format, free_thresh=free_thresh, occupied_thresh=occupied_thresh,
         z_min=z_min, z_max=z_max,

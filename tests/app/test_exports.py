@@ -14,6 +14,7 @@ import yaml
 from fastapi.testclient import TestClient
 from PIL import Image
 
+from app import exports
 from app.exports import NAV2_FREE_THRESH as FREE
 from app.exports import UNKNOWN_RGB
 
@@ -133,37 +134,103 @@ def _read_pgm(data: bytes) -> np.ndarray:
     return pixels.reshape(height, width)
 
 
-def nav2_load(archive: bytes) -> tuple[dict[str, Any], np.ndarray]:
+def _read_image(name: str, raw: bytes) -> tuple[np.ndarray, np.ndarray | None]:
+    """(grey uint8, alpha uint8 or None) of a grey PGM or PNG: what map_io.cpp gets from GraphicsMagick's
+    ``gray.write(..., "I", CharPixel, ...)`` and, when ``img.matte()``, ``img.write(..., "A", ...)``."""
+    if name.endswith(".pgm"):
+        return _read_pgm(raw), None
+    img = Image.open(io.BytesIO(raw))
+    assert img.mode in ("L", "LA"), img.mode  # our exports are grey: intensity is the grey itself
+    bands = np.asarray(img)
+    return (bands[..., 0], bands[..., 1]) if img.mode == "LA" else (bands, None)
+
+
+def _std_round(x: np.ndarray) -> np.ndarray:
+    """Eigen's ``round()`` on float32 as its SSE ``pround`` computes it: add the float just below 0.5
+    with x's sign, then truncate; halves go away from zero (``std::round``), unlike ``np.rint``."""
+    below_half = np.frombuffer(np.uint32(0x3EFFFFFF).tobytes(), dtype=np.float32)[0]
+    return np.trunc(x + np.copysign(below_half, x)).astype(np.float32)
+
+
+def map_io_jazzy(mode: str, grey: np.ndarray, alpha: np.ndarray | None, *, negate: bool, free_thresh: float,
+                 occupied_thresh: float) -> np.ndarray:
+    """Nav2 Jazzy's nav2_map_server/src/map_io.cpp ``loadMapFromFile`` (the Eigen implementation), per
+    image row, before the vertical flip. Its statements, in order:
+
+    - ``normalized = gray_matrix.cast<float>() / 255.0f;`` and, ``if (!load_parameters.negate)``,
+      ``normalized = (1.0f - normalized.array()).matrix();``
+    - ``occupied = (normalized.array() >= load_parameters.occupied_thresh)`` and
+      ``free = (normalized.array() <= load_parameters.free_thresh)`` (Eigen compares with the double
+      threshold made a float); ``result.setConstant(OCC_GRID_UNKNOWN)``, then
+      ``result = (occupied.array() > 0).select(OCC_GRID_OCCUPIED, result)``, then the same for free
+    - scale: ``in_between_mask = (normalized.array() > load_parameters.free_thresh) &&
+      (normalized.array() < load_parameters.occupied_thresh)``; ``scaled_float =
+      ((normalized.array() - load_parameters.free_thresh) / (load_parameters.occupied_thresh -
+      load_parameters.free_thresh)) * 100.0f`` (the difference of thresholds is a double made a
+      float); ``scaled_int = scaled_float.array().round().cast<int8_t>()``
+    - ``if (has_alpha)`` (trinary and scale): ``result = (alpha_array < 255).select(OCC_GRID_UNKNOWN, result)``
+    - raw: ``result = gray_matrix.cast<int8_t>()``; values ``< OCC_GRID_FREE || > OCC_GRID_OCCUPIED``
+      become ``OCC_GRID_UNKNOWN`` (a uint8 above 127 wraps negative: every pixel above 100 is -1)
+    """
+    if mode == "raw":
+        result = grey.astype(np.uint8).view(np.int8).copy()
+        result[(result < 0) | (result > 100)] = -1
+        return result
+    normalized = grey.astype(np.float32) / np.float32(255.0)
+    if not negate:
+        normalized = np.float32(1.0) - normalized
+    free, occupied = np.float32(free_thresh), np.float32(occupied_thresh)
+    result = np.full(grey.shape, -1, dtype=np.int8)
+    result[normalized >= occupied] = 100
+    result[normalized <= free] = 0
+    if mode == "scale":
+        between = (normalized > free) & (normalized < occupied)
+        scaled = (normalized[between] - free) / np.float32(occupied_thresh - free_thresh) * np.float32(100.0)
+        assert scaled.dtype == np.float32
+        result[between] = _std_round(scaled).astype(np.int8)
+    if alpha is not None:
+        result[alpha < 255] = -1
+    return result
+
+
+def map_io_legacy(mode: str, grey: np.ndarray, alpha: np.ndarray | None, *, negate: bool, free_thresh: float,
+                  occupied_thresh: float) -> np.ndarray:
+    """The per-pixel loop of earlier releases (Humble): double arithmetic, trinary averages alpha into the
+    grey, ``occupied_thresh < occ`` / ``occ < free_thresh``, scale ``std::rint``, raw ``std::round(shade * 255)``."""
+    channels = [grey.astype(np.float64)] * 3
+    if mode == "trinary" and alpha is not None:
+        channels.append(alpha.astype(np.float64))  # MaxRGB - alphaQuantum() (an opacity): the alpha
+    shade = sum(channels) / len(channels) / 255.0
+    occ = shade if negate else 1.0 - shade
+    result = np.full(grey.shape, -1, dtype=np.int8)
+    if mode == "raw":
+        percent = np.round(shade * 255.0)
+        inside = (percent >= 0) & (percent <= 100)
+        result[inside] = percent[inside].astype(np.int8)
+        return result
+    if mode == "trinary":
+        result[occupied_thresh < occ] = 100
+        result[occ < free_thresh] = 0
+        return result
+    middle = np.rint((occ - free_thresh) / (occupied_thresh - free_thresh) * 100.0)
+    result = np.where(occupied_thresh < occ, 100, np.where(occ < free_thresh, 0, middle)).astype(np.int8)
+    if alpha is not None:
+        result[alpha != 255] = -1
+    return result
+
+
+def nav2_load(archive: bytes, *, loader: Any = map_io_jazzy) -> tuple[dict[str, Any], np.ndarray]:
     """Nav2 loadMapYaml + loadMapFromFile: (yaml, OccupancyGrid data int8 of width * height)."""
     with zipfile.ZipFile(io.BytesIO(archive)) as z:
         meta = yaml.safe_load(z.read("map.yaml"))
         raw = z.read(meta["image"])
     assert len(meta["origin"]) == 3
-    if meta["image"].endswith(".pgm"):
-        grey, alpha = _read_pgm(raw).astype(float), None
-    else:
-        img = Image.open(io.BytesIO(raw))
-        bands = np.asarray(img.convert("RGBA")).astype(float)
-        grey, alpha = bands[..., :3].mean(axis=2), (bands[..., 3] if "A" in img.getbands() else None)
-        if meta["mode"] == "trinary" and alpha is not None:  # Nav2 averages alpha in, trinary only
-            grey = (bands[..., 0] + bands[..., 1] + bands[..., 2] + bands[..., 3]) / 4
-    shade = grey / 255.0
-    occ = shade if meta["negate"] else 1.0 - shade
-    free, occupied = meta["free_thresh"], meta["occupied_thresh"]
-    cell = np.full(occ.shape, -1, dtype=np.int16)
-    if meta["mode"] == "trinary":
-        cell[occ > occupied] = 100
-        cell[occ < free] = 0
-    else:
-        middle = np.rint((occ - free) / (occupied - free) * 100.0)
-        cell = np.where(occ > occupied, 100, np.where(occ < free, 0, middle)).astype(np.int16)
-        if alpha is not None:
-            cell[alpha != 255] = -1
-    height, width = occ.shape
-    data = np.empty(width * height, dtype=np.int16)
-    rows = np.arange(height)[:, None]
-    data[width * (height - rows - 1) + np.arange(width)[None, :]] = cell  # map_io.cpp's index
-    return meta, data
+    assert {"free_thresh", "occupied_thresh", "negate", "resolution"} <= set(meta)  # loadMapYaml needs them all
+    grey, alpha = _read_image(meta["image"], raw)
+    rows = loader(meta.get("mode", "trinary"), grey, alpha, negate=bool(meta["negate"]),
+                  free_thresh=meta["free_thresh"], occupied_thresh=meta["occupied_thresh"])
+    # "Flip image vertically": msg.data[width * (height - y - 1) + x] = pixel (x, y)
+    return meta, np.ascontiguousarray(rows[::-1]).reshape(-1)
 
 
 def _export(client: TestClient, **params: str) -> tuple[dict[str, Any], np.ndarray]:
@@ -224,13 +291,6 @@ def test_exported_files_are_readable_by_another_user_after_unzip(scanned: TestCl
     assert modes == {"map.yaml": 0o644, "map.pgm": 0o644}
 
 
-def test_scale_pgm_export_writes_unknown_as_risk_one_half(scanned: TestClient) -> None:
-    _, observed = _grid(scanned)
-    _, data = _export(scanned, mode="scale", format="pgm")
-    unknown_cost = data[~observed.T.reshape(-1)]
-    assert set(np.unique(unknown_cost).tolist()) == {round((127 / 255 - FREE) / (0.6 - FREE) * 100)}
-
-
 def test_custom_thresholds_are_written_and_used(scanned: TestClient) -> None:
     risk, observed = _grid(scanned)
     meta, data = _export(scanned, free_thresh="0.1", occupied_thresh="0.9")
@@ -238,6 +298,162 @@ def test_custom_thresholds_are_written_and_used(scanned: TestClient) -> None:
     assert np.array_equal(data == 100, (observed & (risk > 0.9)).T.reshape(-1))
     bad = scanned.get("/maps/lab/export/nav2", params={"free_thresh": "0.7", "occupied_thresh": "0.6"})
     assert bad.status_code == 422 and "free_thresh" in bad.json()["detail"]
+
+
+def test_scale_pgm_export_is_refused_with_the_reason_and_what_to_use(scanned: TestClient) -> None:
+    bad = scanned.get("/maps/lab/export/nav2", params={"mode": "scale", "format": "pgm"})
+    assert bad.status_code == 422
+    detail = bad.json()["detail"]
+    assert "alpha" in detail and "format=png" in detail and "mode=trinary" in detail and "mode=raw" in detail
+    with pytest.raises(ValueError, match="alpha"):
+        exports.nav2_zip(np.zeros((2, 2), np.float32), np.ones((2, 2), bool), resolution=0.1, origin_xy=(0.0, 0.0),
+                         mode="scale", image_format="pgm")
+
+
+@pytest.mark.parametrize("loader", [map_io_jazzy, map_io_legacy])
+def test_no_grey_reads_as_unknown_in_scale_mode_without_alpha(loader: Any) -> None:
+    """Why scale + PGM is refused: without alpha every grey loads as 0..100 under any thresholds."""
+    greys = np.arange(256, dtype=np.uint8)[None, :]
+    for free, occupied in [(0.0, 0.01), (0.25, 0.65), (FREE, 0.6), (0.49, 0.5), (0.5, 0.51), (0.99, 1.0)]:
+        cells = loader("scale", greys, None, negate=False, free_thresh=free, occupied_thresh=occupied)
+        assert cells.min() >= 0 and cells.max() == 100, (free, occupied)
+
+
+def _threshold_pairs() -> list[tuple[float, float]]:
+    """Every pair of hundredths at least 0.01 apart, written as a client types them."""
+    hundredths = [float(f"{k / 100:.2f}") for k in range(101)]
+    return [(hundredths[a], hundredths[b]) for a in range(101) for b in range(a + 1, 101)]
+
+
+def test_scale_grades_are_jazzys_float32_arithmetic_for_every_grey_and_threshold_pair() -> None:
+    greys = np.arange(256, dtype=np.uint8)
+    differs_from_double_rint = 0
+    for free, occupied in _threshold_pairs() + [(FREE, 0.6), (0.123, 0.456), (0.3333, 0.6667)]:
+        ours = exports.map_server_scale(greys, free_thresh=free, occupied_thresh=occupied)
+        jazzy = map_io_jazzy("scale", greys[None, :], None, negate=False, free_thresh=free,
+                             occupied_thresh=occupied)[0]
+        assert np.array_equal(ours, jazzy), (free, occupied, np.flatnonzero(ours != jazzy))
+        legacy = map_io_legacy("scale", greys[None, :], None, negate=False, free_thresh=free,
+                               occupied_thresh=occupied)[0]
+        differs_from_double_rint += int((legacy != jazzy).sum())
+    assert differs_from_double_rint > 0  # the arithmetic matters: double + rint would be off by 1 somewhere
+
+
+def test_every_mode_reads_back_exactly_under_every_threshold_pair() -> None:
+    """Pixels as ``nav2_zip`` writes them, through the Jazzy loader port, equal ``occupancy_data``: risks on
+    every grey step, every hundredth and the thresholds themselves; a quarter of the cells never observed."""
+    rng = np.random.default_rng(12)
+    base = np.concatenate([np.arange(256) / 255.0, np.arange(101) / 100.0, rng.random(200)])
+    pairs = _threshold_pairs() + [(0.123, 0.456), (0.3333, 0.6667), (0.0, 0.0101), (0.98995, 1.0)]
+    for free, occupied in pairs:
+        risk = np.concatenate([base, [free, occupied, np.nextafter(free, 1), np.nextafter(occupied, 0)]])
+        risk = risk.astype(np.float32).reshape(-1, 1)  # an (n, 1) map: one image row
+        observed = rng.random(risk.shape) > 0.25
+        for mode, grid_mode in (("trinary", "trinary"), ("scale", "scale"), ("raw", "probability")):
+            grey, opaque = exports.nav2_pixels(risk, observed, mode=mode, free_thresh=free, occupied_thresh=occupied)
+            alpha = np.where(opaque, 255, 0).astype(np.uint8) if mode == "scale" else None  # the PNG's LA
+            rows = map_io_jazzy(mode, grey, alpha, negate=False, free_thresh=free, occupied_thresh=occupied)
+            loaded = np.ascontiguousarray(rows[::-1]).reshape(-1)
+            expected = exports.occupancy_data(risk, observed, mode=grid_mode, free_thresh=free,
+                                              occupied_thresh=occupied)
+            assert np.array_equal(loaded, expected), (mode, free, occupied)
+            assert (loaded[~observed.T.reshape(-1)] == -1).all()
+
+
+def test_the_rounding_is_halves_away_from_zero_in_float32() -> None:
+    x = np.array([0.5, 1.5, 2.5, 49.5, 0.49999997, 99.49999, -0.5, -2.5], dtype=np.float32)
+    assert _std_round(x).tolist() == [1.0, 2.0, 3.0, 50.0, 0.0, 99.0, -1.0, -3.0]
+    assert np.array_equal(exports._round_half_away(x), _std_round(x))
+
+
+def test_every_threshold_pair_a_hundredth_apart_is_accepted() -> None:
+    hundredths = [float(f"{k / 100:.2f}") for k in range(101)]
+    pairs = list(zip(hundredths[:-1], hundredths[1:], strict=True))
+    assert len(pairs) == 100  # the issue's 99 (free 0.00 .. 0.98) and (0.99, 1.0)
+    assert sum(not free + 0.01 <= occupied for free, occupied in pairs) == 13  # what a plain comparison refuses
+    for free, occupied in pairs:
+        exports.check_thresholds(free, occupied)  # 0.07 + 0.01 > 0.08 in binary: compared with a tolerance
+    for free, occupied in [(0.5, 0.5099), (0.5, 0.5), (0.6, 0.5), (-0.01, 0.5), (0.5, 1.01)]:
+        with pytest.raises(ValueError, match="free_thresh"):
+            exports.check_thresholds(free, occupied)
+
+
+@pytest.mark.parametrize("free_int", [5, 14, 28, 46, 68, 93])
+def test_the_routes_accept_thresholds_a_hundredth_apart(scanned: TestClient, free_int: int) -> None:
+    """Six of the 13 pairs a plain ``free + 0.01 <= occupied`` refuses; the export must also read back."""
+    params = {"free_thresh": f"{free_int / 100:.2f}", "occupied_thresh": f"{(free_int + 1) / 100:.2f}"}
+    grid = scanned.get("/maps/lab/occupancy_grid", params={"mode": "scale", **params})
+    assert grid.status_code == 200, grid.text
+    _, data = _export(scanned, mode="scale", format="png", **params)
+    assert np.array_equal(data, grid.json()["data"])
+
+
+# (export mode, format) -> the occupancy_grid mode whose data map_server must publish from it
+EXPORTS = [("trinary", "pgm", "trinary"), ("trinary", "png", "trinary"), ("scale", "png", "scale"),
+           ("raw", "pgm", "probability"), ("raw", "png", "probability")]
+THRESHOLDS = [(FREE, 0.6), (0.25, 0.65), (0.0, 1.0), (0.3, 0.7), (0.4, 0.6), (0.5, 0.51), (0.49, 0.5), (0.03, 0.97),
+              (0.1234, 0.5678)]
+
+
+@pytest.mark.parametrize(("mode", "image_format", "grid_mode"), EXPORTS)
+def test_map_server_loads_every_export_as_the_occupancy_grid_says(
+        scanned: TestClient, mode: str, image_format: str, grid_mode: str) -> None:
+    _, observed = _grid(scanned)
+    unknown = ~observed.T.reshape(-1)
+    assert unknown.any() and not unknown.all()
+    graded = 0
+    for free, occupied in THRESHOLDS:
+        params = {"free_thresh": repr(free), "occupied_thresh": repr(occupied)}
+        meta, data = _export(scanned, mode=mode, format=image_format, **params)
+        assert (meta["mode"], meta["free_thresh"], meta["occupied_thresh"]) == (mode, free, occupied)
+        grid = scanned.get("/maps/lab/occupancy_grid", params={"mode": grid_mode, **params}).json()["data"]
+        assert np.array_equal(data, np.asarray(grid)), (free, occupied, np.flatnonzero(data != np.asarray(grid)))
+        assert np.array_equal(data == -1, unknown) or grid_mode == "trinary"  # unknown stays unknown ...
+        assert (data[unknown] == -1).all()  # ... and trinary adds the cells between the thresholds
+        graded += int(((data > 0) & (data < 100)).sum())
+        if mode != "scale":  # earlier map_server releases read trinary and raw files the same
+            assert np.array_equal(nav2_load(_export_bytes(scanned, mode=mode, format=image_format, **params),
+                                            loader=map_io_legacy)[1], data)
+    assert graded > 0 or mode == "trinary"
+
+
+def _export_bytes(client: TestClient, **params: str) -> bytes:
+    response = client.get("/maps/lab/export/nav2", params=params)
+    assert response.status_code == 200, response.text
+    return response.content
+
+
+@pytest.mark.parametrize("image_format", ["pgm", "png"])
+def test_raw_export_pixels_are_the_probability_grid_and_255_for_unknown(scanned: TestClient,
+                                                                       image_format: str) -> None:
+    risk, observed = _grid(scanned)
+    archive = _export_bytes(scanned, mode="raw", format=image_format)
+    with zipfile.ZipFile(io.BytesIO(archive)) as z:
+        meta = yaml.safe_load(z.read("map.yaml"))
+        grey, alpha = _read_image(meta["image"], z.read(meta["image"]))
+    assert meta["mode"] == "raw" and alpha is None
+    cells = grey[::-1].T  # back to [i, j]
+    assert np.array_equal(cells[~observed], np.full((~observed).sum(), 255))
+    assert np.array_equal(cells[observed], np.rint(risk[observed] * 100))
+    _, data = nav2_load(archive)
+    assert set(np.unique(data).tolist()) - {-1} <= set(range(101)) and (data == -1).sum() == (~observed).sum()
+
+
+def test_observed_mask_npy_beside_the_risk_npy(scanned: TestClient) -> None:
+    _, observed = _grid(scanned)
+    response = scanned.get("/maps/lab/risk", params={"format": "npy", "layer": "observed"})
+    assert response.status_code == 200 and response.headers["content-type"] == "application/x-npy"
+    assert response.headers["x-map-version"] == "1" and response.headers["x-map-origin"] == "-5.0,-5.0"
+    assert response.headers["content-disposition"] == 'attachment; filename="lab-observed-v1.npy"'
+    mask = np.load(io.BytesIO(response.content), allow_pickle=False)
+    assert mask.dtype == np.bool_ and mask.shape == (100, 100) and np.array_equal(mask, observed)
+    risk = np.load(io.BytesIO(scanned.get("/maps/lab/risk", params={"format": "npy", "layer": "risk"}).content))
+    assert risk.dtype == np.float32 and (risk[~mask] == 0.5).all()
+    for other in ("json", "png"):
+        bad = scanned.get("/maps/lab/risk", params={"format": other, "layer": "observed"})
+        assert bad.status_code == 422 and "format=npy" in bad.json()["detail"]
+    assert scanned.get("/maps/lab/risk", params={"format": "npy", "layer": "cost"}).status_code == 422
+    assert scanned.get("/maps/nope/risk", params={"format": "npy", "layer": "observed"}).status_code == 404
 
 
 # ---------------------------------------------------------------- 3-D maps, projected over a z band

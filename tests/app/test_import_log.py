@@ -101,7 +101,8 @@ def test_an_unreachable_service_exits_non_zero_saying_so(orebro: Path, capsys: p
 
 
 @pytest.mark.parametrize("options", [["--url", "http://127.0.0.1:8000"], ["--map", "m"], ["--every", "0"],
-                                     ["--png", "/no/such/dir/x.png"]])
+                                     ["--png", "/no/such/dir/x.png"],
+                                     ["--nav2", "x.zip", "--nav2-mode", "scale"]])  # scale PGM: no unknown
 def test_inconsistent_options_are_refused_before_reading(orebro: Path, options: list[str]) -> None:
     with pytest.raises(SystemExit) as info:
         main([str(orebro), *options])
