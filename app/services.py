@@ -728,9 +728,10 @@ class MapService:
 
         return await self._run(encode)
 
-    async def risk_npy(self, name: str) -> tuple[bytes, GridSnapshot]:
+    async def risk_npy(self, name: str, layer: Literal["risk", "observed"] = "risk") -> tuple[bytes, GridSnapshot]:
+        """The risk (float32) or the observed mask (bool) as ``.npy``, of one version."""
         grid = await self.read_grid(name)
-        return await self._run(exports.npy_bytes, grid.risk), grid
+        return await self._run(exports.npy_bytes, grid.risk if layer == "risk" else grid.observed), grid
 
     async def risk_png(self, name: str, *, scale: int, z_min: float | None, z_max: float | None) -> tuple[bytes, GridSnapshot]:
         _check_band(z_min, z_max)
@@ -750,11 +751,15 @@ class MapService:
         return await self._run(render), grid
 
     async def nav2_zip(
-        self, name: str, *, mode: Literal["trinary", "scale"], image_format: Literal["pgm", "png"],
+        self, name: str, *, mode: Literal["trinary", "scale", "raw"], image_format: Literal["pgm", "png"],
         free_thresh: float, occupied_thresh: float, z_min: float | None, z_max: float | None,
     ) -> bytes:
         _check_band(z_min, z_max)
         _check_thresholds(free_thresh, occupied_thresh)
+        try:
+            exports.check_nav2_format(mode, image_format)
+        except ValueError as exc:
+            raise Invalid(str(exc)) from None
         grid = await self.read_grid(name)
 
         def render() -> bytes:

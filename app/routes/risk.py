@@ -6,9 +6,7 @@ from typing import Annotated, Literal
 
 from fastapi import APIRouter, Query, Response
 from pydantic import FiniteFloat
-from starlette.concurrency import run_in_threadpool
 
-from app import exports
 from app.deps import MapNamePath, ServiceDep
 from app.errors import Invalid
 from app.exports import NAV2_FREE_THRESH, NAV2_OCCUPIED_THRESH
@@ -21,13 +19,6 @@ ZBand = Annotated[
 ]
 Threshold = Annotated[float, Query(ge=0.0, le=1.0, allow_inf_nan=False)]
 _NOT_FOUND = {404: {"description": "no map of that name"}}
-
-
-def _check_thresholds(free_thresh: float, occupied_thresh: float) -> None:
-    try:
-        exports.check_thresholds(free_thresh, occupied_thresh)
-    except ValueError as exc:
-        raise Invalid(str(exc)) from None
 
 
 def _grid_headers(name: str, version: int, resolution: float, origin: tuple[float, ...]) -> dict[str, str]:
@@ -76,21 +67,15 @@ async def get_risk(
     beam ever reached are grey-blue, hatched at ``scale >= 4``. A 3-D map is drawn as the
     largest risk of the observed cells of each column within ``[z_min, z_max]``.
     """
-    if layer == "observed":
-        if format != "npy":
-            raise Invalid(f"layer=observed is for format=npy; format={format} has the observed cells already "
-                          "(json: `observed`, png: grey-blue)")
-        grid = await service.read_grid(name)
-        headers = _grid_headers(name, grid.version, grid.spec.resolution, grid.spec.origin)
-        headers["Content-Disposition"] = f'attachment; filename="{name}-observed-v{grid.version}.npy"'
-        return Response(await run_in_threadpool(exports.npy_bytes, grid.observed), media_type="application/x-npy",
-                        headers=headers)
+    if layer == "observed" and format != "npy":
+        raise Invalid(f"layer=observed is for format=npy; format={format} has the observed cells already "
+                      "(json: `observed`, png: grey-blue)")
     if format == "json":
         return Response(await service.risk_json(name), media_type="application/json")
     if format == "npy":
-        data, grid = await service.risk_npy(name)
+        data, grid = await service.risk_npy(name, layer)
         headers = _grid_headers(name, grid.version, grid.spec.resolution, grid.spec.origin)
-        headers["Content-Disposition"] = f'attachment; filename="{name}-risk-v{grid.version}.npy"'
+        headers["Content-Disposition"] = f'attachment; filename="{name}-{layer}-v{grid.version}.npy"'
         return Response(data, media_type="application/x-npy", headers=headers)
     data, grid = await service.risk_png(name, scale=scale, z_min=z_min, z_max=z_max)
     return Response(data, media_type="image/png",
@@ -123,7 +108,6 @@ async def occupancy_grid(
     below risk 0.995 never 100, so not for a costmap with Nav2's defaults. A 3-D map is projected
     over ``[z_min, z_max]`` as octomap_server's projected map.
     """
-    _check_thresholds(free_thresh, occupied_thresh)
     return await service.occupancy_grid(name, mode=mode, free_thresh=free_thresh, occupied_thresh=occupied_thresh,
                                         z_min=z_min, z_max=z_max)
 
@@ -153,11 +137,6 @@ async def export_nav2(
     255 (map_server copies 0..100, reads the rest as -1; thresholds are written but unused).
     Nav2's static layer flattens a graded map unless ``trinary_costmap: false``.
     """
-    _check_thresholds(free_thresh, occupied_thresh)
-    try:
-        exports.check_nav2_format(mode, format)
-    except ValueError as exc:
-        raise Invalid(str(exc)) from None
     data = await service.nav2_zip(
         name, mode=mode, image_format=format, free_thresh=free_thresh, occupied_thresh=occupied_thresh,
         z_min=z_min, z_max=z_max,
