@@ -290,8 +290,12 @@ def _build_map(meta: Mapping[str, Any], *, max_cells: int) -> OccupancyMap:
     return BayesMap(spec, sensor)
 
 
-def _restore(stored: StoredMap) -> MapEntry:
-    """A map from its snapshot and the batches after it (replayed in order: bit-identical risk)."""
+def _restore(stored: StoredMap, up_to: int | None = None) -> MapEntry:
+    """A map from its snapshot and the batches after it (replayed in order: bit-identical risk).
+
+    ``up_to``: replay only the batches up to that version (a live map's rebuild: later batches
+    may be committed and still waiting for their turn to be applied).
+    """
     unlimited = 2**62  # a limit lowered since the map was made must not lose the map
     try:
         built = _build_map(stored.meta, max_cells=unlimited)
@@ -308,6 +312,8 @@ def _restore(stored: StoredMap) -> MapEntry:
         dict(stored.meta), built, stored.snapshot_version, stored.snapshot_version, built.scans_fused, stored.updated
     )
     for version, payload in stored.batches:
+        if up_to is not None and version > up_to:
+            break
         try:
             scans = batches.decode(payload)
         except batches.CorruptBatch as exc:
@@ -578,6 +584,7 @@ class MapService:
             except StorageUnavailable:
                 LOG.exception("map %s: batch %d failed to apply and could not be removed from the log; "
                               "a start before the next snapshot will replay it", entry.name, version)
+            self._rebuild(entry)
             raise
         model = entry.meta["model"]
         self.metrics.fusion_seconds.labels(model).observe(time.perf_counter() - started)
@@ -585,6 +592,21 @@ class MapService:
         self.metrics.rays.labels(model).inc(stats.rays)
         self.metrics.cells_updated.labels(model).inc(stats.cells_updated)
         return BatchResult(scans_fused=stats.scans, rays=stats.rays, cells_updated=stats.cells_updated, version=version)
+
+    def _rebuild(self, entry: MapEntry) -> None:
+        """Put back the map a failed batch may have changed in part: all or nothing (issue 11).
+
+        The map is rebuilt from the store up to its current version, as a restart would rebuild
+        it; should that fail too, the map is left as it is and the failure logged.
+        """
+        try:
+            stored = self.storage.load_map(entry.name)
+            if stored is None:
+                return  # deleted meanwhile
+            entry.map = _restore(stored, up_to=entry.version).map
+        except Exception:  # noqa: BLE001 - the batch's own failure is the one the client gets
+            LOG.exception("map %s: could not rebuild the map after a failed batch; it may differ from what a "
+                          "restart rebuilds until then", entry.name)
 
     def admit_batch(self, name: str) -> None:
         """Refuse (503, ``Retry-After``) a batch for a map that already holds its limit of batches in line.

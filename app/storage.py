@@ -55,6 +55,9 @@ class Storage(Protocol):
     def load_all(self) -> list[StoredMap]:
         """Every map with its latest snapshot and the batches after it."""
 
+    def load_map(self, name: str) -> StoredMap | None:
+        """One map with its latest snapshot and the batches after it; None when there is none of that name."""
+
     def create_map(self, name: str, meta: dict[str, Any], updated: str) -> None:
         """Store a new, empty map; ``NameTaken`` if the name is used."""
 
@@ -159,6 +162,19 @@ class SqliteStorage:
             for name, seq, payload in self._db.execute("SELECT map, seq, payload FROM batches ORDER BY map, seq"):
                 maps[name].batches.append((seq, bytes(payload)))
         return list(maps.values())
+
+    def load_map(self, name: str) -> StoredMap | None:
+        with self._lock:
+            row = self._db.execute("SELECT meta, updated FROM maps WHERE name = ?", (name,)).fetchone()
+            if row is None:
+                return None
+            stored = StoredMap(name, json.loads(row[0]), row[1])
+            snapshot = self._db.execute("SELECT version, payload FROM snapshots WHERE map = ?", (name,)).fetchone()
+            if snapshot is not None:
+                stored.snapshot_version, stored.snapshot = snapshot[0], bytes(snapshot[1])
+            stored.batches = [(seq, bytes(payload)) for seq, payload in
+                              self._db.execute("SELECT seq, payload FROM batches WHERE map = ? ORDER BY seq", (name,))]
+        return stored
 
     def create_map(self, name: str, meta: dict[str, Any], updated: str) -> None:
         try:
