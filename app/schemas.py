@@ -575,6 +575,11 @@ class Readiness(BaseModel):
         description="ready: maps loaded, kernels compiled, planner workers up; starting: not yet; failed: see detail"
     )
     maps_loaded: int = Field(description="maps held (all stored maps are loaded before the service answers at all)")
+    maps_quarantined: list[str] = Field(
+        default_factory=list,
+        description="stored maps set aside at start because their rows are damaged (a checksum fails, a batch "
+        "cannot be decoded): each answers 503 with the reason until dropped (DELETE) or the database is restored",
+    )
     kernels_compiled: bool = Field(description="the fusion kernels are compiled, or loaded from numba's cache")
     planner_workers_ready: int = Field(description="planner workers started and warmed up")
     planner_workers_wanted: int = Field(

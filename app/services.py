@@ -296,6 +296,8 @@ def _restore(stored: StoredMap, up_to: int | None = None) -> MapEntry:
     ``up_to``: replay only the batches up to that version (a live map's rebuild: later batches
     may be committed and still waiting for their turn to be applied).
     """
+    if stored.damage:
+        raise RuntimeError(f"map {stored.name!r}: {'; '.join(stored.damage)}")
     unlimited = 2**62  # a limit lowered since the map was made must not lose the map
     try:
         built = _build_map(stored.meta, max_cells=unlimited)
@@ -342,6 +344,7 @@ class MapService:
         self.storage = storage
         self.metrics = metrics
         self._maps: dict[str, MapEntry] = {}
+        self._quarantined: dict[str, str] = {}  # map name -> why it was set aside at start
         self._create_lock = asyncio.Lock()
         self._threads = ThreadPoolExecutor(settings.fusion_threads, thread_name_prefix="fusion")
         # parsing has its own threads: a burst of queued batches must not put its parsing ahead of
@@ -373,7 +376,12 @@ class MapService:
         await self._run(self._grids.open)  # and remove what a killed run left
         stored = await self._run(self.storage.load_all)
         for item in stored:
-            entry = await self._run(_restore, item)
+            try:
+                entry = await self._run(_restore, item)
+            except Exception as exc:  # noqa: BLE001 - any damage: this map is set aside, the others start
+                self._quarantined[item.name] = str(exc)
+                LOG.error("map %s quarantined: %s", item.name, exc)
+                continue
             self._maps[entry.name] = entry
         self.metrics.maps.set(len(self._maps))
         LOG.info(
@@ -416,7 +424,8 @@ class MapService:
         else:
             status = "starting"
         return Readiness(
-            status=status, maps_loaded=len(self._maps), kernels_compiled=kernels,
+            status=status, maps_loaded=len(self._maps), maps_quarantined=sorted(self._quarantined),
+            kernels_compiled=kernels,
             planner_workers_ready=len(self._plans.warmed),
             planner_workers_wanted=self.settings.plan_workers if self.settings.plan_warmup else 0,
             detail="; ".join(problems),
@@ -475,6 +484,12 @@ class MapService:
     def _entry(self, name: str) -> MapEntry:
         entry = self._maps.get(name)
         if entry is None or entry.deleted:
+            reason = self._quarantined.get(name)
+            if reason is not None:
+                raise Unavailable(
+                    f"map {name!r} is quarantined: its stored rows are damaged ({reason}); it is not served. "
+                    f"Restore the database from a backup, or drop the map with DELETE /maps/{name}"
+                )
             raise NotFound(f"no map named {name!r}; GET /maps lists them")
         return entry
 
@@ -516,7 +531,14 @@ class MapService:
             return entry.info()
 
     async def delete_map(self, name: str) -> None:
-        """Remove a map and its stored rows (after the batches that arrived before, if any)."""
+        """Remove a map and its stored rows (after the batches that arrived before, if any).
+
+        A quarantined map (damaged rows, found at start) is dropped with its rows.
+        """
+        if name in self._quarantined and name not in self._maps:
+            await self._run(self.storage.delete_map, name)
+            del self._quarantined[name]
+            return
         entry = self._entry(name)
         ticket = entry.line.take()
         # shielded as a batch's write is: a cancelled request must not leave the rows deleted

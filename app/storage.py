@@ -14,6 +14,7 @@ from __future__ import annotations
 import json
 import sqlite3
 import threading
+import zlib
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -28,6 +29,10 @@ class StorageUnavailable(Exception):
     """A write could not be made durable (disk full, read-only or failing data directory); nothing was stored."""
 
 
+def _crc(payload: bytes) -> int:
+    return zlib.crc32(payload)
+
+
 @dataclass
 class StoredMap:
     """Everything stored about one map."""
@@ -38,6 +43,7 @@ class StoredMap:
     snapshot_version: int = 0
     snapshot: bytes | None = None
     batches: list[tuple[int, bytes]] = field(default_factory=list)  # (version, payload), ascending
+    damage: list[str] = field(default_factory=list)  # rows that failed their checksum: the map must not be served
 
 
 class BatchRecord(NamedTuple):
@@ -94,14 +100,28 @@ CREATE TABLE IF NOT EXISTS batches (
     map TEXT NOT NULL REFERENCES maps(name) ON DELETE CASCADE,
     seq INTEGER NOT NULL,
     payload BLOB NOT NULL,
+    crc INTEGER,
     PRIMARY KEY (map, seq)
 );
 CREATE TABLE IF NOT EXISTS snapshots (
     map TEXT PRIMARY KEY REFERENCES maps(name) ON DELETE CASCADE,
     version INTEGER NOT NULL,
-    payload BLOB NOT NULL
+    payload BLOB NOT NULL,
+    crc INTEGER
 );
 """
+
+
+def _take_snapshot(stored: StoredMap, version: int, payload: bytes, crc: int | None) -> None:
+    if crc is not None and crc != _crc(payload):
+        stored.damage.append(f"its snapshot (version {version}) fails its checksum")
+    stored.snapshot_version, stored.snapshot = version, payload
+
+
+def _take_batch(stored: StoredMap, seq: int, payload: bytes, crc: int | None) -> None:
+    if crc is not None and crc != _crc(payload):
+        stored.damage.append(f"its stored batch {seq} fails its checksum")
+    stored.batches.append((seq, payload))
 
 
 class SqliteStorage:
@@ -121,6 +141,11 @@ class SqliteStorage:
             self._db.execute("PRAGMA synchronous=FULL")
             self._db.execute("PRAGMA foreign_keys=ON")
             self._db.executescript(_SCHEMA)
+            for table in ("batches", "snapshots"):
+                # a database from before the checksums: its rows keep a NULL crc (not verifiable), new ones get one
+                columns = {row[1] for row in self._db.execute(f"PRAGMA table_info({table})")}
+                if "crc" not in columns:
+                    self._db.execute(f"ALTER TABLE {table} ADD COLUMN crc INTEGER")
 
     def _write(self, statements: list[tuple[str, tuple[Any, ...]]]) -> None:
         """Run statements in one immediate transaction: all of them are on disk when this returns.
@@ -157,10 +182,11 @@ class SqliteStorage:
         with self._lock:
             rows = self._db.execute("SELECT name, meta, updated FROM maps ORDER BY name").fetchall()
             maps = {name: StoredMap(name, json.loads(meta), updated) for name, meta, updated in rows}
-            for name, version, payload in self._db.execute("SELECT map, version, payload FROM snapshots"):
-                maps[name].snapshot_version, maps[name].snapshot = version, bytes(payload)
-            for name, seq, payload in self._db.execute("SELECT map, seq, payload FROM batches ORDER BY map, seq"):
-                maps[name].batches.append((seq, bytes(payload)))
+            for name, version, payload, crc in self._db.execute("SELECT map, version, payload, crc FROM snapshots"):
+                _take_snapshot(maps[name], version, bytes(payload), crc)
+            for name, seq, payload, crc in self._db.execute(
+                    "SELECT map, seq, payload, crc FROM batches ORDER BY map, seq"):
+                _take_batch(maps[name], seq, bytes(payload), crc)
         return list(maps.values())
 
     def load_map(self, name: str) -> StoredMap | None:
@@ -169,11 +195,13 @@ class SqliteStorage:
             if row is None:
                 return None
             stored = StoredMap(name, json.loads(row[0]), row[1])
-            snapshot = self._db.execute("SELECT version, payload FROM snapshots WHERE map = ?", (name,)).fetchone()
+            snapshot = self._db.execute("SELECT version, payload, crc FROM snapshots WHERE map = ?",
+                                        (name,)).fetchone()
             if snapshot is not None:
-                stored.snapshot_version, stored.snapshot = snapshot[0], bytes(snapshot[1])
-            stored.batches = [(seq, bytes(payload)) for seq, payload in
-                              self._db.execute("SELECT seq, payload FROM batches WHERE map = ? ORDER BY seq", (name,))]
+                _take_snapshot(stored, snapshot[0], bytes(snapshot[1]), snapshot[2])
+            for seq, payload, crc in self._db.execute(
+                    "SELECT seq, payload, crc FROM batches WHERE map = ? ORDER BY seq", (name,)):
+                _take_batch(stored, seq, bytes(payload), crc)
         return stored
 
     def create_map(self, name: str, meta: dict[str, Any], updated: str) -> None:
@@ -193,7 +221,8 @@ class SqliteStorage:
         # one transaction, so one fsync of the WAL however many batches (group commit)
         statements: list[tuple[str, tuple[Any, ...]]] = []
         for b in batches:
-            statements.append(("INSERT INTO batches (map, seq, payload) VALUES (?, ?, ?)", (b.name, b.version, b.payload)))
+            statements.append(("INSERT INTO batches (map, seq, payload, crc) VALUES (?, ?, ?, ?)",
+                               (b.name, b.version, b.payload, _crc(b.payload))))
             statements.append(("UPDATE maps SET updated = ? WHERE name = ?", (b.updated, b.name)))
         self._write(statements)
 
@@ -204,9 +233,10 @@ class SqliteStorage:
         self._write(
             [
                 (
-                    "INSERT INTO snapshots (map, version, payload) VALUES (?, ?, ?) "
-                    "ON CONFLICT(map) DO UPDATE SET version = excluded.version, payload = excluded.payload",
-                    (name, version, payload),
+                    "INSERT INTO snapshots (map, version, payload, crc) VALUES (?, ?, ?, ?) "
+                    "ON CONFLICT(map) DO UPDATE SET version = excluded.version, payload = excluded.payload, "
+                    "crc = excluded.crc",
+                    (name, version, payload, _crc(payload)),
                 ),
                 ("DELETE FROM batches WHERE map = ? AND seq <= ?", (name, version)),
             ]

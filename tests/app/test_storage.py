@@ -13,6 +13,7 @@ from fastapi.testclient import TestClient
 
 from app.config import Settings
 from app.main import create_app
+from app.storage import SqliteStorage, StorageUnavailable
 from fuzzyocc import FuzzyMap
 
 
@@ -154,6 +155,74 @@ def test_a_batch_that_fails_half_way_leaves_the_live_map_as_a_restart_rebuilds_i
         assert restarted.get("/maps/lab/risk", params={"format": "npy"}).content == live
 
 
+def _keep_the_log_at_shutdown(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Snapshots fail only at shutdown (a full disk then, say): the batches after the last snapshot stay in the log."""
+    original = SqliteStorage.write_snapshot
+
+    def write_snapshot(self: SqliteStorage, name: str, version: int, payload: bytes) -> None:
+        if version % 2:  # the service's own every-2 snapshots (snapshot_every=2) pass
+            raise StorageUnavailable("database or disk is full")
+        original(self, name, version, payload)
+
+    monkeypatch.setattr(SqliteStorage, "write_snapshot", write_snapshot)
+
+
+def _flip_a_bit(data_dir: Path, table: str, key: str, name: str) -> None:
+    with sqlite3.connect(data_dir / "fuzzyrisk.sqlite3") as db:
+        (payload,) = db.execute(f"SELECT payload FROM {table} WHERE map = ? ORDER BY {key} LIMIT 1", (name,)).fetchone()
+        damaged = bytearray(payload)
+        damaged[len(damaged) // 2] ^= 0x04
+        db.execute(f"UPDATE {table} SET payload = ? WHERE map = ? AND {key} = "
+                   f"(SELECT {key} FROM {table} WHERE map = ? ORDER BY {key} LIMIT 1)", (bytes(damaged), name, name))
+
+
+@pytest.mark.parametrize(("table", "key", "what"), [("batches", "seq", "batch 1"), ("snapshots", "version", "snapshot")])
+def test_a_damaged_row_quarantines_its_map_and_the_others_start(make_settings: Any, kit: Any, table: str,
+                                                                 key: str, what: str,
+                                                                 monkeypatch: pytest.MonkeyPatch) -> None:
+    # issue 11: a flipped bit in a stored batch was fused as if nothing happened; a damaged snapshot
+    # stopped the whole service
+    settings = make_settings(snapshot_every=2)
+    _keep_the_log_at_shutdown(monkeypatch)
+    with TestClient(create_app(settings)) as client:
+        for name in ("lab", "other"):
+            client.post("/maps", json={**kit.MAP_2D, "name": name})
+            for body in _scans(kit, 3):  # a snapshot at version 2, batch 3 after it
+                assert client.post(f"/maps/{name}/scans", json=body).status_code == 200
+        other = client.get("/maps/other/risk", params={"format": "npy"}).content
+    monkeypatch.undo()
+    _flip_a_bit(settings.data_dir, table, key, "lab")
+    with TestClient(create_app(settings)) as client:
+        damaged = client.get("/maps/lab")
+        assert damaged.status_code == 503
+        assert "quarantined" in damaged.json()["detail"] and "checksum" in damaged.json()["detail"]
+        assert client.post("/maps/lab/scans", json=_scans(kit, 1)[0]).status_code == 503  # nothing is added to it
+        assert client.get("/ready").json()["maps_quarantined"] == ["lab"]
+        assert client.get("/maps/other/risk", params={"format": "npy"}).content == other
+        assert client.delete("/maps/lab").status_code == 204  # dropped with its rows
+        assert client.get("/maps/lab").status_code == 404
+        assert client.post("/maps", json=kit.MAP_2D).status_code == 201  # the name is free again
+    assert what  # the parameter names the damaged row in the test id
+
+
+def test_a_database_from_before_the_checksums_still_loads(make_settings: Any, kit: Any,
+                                                          monkeypatch: pytest.MonkeyPatch) -> None:
+    settings = make_settings()
+    _keep_the_log_at_shutdown(monkeypatch)
+    with TestClient(create_app(settings)) as client:
+        client.post("/maps", json=kit.MAP_2D)
+        assert client.post("/maps/lab/scans", json=_scans(kit, 1)[0]).status_code == 200
+        risk = client.get("/maps/lab/risk", params={"format": "npy"}).content
+    with sqlite3.connect(settings.data_dir / "fuzzyrisk.sqlite3") as db:
+        db.execute("ALTER TABLE batches DROP COLUMN crc")  # the old schema
+    with TestClient(create_app(settings)) as client:
+        assert client.get("/maps/lab/risk", params={"format": "npy"}).content == risk
+        assert client.post("/maps/lab/scans", json=_scans(kit, 2)[1]).status_code == 200
+        assert _rows(settings.data_dir, "batches") == [("lab", 1), ("lab", 2)]
+        with sqlite3.connect(settings.data_dir / "fuzzyrisk.sqlite3") as db:  # the old row unchecked, the new one summed
+            assert [crc is None for (crc,) in db.execute("SELECT crc FROM batches ORDER BY seq")] == [True, False]
+
+
 def test_map_metadata_survives_a_restart(make_client: Any, kit: Any) -> None:
     first = make_client()
     created = first.post("/maps", json={**kit.MAP_3D, "model": "bayes",
@@ -181,3 +250,24 @@ def test_replayed_risk_equals_a_fresh_in_process_fusion(make_client: Any, kit: A
                                              ranges=np.array(s["ranges"], dtype=float), range_min=s["range_min"],
                                              range_max=s["range_max"])])
     assert kit.risk_npy(client, "lab").tobytes() == reference.risk().tobytes()
+
+
+def test_a_backup_taken_while_the_service_runs_serves_the_same_maps(make_settings: Any, kit: Any,
+                                                                    tmp_path: Path) -> None:
+    from app.backup import main as backup_main
+
+    settings = make_settings()
+    copy = tmp_path / "copy" / "fuzzyrisk.sqlite3"
+    copy.parent.mkdir()
+    with TestClient(create_app(settings)) as client:
+        client.post("/maps", json=kit.MAP_2D)
+        for body in _scans(kit, 3):
+            assert client.post("/maps/lab/scans", json=body).status_code == 200
+        assert (settings.data_dir / "fuzzyrisk.sqlite3-wal").stat().st_size > 0  # batches still in the log
+        risk = client.get("/maps/lab/risk", params={"format": "npy"}).content
+        assert backup_main([str(copy), "--data-dir", str(settings.data_dir)]) == 0
+        assert backup_main([str(copy), "--data-dir", str(settings.data_dir)]) == 1  # never overwrites
+        assert client.post("/maps/lab/scans", json=_scans(kit, 4)[3]).status_code == 200  # still serving
+    with TestClient(create_app(make_settings(data_dir=copy.parent))) as restored:
+        assert restored.get("/maps/lab").json()["version"] == 3
+        assert restored.get("/maps/lab/risk", params={"format": "npy"}).content == risk
