@@ -44,6 +44,12 @@ class Settings(BaseSettings):
     max_map_cells: int = Field(
         16_000_000, ge=1, description="Most cells in one map (at most about 13 bytes a cell in memory for a fuzzy map of the default engine)."
     )
+    max_maps: int = Field(100, ge=1, description="Most maps the service holds (507 beyond).")
+    max_total_cells: int = Field(
+        400_000_000, ge=1,
+        description="Most cells of all maps together (507 beyond): about 13 bytes a cell at worst for the default "
+        "engine, so the default bounds the maps' memory near 5 GB.",
+    )
     max_query_points: int = Field(100_000, ge=1, description="Most points in one risk query.")
     max_plan_time_s: float = Field(30.0, gt=0.0, le=3600.0, description="Largest plan time_limit, seconds.")
     plan_workers: int = Field(2, ge=1, le=64, description="Planner worker processes.")

@@ -47,6 +47,12 @@ class TooLarge(ServiceError):
     status = 413
 
 
+class InsufficientStorage(ServiceError):
+    """507: the service's budget for maps (their number, or their cells together) has no room for this one."""
+
+    status = 507
+
+
 class UnsupportedMediaType(ServiceError):
     status = 415
 

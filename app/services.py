@@ -58,6 +58,7 @@ from app.committer import GroupCommitter
 from app.config import Settings
 from app.errors import (
     Conflict,
+    InsufficientStorage,
     Invalid,
     NotFound,
     PlanRejected,
@@ -499,6 +500,28 @@ class MapService:
     def get_map(self, name: str) -> MapInfo:
         return self._entry(name).info()
 
+    def _check_room(self, meta: Mapping[str, Any]) -> None:
+        """``InsufficientStorage`` when a new map would pass ``FUZZYRISK_MAX_MAPS`` or ``FUZZYRISK_MAX_TOTAL_CELLS``.
+
+        Quarantined maps count: their rows are still stored. The others are unaffected either way.
+        """
+        held = len(self._maps) + len(self._quarantined)
+        if held >= self.settings.max_maps:
+            raise InsufficientStorage(f"the service holds {held} maps, its limit (FUZZYRISK_MAX_MAPS); DELETE one first")
+        try:
+            cells = GridSpec(origin=meta["origin"], size=meta["size"], resolution=meta["resolution"],
+                             max_cells=self.settings.max_map_cells).num_cells
+        except ValueError as exc:
+            hint = " (FUZZYRISK_MAX_MAP_CELLS)" if "limit" in str(exc) else ""
+            raise Invalid(f"{exc}{hint}") from None
+        used = sum(entry.spec.num_cells for entry in self._maps.values())
+        if used + cells > self.settings.max_total_cells:
+            raise InsufficientStorage(
+                f"a map of {cells:,} cells does not fit: the maps hold {used:,} of the service's "
+                f"{self.settings.max_total_cells:,} cells (FUZZYRISK_MAX_TOTAL_CELLS); use a coarser resolution, a "
+                "smaller region, or DELETE a map"
+            )
+
     async def create_map(self, request: MapCreate) -> MapInfo:
         """Create an empty map; ``Conflict`` if the name is taken, ``Invalid`` if the grid is unusable."""
         async with self._create_lock:
@@ -516,6 +539,7 @@ class MapService:
             }
             if request.model == "fuzzy":
                 meta["engine"] = engines.to_meta(request.engine or engines.default())
+            self._check_room(meta)  # before the map's memory is taken
             try:
                 built = await self._run(lambda: _build_map(meta, max_cells=self.settings.max_map_cells))
             except ValueError as exc:

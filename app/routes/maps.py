@@ -12,7 +12,8 @@ router = APIRouter(prefix="/maps", tags=["maps"])
 _NOT_FOUND = {404: {"description": "no map of that name"}}
 
 
-@router.post("", status_code=201, responses={409: {"description": "the name is taken"}})
+@router.post("", status_code=201, responses={409: {"description": "the name is taken"},
+                                               507: {"description": "no room: FUZZYRISK_MAX_MAPS or FUZZYRISK_MAX_TOTAL_CELLS"}})
 async def create_map(body: MapCreate, service: ServiceDep) -> MapInfo:
     """Create an empty map (every cell unknown, risk 0.5)."""
     return await service.create_map(body)

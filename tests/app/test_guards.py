@@ -117,3 +117,26 @@ def test_validation_errors_do_not_echo_a_huge_input(lab: TestClient, kit: Any) -
     response = lab.post("/maps/lab/scans", json={"scans": [scan]})
     assert response.status_code == 422
     assert len(response.content) < 2000
+
+
+def test_the_number_of_maps_is_capped_and_the_others_are_unaffected(make_client: Any, kit: Any) -> None:
+    client = make_client(max_maps=2)
+    for name in ("a", "b"):
+        assert client.post("/maps", json={**kit.MAP_2D, "name": name}).status_code == 201
+    third = client.post("/maps", json={**kit.MAP_2D, "name": "c"})
+    assert third.status_code == 507 and "FUZZYRISK_MAX_MAPS" in third.json()["detail"]
+    assert client.post("/maps/a/scans", json={"scans": [kit.laser()]}).json()["version"] == 1
+    assert client.delete("/maps/b").status_code == 204
+    assert client.post("/maps", json={**kit.MAP_2D, "name": "c"}).status_code == 201
+
+
+def test_the_cells_of_all_maps_together_are_capped_before_any_memory_is_taken(make_client: Any, kit: Any) -> None:
+    client = make_client(max_total_cells=25_000)  # kit.MAP_2D is 100 x 100 = 10,000 cells
+    for name in ("a", "b"):
+        assert client.post("/maps", json={**kit.MAP_2D, "name": name}).status_code == 201
+    third = client.post("/maps", json={**kit.MAP_2D, "name": "c"})
+    assert third.status_code == 507
+    assert "FUZZYRISK_MAX_TOTAL_CELLS" in third.json()["detail"] and "20,000 of the service's 25,000" in third.json()["detail"]
+    assert [m["name"] for m in client.get("/maps").json()] == ["a", "b"]
+    small = client.post("/maps", json={**kit.MAP_2D, "name": "c", "size": [5.0, 5.0]})  # 2,500 cells fit
+    assert small.status_code == 201
