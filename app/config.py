@@ -44,6 +44,13 @@ class Settings(BaseSettings):
     max_map_cells: int = Field(
         16_000_000, ge=1, description="Most cells in one map (at most about 13 bytes a cell in memory for a fuzzy map of the default engine)."
     )
+    max_bodies_in_flight_bytes: int = Field(
+        256 * 2**20, ge=1024,
+        description="Most bytes of request bodies received and not yet answered, all requests together (503 beyond).",
+    )
+    body_read_timeout_s: float = Field(
+        30.0, gt=0.0, le=3600.0, description="Longest wait for the next chunk of a request body, seconds (408 beyond)."
+    )
     max_maps: int = Field(100, ge=1, description="Most maps the service holds (507 beyond).")
     max_total_cells: int = Field(
         400_000_000, ge=1,

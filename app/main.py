@@ -14,7 +14,7 @@ from app.config import Settings, get_settings
 from app.deps import require_api_key
 from app.errors import install_error_handlers
 from app.metrics import Metrics
-from app.middleware import ApiKeyMiddleware, BodyLimitMiddleware, ObserveMiddleware
+from app.middleware import ApiKeyMiddleware, BodyBudgetMiddleware, BodyLimitMiddleware, ObserveMiddleware
 from app.routes import docs, maps, plans, risk, scans, system, ui
 from app.schemas import RiskGridJSON, ScanBatch
 from app.services import MapService
@@ -68,7 +68,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     install_error_handlers(app)
     app.add_middleware(BodyLimitMiddleware, max_bytes=settings.max_body_bytes,
                        small_bytes=settings.max_json_body_bytes)
-    app.add_middleware(ApiKeyMiddleware, api_key=settings.api_key)  # outside the body limit: the key first
+    app.add_middleware(BodyBudgetMiddleware, max_bytes=settings.max_bodies_in_flight_bytes,
+                       read_timeout_s=settings.body_read_timeout_s)
+    app.add_middleware(ApiKeyMiddleware, api_key=settings.api_key)  # outside the body limits: the key first
     app.add_middleware(ObserveMiddleware, metrics=metrics)  # added last: outermost, sees every answer
 
     app.include_router(system.router)

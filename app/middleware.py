@@ -3,6 +3,7 @@ record and metric per request."""
 
 from __future__ import annotations
 
+import asyncio
 import json
 import re
 import time
@@ -99,6 +100,58 @@ class BodyLimitMiddleware:
             return message
 
         await self.app(scope, limited_receive, send)
+
+
+class BodyBudgetMiddleware:
+    """Bodies in flight, counted from their first byte: a budget for all of them, and a read timeout.
+
+    Every request's body bytes count from the moment they arrive until the request is answered
+    (the service holds a parsed body that long); a chunk that would take all bodies together past
+    ``max_bytes`` answers 503 with ``Retry-After``, so forty slow 60 MB uploads cannot take 2.6 GB
+    (issue 11). A body whose next chunk takes longer than ``read_timeout_s`` answers 408: a
+    trickled body does not hold its connection and its bytes for ever.
+    """
+
+    def __init__(self, app: ASGIApp, max_bytes: int, read_timeout_s: float) -> None:
+        self.app = app
+        self.max_bytes = max_bytes
+        self.read_timeout_s = read_timeout_s
+        self.in_flight = 0  # bytes of bodies received and not yet answered (one event loop: no lock)
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+        held = 0
+        body_done = False
+
+        async def budgeted_receive() -> Message:
+            nonlocal held, body_done
+            if body_done:  # after the body only a disconnect can come: no timeout on that wait
+                return await receive()
+            try:
+                message = await asyncio.wait_for(receive(), self.read_timeout_s)
+            except asyncio.TimeoutError:
+                raise HTTPException(status_code=408, detail=(
+                    f"the request body stalled: no bytes for {self.read_timeout_s:g} s "
+                    "(FUZZYRISK_BODY_READ_TIMEOUT_S)")) from None
+            if message["type"] == "http.request":
+                size = len(message.get("body", b""))
+                if self.in_flight + size > self.max_bytes:
+                    raise HTTPException(status_code=503, headers={"Retry-After": "1"}, detail=(
+                        f"the service is receiving {self.in_flight} bytes of request bodies, its limit "
+                        f"(FUZZYRISK_MAX_BODIES_IN_FLIGHT_BYTES); retry"))
+                self.in_flight += size
+                held += size
+                body_done = not message.get("more_body", False)
+            else:
+                body_done = True
+            return message
+
+        try:
+            await self.app(scope, budgeted_receive, send)
+        finally:
+            self.in_flight -= held
 
 
 class ObserveMiddleware:

@@ -1,15 +1,19 @@
-"""Guards: the API key, the body limit enforced while reading, and answers that do not echo huge inputs."""
+"""Guards: the API key, the body limits enforced while reading, the budget of bodies in flight, the caps on
+maps, and answers that do not echo huge inputs."""
 
 from __future__ import annotations
 
+import asyncio
 from collections.abc import Iterator
 from typing import Any
 
 import pytest
 from fastapi.testclient import TestClient
 from pydantic import ValidationError
+from starlette.middleware.exceptions import ExceptionMiddleware
 
 from app.config import Settings
+from app.middleware import BodyBudgetMiddleware
 
 KEY = "s3cret-key-for-tests-0123456789"
 
@@ -140,3 +144,85 @@ def test_the_cells_of_all_maps_together_are_capped_before_any_memory_is_taken(ma
     assert [m["name"] for m in client.get("/maps").json()] == ["a", "b"]
     small = client.post("/maps", json={**kit.MAP_2D, "name": "c", "size": [5.0, 5.0]})  # 2,500 cells fit
     assert small.status_code == 201
+
+
+# ---------------------------------------------------------------- bodies in flight (issue 11 item 3)
+
+
+async def _drain(scope: dict, receive: Any, send: Any) -> None:
+    """An ASGI app that reads the whole body, then answers 200."""
+    while True:
+        message = await receive()
+        if not message.get("more_body", False):
+            break
+    await send({"type": "http.response.start", "status": 200, "headers": []})
+    await send({"type": "http.response.body", "body": b"ok"})
+
+
+def _request(chunks: list[bytes], gate: Any = None) -> tuple[dict, Any, list[dict]]:
+    """An HTTP scope, a receive that hands out ``chunks`` (waiting on ``gate`` before the last), and a list
+    for what is sent (``_with_send`` makes the ``send``)."""
+    scope = {"type": "http", "method": "POST", "path": "/maps/a/scans", "headers": []}
+    queue = list(chunks)
+    sent: list[dict] = []
+
+    async def receive() -> dict:
+        body = queue.pop(0)
+        if not queue and gate is not None:
+            await gate.wait()
+        return {"type": "http.request", "body": body, "more_body": bool(queue)}
+
+    return scope, receive, sent
+
+
+def _with_send(request: tuple[dict, Any, list[dict]]) -> tuple[dict, Any, Any]:
+    scope, receive, sent = request
+
+    async def send(message: dict) -> None:
+        sent.append(message)
+
+    return scope, receive, send
+
+
+def _status(sent: list[dict]) -> int:
+    return next(m["status"] for m in sent if m["type"] == "http.response.start")
+
+
+def test_bodies_in_flight_share_one_budget_and_a_refused_one_gives_its_bytes_back() -> None:
+    budget = BodyBudgetMiddleware(ExceptionMiddleware(_drain), max_bytes=10_000, read_timeout_s=5.0)
+
+    async def run() -> tuple[int, int, int, int]:
+        gate = asyncio.Event()
+        first = _request([b"x" * 6_000, b"x" * 100], gate)  # holds 6,000 bytes while it waits
+        second = _request([b"y" * 6_000])  # 6,000 more would pass 10,000
+        slow = asyncio.create_task(budget(*_with_send(first)))
+        await asyncio.sleep(0.05)
+        await budget(*_with_send(second))
+        held_while_waiting = budget.in_flight
+        gate.set()
+        await slow
+        third = _request([b"z" * 6_000])  # the first is answered: its bytes are back
+        await budget(*_with_send(third))
+        return _status(first[2]), _status(second[2]), _status(third[2]), held_while_waiting
+
+    first, second, third, held = asyncio.run(run())
+    assert (first, second, third) == (200, 503, 200)
+    assert held == 6_000 and budget.in_flight == 0
+
+
+def test_a_stalled_body_answers_408() -> None:
+    budget = BodyBudgetMiddleware(ExceptionMiddleware(_drain), max_bytes=10_000, read_timeout_s=0.1)
+    never = asyncio.Event()
+    request = _request([b"a" * 10, b"b" * 10], never)  # the second chunk never comes
+    asyncio.run(budget(*_with_send(request)))
+    sent = request[2]
+    assert _status(sent) == 408 and budget.in_flight == 0
+
+
+def test_the_service_runs_the_budget_from_its_settings(make_client: Any, kit: Any) -> None:
+    client = make_client(max_bodies_in_flight_bytes=2048)
+    client.post("/maps", json=kit.MAP_2D)
+    response = client.post("/maps/lab/scans", json={"scans": [kit.laser(beams=400)]})  # about 8 KB
+    assert response.status_code == 503 and response.headers["Retry-After"] == "1"
+    assert "FUZZYRISK_MAX_BODIES_IN_FLIGHT_BYTES" in response.json()["detail"]
+    assert kit.version(client, "lab") == 0
