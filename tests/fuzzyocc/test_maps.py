@@ -358,3 +358,30 @@ def test_bayes_updates_every_cell_a_large_scan_clears() -> None:
     logodds = m.to_arrays()["logodds"]
     assert np.all(logodds[observed] == free)
     assert np.all(logodds[~observed] == 0.0)
+
+
+@pytest.mark.parametrize("model", [FuzzyMap, BayesMap])
+@pytest.mark.parametrize("ndim", [2, 3])
+def test_a_batch_cast_in_chunks_gives_the_map_of_one_cast(model, ndim, monkeypatch) -> None:
+    # issue 11: a whole batch cast at once held an entry per (scan, cell): memory grew with the batch
+    import fuzzyocc.maps as maps_module
+
+    rng = np.random.default_rng(4)
+    if ndim == 2:
+        spec = GridSpec(origin=(0.0, 0.0), size=(6.0, 4.0), resolution=0.1)
+        scans = [LaserScan(pose=(1.0 + 0.4 * k, 1.5 + 0.1 * k, 0.3 * k), angle_min=-1.5, angle_increment=0.05,
+                           ranges=rng.uniform(0.5, 5.0, 61).tolist() + [math.inf], range_min=0.1, range_max=6.0)
+                 for k in range(7)]
+    else:
+        spec = GridSpec(origin=(0.0, 0.0, 0.0), size=(4.0, 3.0, 2.0), resolution=0.1)
+        scans = [PointCloud(points=rng.uniform((0.2, 0.2, 0.2), (3.8, 2.8, 1.8), (150, 3)),
+                            origin=(2.0 + 0.1 * k, 1.5, 1.0), range_max=5.0) for k in range(7)]
+    whole = model(spec, SensorModel(range_sigma=0.05))
+    whole.integrate_batch(scans)
+    assert len(whole._cast_chunks([whole._rays_of(s) for s in scans])) == 1  # the default: one cast here
+    monkeypatch.setattr(maps_module, "CAST_CHUNK_ENTRIES", 1)  # every scan a chunk of its own
+    chunked = model(spec, SensorModel(range_sigma=0.05))
+    assert chunked._cast_chunks([chunked._rays_of(s) for s in scans]) == [(k, k + 1) for k in range(7)]
+    stats = chunked.integrate_batch(scans)
+    assert np.array_equal(chunked.risk(), whole.risk()) and np.array_equal(chunked.observed(), whole.observed())
+    assert stats.scans == 7 and chunked.scans_fused == whole.scans_fused
