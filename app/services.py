@@ -542,9 +542,8 @@ class MapService:
             self._check_room(meta)  # before the map's memory is taken
             try:
                 built = await self._run(lambda: _build_map(meta, max_cells=self.settings.max_map_cells))
-            except ValueError as exc:
-                hint = " (FUZZYRISK_MAX_MAP_CELLS)" if "limit" in str(exc) else ""
-                raise Invalid(f"{exc}{hint}") from None
+            except ValueError as exc:  # the grid was checked by _check_room: the sensor or the engine
+                raise Invalid(str(exc)) from None
             try:
                 await self._run(self.storage.create_map, request.name, meta, now)
             except NameTaken:

@@ -41,7 +41,7 @@ from ompl import base as ob
 from ompl import geometric as og
 from ompl import util as ou
 
-from planning.budget import wall_clock_limit
+from planning.budget import SEEDED_CLOCK_FACTOR, wall_clock_limit
 from planning.field import RiskField
 from planning.grid_search import grid_path
 from planning.packed import PackedGrid
@@ -83,8 +83,8 @@ GRID_SEEDED_SPACES = ("R2", "SE2")
 #: quarter of 1 s buys 830 k): its search stops after that many expansions.
 GRID_SEED_S_PER_EXPANSION = 300e-9
 GRID_SEED_SHARE = 0.25
-CLOCK_NOTE = ("stopped by the wall-clock bound (3 x time_limit for a seeded plan) before the seeded iteration "
-              "budget; the path may differ between runs")
+CLOCK_NOTE = (f"stopped by the wall-clock bound ({SEEDED_CLOCK_FACTOR:g} x time_limit for a seeded plan) before the "
+              "seeded iteration budget; the path may differ between runs")
 
 
 # ---------------------------------------------------------------- argument checks
