@@ -311,33 +311,44 @@ def evaluate_polyline(buf: np.ndarray, points: np.ndarray) -> tuple[float, float
 
 @njit(cache=True)
 def shortcut(buf: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """Greedy string pulling that never raises the cost; returns the indices of kept points.
+    """Greedy string pulling that never raises the cost or the peak risk; returns the kept indices.
 
     From each kept point, the farthest later point reachable by a valid straight segment
-    whose cost is not above that of the sub-path it replaces becomes the next kept point.
-    Deterministic, and exact for the cost of :func:`evaluate_polyline`.
+    whose cost is not above that of the sub-path it replaces, and whose largest risk is not
+    above that sub-path's, becomes the next kept point. The peak rule keeps a short cut from
+    trading clearance for length: a cost linear in risk would let a path that went round a
+    contested cell (risk 0.5) cut across it to save a few per cent of its length, closer
+    to danger than the optimum it started from. Deterministic, and exact for the cost and
+    peak of :func:`evaluate_polyline`.
     """
     count = points.shape[0]
     w = buf[H_WEIGHT]
     prefix = np.zeros(count)
+    seg_peak = np.zeros(count)
     for s in range(count - 1):
         a = points[s]
         b = points[s + 1]
-        acc, _, _ = _walk(buf, a[0], a[1], a[2], b[0], b[1], b[2], False)
+        acc, top, _ = _walk(buf, a[0], a[1], a[2], b[0], b[1], b[2], False)
         seg = math.sqrt((b[0] - a[0]) ** 2 + (b[1] - a[1]) ** 2 + (b[2] - a[2]) ** 2)
         prefix[s + 1] = prefix[s] + seg * (1.0 + w * acc)
+        seg_peak[s] = top
     keep = np.empty(count, dtype=np.int64)
+    sub_peak = np.empty(count)  # sub_peak[j]: largest risk on the sub-path from point i to point j
     kept = 0
     i = 0
     keep[kept] = 0
     kept += 1
     while i < count - 1:
+        top = 0.0
+        for j in range(i + 1, count):
+            top = max(top, seg_peak[j - 1])
+            sub_peak[j] = top
         nxt = i + 1
         a = points[i]
         for j in range(count - 1, i + 1, -1):
             b = points[j]
-            acc, _, ok = _walk(buf, a[0], a[1], a[2], b[0], b[1], b[2], True)
-            if not ok:
+            acc, peak, ok = _walk(buf, a[0], a[1], a[2], b[0], b[1], b[2], True)
+            if not ok or peak > sub_peak[j]:
                 continue
             seg = math.sqrt((b[0] - a[0]) ** 2 + (b[1] - a[1]) ** 2 + (b[2] - a[2]) ** 2)
             if seg * (1.0 + w * acc) <= prefix[j] - prefix[i] + 1e-12 * (1.0 + prefix[j]):

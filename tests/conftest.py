@@ -73,3 +73,9 @@ def no_process_outlives_the_suite() -> Iterator[None]:
             continue
     pytest.fail(f"{len(strays)} process(es) started by the tests outlived them by {STRAGGLER_GRACE_S:.0f} s "
                 "(ended now):\n" + "\n".join(described))
+
+
+def error_message(response) -> str:  # type: ignore[no-untyped-def]
+    """The human-readable message of an error answer (every error body is ``{code, message, details}``)."""
+    body = response.json()
+    return str(body["message"] if "message" in body else body["detail"])

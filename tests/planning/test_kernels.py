@@ -126,6 +126,21 @@ def test_grid_search_reports_an_unreachable_goal() -> None:
     assert found.positions[-1][0] == pytest.approx(0.95)  # the reachable cell nearest the goal
 
 
+def test_shortcut_never_cuts_closer_to_risk_than_the_path_it_replaces() -> None:
+    # a path bent 0.5 m round a contested cell (risk 0.5): the straight cut would be 0.062 m
+    # shorter and pay only 0.025 m of risk, so a rule on cost alone takes it; the peak rule
+    # keeps the bend, and on an empty map the same bend is pulled straight
+    res = 0.05
+    risk = np.zeros((200, 60), np.float32)
+    risk[100, 20] = 0.5
+    bent = np.array([[1.025, 1.025], [5.025, 1.525], [9.025, 1.025]])
+    for values, kept in ((risk, [0, 1, 2]), (np.zeros_like(risk), [0, 2])):
+        grid = PackedGrid(RiskField(values, res, (0.0, 0.0)), 0.0, 0.6, True, 1.0)
+        assert grid.shortcut(bent).tolist() == kept
+    grid = PackedGrid(RiskField(risk, res, (0.0, 0.0)), 0.0, 0.6, True, 1.0)
+    assert grid.cost(bent[[0, 2]]) < grid.cost(bent)  # the cut would have been cheaper
+
+
 def test_dubins_kernel_follows_ompl_curves() -> None:
     rho = 0.5
     buf = _kernels.pack(np.zeros((100, 100), np.float32), np.ones((100, 100), bool), (0.0, 0.0), RES, 1.0, rho)
