@@ -44,6 +44,14 @@ def main(argv: list[str] | None = None) -> None:
         sys.exit(EXIT_STARTUP_FAILURE)
     if directories.warning:
         log.warning(directories.warning)
+    if settings.foxglove_port is not None:
+        try:  # here, so that a missing optional extra stops the start at once with what to do
+            import foxglove  # noqa: F401
+        except ImportError as exc:
+            log.error("cannot start: FUZZYRISK_FOXGLOVE_PORT is set but the Foxglove SDK is not installed (%s): install "
+                      "the foxglove extra (pip install 'fuzzyrisk[foxglove]', i.e. foxglove-sdk), or unset "
+                      "FUZZYRISK_FOXGLOVE_PORT", exc)
+            sys.exit(EXIT_STARTUP_FAILURE)
     if settings.api_key is None and settings.host not in ("127.0.0.1", "localhost", "::1"):
         log.warning("listening on %s without FUZZYRISK_API_KEY: anyone who can reach it can change maps", settings.host)
     log.info(

@@ -205,6 +205,29 @@ def _load_body(body: bytes, limits: Limits) -> tuple[np.ndarray, bool]:
     return np.frombuffer(body, dtype="<f4").astype(np.float64), False
 
 
+def _raw_points(body: bytes, point_step: float | None, limits: Limits) -> np.ndarray:
+    """(N, 3) float64 points of a raw body: ``point_step`` bytes a point, x, y, z little-endian float32 first.
+
+    Raw bytes do not say their layout, and guessing 12 bytes a point read a 16-byte-stride
+    PointCloud2 (x, y, z, intensity) as 400 garbage points instead of 300 (issue 12): the stride
+    is stated or the body refused.
+    """
+    if not body:
+        raise Invalid("body is empty: send the points' bytes")
+    if point_step is None:
+        raise Invalid("body: raw float32 points need their layout: point_step=12 for packed x y z (bytes per point, "
+                      "x, y, z little-endian float32 at its start; 16 for x y z + one float32, e.g. a PointCloud2's "
+                      "intensity); or send a .npy of shape (N, 3), or the PointCloud2 itself as "
+                      "application/vnd.ros2.sensor_msgs.msg.PointCloud2+cdr")
+    step = int(point_step)
+    _check_rays("body", len(body) // step, limits)
+    if len(body) % step:
+        raise Invalid(f"body: {len(body)} bytes is not a whole number of points of point_step {step} bytes")
+    layout = np.dtype({"names": ["x", "y", "z"], "formats": ["<f4"] * 3, "offsets": [0, 4, 8], "itemsize": step})
+    records = np.frombuffer(body, dtype=layout)
+    return np.column_stack([records["x"], records["y"], records["z"]]).astype(np.float64)
+
+
 def _need(params: Mapping[str, float | None], names: Sequence[str], what: str) -> list[float]:
     missing = [n for n in names if params.get(n) is None]
     if missing:
@@ -215,14 +238,21 @@ def _need(params: Mapping[str, float | None], names: Sequence[str], what: str) -
 def from_binary(body: bytes, params: Mapping[str, float | None], dims: int, limits: Limits) -> list[Scan]:
     """The one scan of a binary upload (pose and scan parameters in ``params``, from the query).
 
-    3-D map: points (N, 3) in the sensor frame (``.npy``, or raw float32 x, y, z, x, y, z, ...),
-    pose ``x, y, z`` and quaternion ``qx, qy, qz, qw`` (default identity), ``range_max``.
+    3-D map: points (N, 3) in the sensor frame (``.npy``, or raw points of ``point_step`` bytes, each
+    starting with float32 x, y, z), pose ``x, y, z`` and quaternion ``qx, qy, qz, qw`` (default
+    identity), ``range_max``.
     2-D map: raw float32 ranges (or a 1-D ``.npy``) of a LaserScan with ``x, y, theta, angle_min,
     angle_increment, range_min, range_max``; or a ``.npy`` of (N, 2) sensor-frame points with
     ``x, y, theta, range_max``.
     """
     registration_sigma = params.get("registration_sigma") or 0.0
-    array, is_npy = _load_body(body, limits)
+    point_step = params.get("point_step")
+    if dims == 3 and not body.startswith(_NPY_MAGIC):
+        array = _raw_points(body, point_step, limits)
+    elif point_step is not None:
+        raise Invalid("query: point_step describes raw float32 points on a 3-D map; drop it here")
+    else:
+        array, _ = _load_body(body, limits)
     if dims == 3:
         x, y, z, range_max = _need(params, ("x", "y", "z", "range_max"), "a point cloud on a 3-D map")
         given = [params.get(k) for k in ("qx", "qy", "qz", "qw")]
@@ -231,10 +261,6 @@ def from_binary(body: bytes, params: Mapping[str, float | None], dims: int, limi
             pose: Pose2D | Pose3D = Pose3D(position=[x, y, z], orientation=quaternion)
         except ValidationError as exc:
             raise Invalid(f"query: {exc.errors()[0]['msg']}") from None
-        if not is_npy:
-            if array.size % 3:
-                raise Invalid(f"body: {array.size} float32 values is not a whole number of (x, y, z) points")
-            array = array.reshape(-1, 3)
         return [point_cloud("body", pose, array, range_max=range_max, registration_sigma=registration_sigma,
                             dims=3, limits=limits)]
     x, y, theta = _need(params, ("x", "y", "theta"), "a scan on a 2-D map")

@@ -37,6 +37,11 @@ class Settings(BaseSettings):
         description="Largest body of every other route (maps, risk queries, plans), bytes (413 beyond): "
         "100,000 query points as JSON take about 4 MB.",
     )
+    max_bag_bytes: int = Field(
+        512 * 2**20, ge=1024,
+        description="Most bytes an uploaded bag's chunks may take decompressed, as its record headers declare "
+        "(413 beyond, before any chunk is read).",
+    )
     max_scans_per_batch: int = Field(256, ge=1, description="Most scans in one POST /maps/{name}/scans.")
     max_rays_per_scan: int = Field(
         2_000_000, ge=1, description="Most ranges in a LaserScan, or points in a point cloud."
@@ -60,7 +65,7 @@ class Settings(BaseSettings):
     max_query_points: int = Field(100_000, ge=1, description="Most points in one risk query.")
     max_plan_time_s: float = Field(30.0, gt=0.0, le=3600.0, description="Largest plan time_limit, seconds.")
     plan_workers: int = Field(2, ge=1, le=64, description="Planner worker processes.")
-    plan_queue: int = Field(8, ge=1, description="Plans waiting for a worker before 503 answers.")
+    plan_queue: int = Field(8, ge=1, description="Plans waiting for a worker before 503 answers (one map: half).")
     plan_warmup: bool = Field(True, description="Start the planner processes at startup, not at the first plan.")
     native_planning: bool = Field(
         True,
@@ -83,11 +88,23 @@ class Settings(BaseSettings):
     )
     log_format: Literal["json", "kv"] = Field("json", description="json (one object a line) or kv (key=value).")
     log_level: Literal["DEBUG", "INFO", "WARNING", "ERROR"] = Field("INFO", description="Logging threshold.")
+    foxglove_port: int | None = Field(
+        None, ge=1, le=65535,
+        description="Serve the live view to Foxglove (WebSocket) on this port; unset: off. Needs the foxglove extra.",
+    )
+    foxglove_host: str = Field(
+        "127.0.0.1", description="Interface of the Foxglove live view: it has no authentication, so loopback by default."
+    )
+    foxglove_interval_s: float = Field(
+        1.0, ge=0.05, le=3600.0,
+        description="Shortest time between two publications of one map's grid to Foxglove, seconds.",
+    )
 
-    @field_validator("api_key", mode="before")
+    @field_validator("api_key", "foxglove_port", mode="before")
     @classmethod
     def _empty_key_is_none(cls, value: object) -> object:
-        # FUZZYRISK_API_KEY= (empty) in a compose file means "no key", not "the empty key"
+        # FUZZYRISK_API_KEY= (empty) in a compose file means "no key", not "the empty key" (and
+        # FUZZYRISK_FOXGLOVE_PORT= means off)
         if value is None or (isinstance(value, str) and value == ""):
             return None
         return value

@@ -1,11 +1,16 @@
-"""Domain errors of the service and the one handler that turns them into HTTP answers.
+"""Domain errors of the service, the one error body every answer uses, and the handlers that write it.
 
-Services raise these; routes stay free of status codes. Every answer is
-``{"detail": ...}`` with a message that says what to change.
+Services raise these; routes stay free of status codes. Every error answer, whoever writes it
+(a service, request validation, the middleware, an unknown route, an unexpected exception), is
+an ``ErrorBody``: ``{"code": ..., "message": ..., "details": ...}``. ``code`` is stable and
+machine-readable (Nav2's ``ComputePathToPose`` names for a start or goal a plan cannot use),
+``message`` says what to change, ``details`` carries structure where there is some (the list
+of validation errors) and is ``null`` otherwise.
 """
 
 from __future__ import annotations
 
+import http
 import logging
 import math
 from typing import Any
@@ -14,6 +19,8 @@ from fastapi import FastAPI, Request
 from fastapi.encoders import jsonable_encoder
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
+from pydantic import BaseModel, Field
+from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from app.storage import StorageUnavailable
 
@@ -23,15 +30,67 @@ STORAGE_UNAVAILABLE_DETAIL = "the data directory is full or read-only; nothing w
 #: Seconds a client should wait before retrying a write refused by storage (an operator must act first).
 STORAGE_RETRY_AFTER_S = 30
 
+#: The code of an error answer by its status, where nothing more specific is known.
+STATUS_CODES: dict[int, str] = {
+    400: "BAD_REQUEST",
+    401: "UNAUTHORIZED",
+    403: "FORBIDDEN",
+    404: "NOT_FOUND",
+    405: "METHOD_NOT_ALLOWED",
+    408: "REQUEST_TIMEOUT",
+    409: "CONFLICT",
+    413: "TOO_LARGE",
+    415: "UNSUPPORTED_MEDIA_TYPE",
+    422: "INVALID",
+    429: "TOO_MANY_REQUESTS",
+    500: "INTERNAL_ERROR",
+    503: "UNAVAILABLE",
+    507: "INSUFFICIENT_STORAGE",
+}
+#: The code of a request that does not match the operation's schema (``details``: one entry per problem).
+VALIDATION_ERROR = "VALIDATION_ERROR"
+STORAGE_UNAVAILABLE = "STORAGE_UNAVAILABLE"
+
+
+class ErrorBody(BaseModel):
+    """The body of every error answer."""
+
+    code: str = Field(description="stable, machine-readable: INVALID, NOT_FOUND, VALIDATION_ERROR, ..., or "
+                                  "a Nav2 ComputePathToPose error name (START_OCCUPIED, GOAL_OUTSIDE_MAP, ...)")
+    message: str = Field(description="what went wrong and what to change, for a person")
+    details: Any = Field(None, description="structured detail where there is some (VALIDATION_ERROR: the list "
+                                           "of problems, each with loc, msg, type), else null")
+
+
+def status_code_name(status: int) -> str:
+    """The ``code`` of an error answer with this HTTP status and nothing more specific to say."""
+    if status in STATUS_CODES:
+        return STATUS_CODES[status]
+    try:
+        return http.HTTPStatus(status).name
+    except ValueError:
+        return "ERROR"
+
+
+def error_body(code: str, message: str, details: Any = None) -> dict[str, Any]:
+    """An ``ErrorBody`` as a JSON-ready dict (NaN and infinities in ``details`` as strings)."""
+    return {"code": code, "message": message, "details": _json_safe(details)}
+
 
 class ServiceError(Exception):
-    """Base class: ``status`` is the HTTP status, ``detail`` the JSON detail."""
+    """Base class: ``status`` is the HTTP status; the answer is ``ErrorBody(code, message, details)``.
+
+    ``code`` defaults to the status's (``STATUS_CODES``); ``details`` to null.
+    """
 
     status = 500
 
-    def __init__(self, detail: Any, *, headers: dict[str, str] | None = None) -> None:
-        super().__init__(detail)
-        self.detail = detail
+    def __init__(self, message: str, *, code: str | None = None, details: Any = None,
+                 headers: dict[str, str] | None = None) -> None:
+        super().__init__(message)
+        self.message = str(message)
+        self.code = code or status_code_name(self.status)
+        self.details = details
         self.headers = headers
 
 
@@ -64,10 +123,11 @@ class Invalid(ServiceError):
 
 
 class PlanRejected(Invalid):
-    """422 with ``{"code": <Nav2 name>, "message": ...}``: the start or the goal cannot be used."""
+    """422 whose ``code`` is Nav2's name for why (``START_OCCUPIED``, ``GOAL_OUTSIDE_MAP``, ...): the start
+    or the goal cannot be used."""
 
     def __init__(self, code: str, message: str) -> None:
-        super().__init__({"code": code, "message": message})
+        super().__init__(message, code=code)
 
 
 class Unavailable(ServiceError):
@@ -96,31 +156,54 @@ def _validation_errors(exc: RequestValidationError) -> list[dict[str, Any]]:
             error.pop("input")
         error.pop("url", None)
         errors.append(error)
-    return _json_safe(jsonable_encoder(errors))
+    return _json_safe(jsonable_encoder(errors))  # type: ignore[no-any-return]
+
+
+def _validation_message(errors: list[dict[str, Any]]) -> str:
+    """The first problems in one line: ``body.scans.0.ranges: Input should be ... (and 3 more)``."""
+    parts = [f"{'.'.join(str(p) for p in e.get('loc', ()))}: {e.get('msg', '')}" for e in errors[:3]]
+    more = f" (and {len(errors) - 3} more)" if len(errors) > 3 else ""
+    return ("; ".join(parts) + more) if parts else "the request does not match the operation's schema"
+
+
+def error_response(status: int, code: str, message: str, details: Any = None,
+                   headers: dict[str, str] | None = None) -> JSONResponse:
+    return JSONResponse(error_body(code, message, details), status_code=status, headers=headers)
 
 
 def install_error_handlers(app: FastAPI) -> None:
-    """Answer every ``ServiceError`` as ``{"detail": ...}`` with its status, and 422s without echoing bodies.
-
-    ``StorageUnavailable`` (a full or read-only data directory) answers 503 with ``Retry-After``.
-    """
+    """Answer every error with an ``ErrorBody``: services' errors, validation (no bodies echoed),
+    Starlette's (unknown route, wrong method), storage refusals (503 + ``Retry-After``) and any
+    unexpected exception (500; the server logs its traceback)."""
 
     async def handle(_request: Request, exc: Exception) -> JSONResponse:
         assert isinstance(exc, ServiceError)
-        return JSONResponse({"detail": exc.detail}, status_code=exc.status, headers=exc.headers)
+        return error_response(exc.status, exc.code, exc.message, exc.details, exc.headers)
 
     async def handle_validation(_request: Request, exc: Exception) -> JSONResponse:
         assert isinstance(exc, RequestValidationError)
-        return JSONResponse({"detail": _validation_errors(exc)}, status_code=422)
+        errors = _validation_errors(exc)
+        return error_response(422, VALIDATION_ERROR, _validation_message(errors), errors)
+
+    async def handle_http(_request: Request, exc: Exception) -> JSONResponse:
+        assert isinstance(exc, StarletteHTTPException)
+        return error_response(exc.status_code, status_code_name(exc.status_code), str(exc.detail),
+                              headers=exc.headers)
 
     async def handle_storage(request: Request, exc: Exception) -> JSONResponse:
         # the services raise before touching a map in memory, so "nothing was applied" holds
         LOG.error("write refused by storage: %s %s: %s", request.method, request.url.path, exc)
-        return JSONResponse(
-            {"detail": STORAGE_UNAVAILABLE_DETAIL}, status_code=503,
-            headers={"Retry-After": str(STORAGE_RETRY_AFTER_S)},
-        )
+        return error_response(503, STORAGE_UNAVAILABLE, STORAGE_UNAVAILABLE_DETAIL,
+                              headers={"Retry-After": str(STORAGE_RETRY_AFTER_S)})
+
+    async def handle_unexpected(_request: Request, exc: Exception) -> JSONResponse:
+        # Starlette re-raises the exception after this answer: the server logs its traceback once
+        return error_response(500, status_code_name(500),
+                              f"internal error ({type(exc).__name__}); nothing more is told here: the "
+                              "service's log has the traceback")
 
     app.add_exception_handler(ServiceError, handle)
     app.add_exception_handler(StorageUnavailable, handle_storage)
     app.add_exception_handler(RequestValidationError, handle_validation)
+    app.add_exception_handler(StarletteHTTPException, handle_http)
+    app.add_exception_handler(Exception, handle_unexpected)

@@ -263,11 +263,16 @@ def nav2_zip(
     image_format: Literal["pgm", "png"] = "pgm",
     free_thresh: float = NAV2_FREE_THRESH,
     occupied_thresh: float = NAV2_OCCUPIED_THRESH,
+    frame_id: str | None = None,
+    date_time: tuple[int, int, int, int, int, int] | None = None,
 ) -> bytes:
     """A zip of ``map.yaml`` and ``map.pgm`` (or ``map.png``) that Nav2's map_server loads as is.
 
     map_server publishes ``occupancy_data`` of the same mode (``probability`` for ``raw``), unknown
     included. ValueError for thresholds ``check_thresholds`` refuses and for ``scale`` as PGM.
+    ``frame_id``: written as a comment in ``map.yaml`` (map_server's YAML has no frame; its
+    ``frame_id`` parameter sets it). ``date_time``: the entries' date (default: now), so that one
+    map version can give the same bytes every time.
     """
     check_thresholds(free_thresh, occupied_thresh)
     check_nav2_format(mode, image_format)
@@ -294,11 +299,14 @@ def nav2_zip(
         "occupied_thresh": float(occupied_thresh),
         "free_thresh": float(free_thresh),
     }
+    yaml_text = yaml.safe_dump(meta, sort_keys=False, default_flow_style=None)
+    if frame_id is not None:
+        yaml_text = f"# frame: {frame_id} (set map_server's frame_id parameter to it)\n{yaml_text}"
+    stamp = date_time or time.localtime()[:6]
     buffer = io.BytesIO()
     with zipfile.ZipFile(buffer, "w", compression=zipfile.ZIP_DEFLATED) as archive:
-        for name, content in (("map.yaml", yaml.safe_dump(meta, sort_keys=False, default_flow_style=None).encode()),
-                              (image_name, image)):
-            entry = zipfile.ZipInfo(name, date_time=time.localtime()[:6])
+        for name, content in (("map.yaml", yaml_text.encode()), (image_name, image)):
+            entry = zipfile.ZipInfo(name, date_time=stamp)
             entry.compress_type = zipfile.ZIP_DEFLATED
             # rw-r--r--: map_server often runs as another user than the one who unzips
             entry.external_attr = (0o100644 & 0xFFFF) << 16

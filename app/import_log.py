@@ -116,16 +116,13 @@ def _in_process(args: argparse.Namespace, scans: Sequence[LaserScan], spec: Grid
 
 
 def _detail(body: bytes) -> str:
-    """The service's ``{"detail": ...}`` as one line (the body itself if it is not that)."""
+    """The service's error body (``{code, message, details}``) as one line (the body itself if it is not that)."""
     try:
-        detail = json.loads(body)["detail"]
+        error = json.loads(body)
+        code, message = error["code"], error["message"]
     except (ValueError, KeyError, TypeError):
         return body.decode("utf-8", "replace").strip()[:500] or "(empty body)"
-    if isinstance(detail, dict) and "message" in detail:
-        return f"{detail.get('code', '')}: {detail['message']}".lstrip(": ")
-    if isinstance(detail, list):  # pydantic's errors: where, and what
-        return "; ".join(f"{'.'.join(map(str, e.get('loc', [])))}: {e.get('msg', e)}" for e in detail)
-    return detail if isinstance(detail, str) else json.dumps(detail)
+    return f"{code}: {message}"
 
 
 class ServiceClient:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import asyncio
 import logging
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
@@ -12,10 +13,11 @@ from fastapi.openapi.utils import get_openapi
 
 from app.config import Settings, get_settings
 from app.deps import require_api_key
-from app.errors import install_error_handlers
+from app.auth import is_protected
+from app.errors import ErrorBody, install_error_handlers
 from app.metrics import Metrics
 from app.middleware import ApiKeyMiddleware, BodyBudgetMiddleware, BodyLimitMiddleware, ObserveMiddleware
-from app.routes import docs, maps, plans, risk, scans, system, ui
+from app.routes import bags, docs, maps, plans, risk, scans, system, ui
 from app.schemas import RiskGridJSON, ScanBatch
 from app.services import MapService
 from app.storage import SqliteStorage
@@ -29,8 +31,64 @@ When the service runs with `FUZZYRISK_API_KEY`, send `Authorization: Bearer <key
 """
 
 
+#: Errors any operation can answer, whatever its route says (middleware, validation, the unexpected).
+_COMMON_ERRORS = {
+    "500": "an unexpected error (the service's log has the traceback)",
+}
+#: ... and those of the operations behind the API key, and of those with a request body.
+_KEY_ERRORS = {"401": "FUZZYRISK_API_KEY is set and the request does not carry it (Authorization: Bearer)"}
+_BODY_ERRORS = {
+    "400": "the body could not be read as its Content-Type says (code BAD_REQUEST)",
+    "408": "the body stalled (FUZZYRISK_BODY_READ_TIMEOUT_S)",
+    "413": "the body is larger than FUZZYRISK_MAX_JSON_BODY_BYTES (scan uploads: FUZZYRISK_MAX_BODY_BYTES)",
+    "503": "the bodies in flight fill FUZZYRISK_MAX_BODIES_IN_FLIGHT_BYTES, or the service is busy (Retry-After)",
+}
+#: ... and those of the operations on one map.
+_MAP_ERRORS = {
+    "404": "no map of that name",
+    "503": "the map is quarantined: its stored rows are damaged (GET /ready lists it)",
+}
+_ERROR_REF = {"$ref": "#/components/schemas/ErrorBody"}
+
+
+def _declare_errors(schema: dict[str, Any]) -> None:
+    """Every operation declares its error answers, each an ``ErrorBody`` (the one error shape).
+
+    Routes name the errors of their own (409, 415, 507...); added here where a route does not:
+    422 where there is input, the key's 401, the body's 400 and its limits' 408/413/503, a map's
+    404 and 503 (quarantined), and 500. FastAPI's own validation error schemas go: the service
+    never answers them.
+    """
+    for path, item in schema.get("paths", {}).items():
+        for operation in item.values():
+            responses = operation.setdefault("responses", {})
+            extra = dict(_COMMON_ERRORS)
+            if is_protected(path):
+                extra.update(_KEY_ERRORS)
+            if "requestBody" in operation:
+                extra.update(_BODY_ERRORS)
+            if path.startswith("/maps/{name}"):
+                extra.update(_MAP_ERRORS)
+            if operation.get("parameters") or "requestBody" in operation:
+                extra["422"] = "the request does not match this operation's schema (code VALIDATION_ERROR)"
+            for status, description in extra.items():
+                responses.setdefault(status, {"description": description})
+            for status, response in responses.items():
+                if status[0] not in "45":
+                    continue
+                content = response.setdefault("content", {})
+                json_body = content.get("application/json", {}).get("schema", {})
+                if "HTTPValidationError" in json_body.get("$ref", "") or not json_body:
+                    content["application/json"] = {"schema": dict(_ERROR_REF)}
+    components = schema.setdefault("components", {}).setdefault("schemas", {})
+    for name in ("HTTPValidationError", "ValidationError"):
+        components.pop(name, None)
+    components["ErrorBody"] = ErrorBody.model_json_schema(ref_template="#/components/schemas/{model}")
+
+
 def _openapi_with_body_schemas(app: FastAPI) -> dict[str, Any]:
-    """OpenAPI plus the schemas that routes reading raw bodies refer to (ScanBatch, RiskGridJSON)."""
+    """OpenAPI plus the schemas that routes reading raw bodies refer to (ScanBatch, RiskGridJSON), and
+    every operation's error answers declared with the one error body."""
     if app.openapi_schema is None:
         schema = get_openapi(title=app.title, version=app.version, description=app.description, routes=app.routes)
         components = schema.setdefault("components", {}).setdefault("schemas", {})
@@ -38,8 +96,24 @@ def _openapi_with_body_schemas(app: FastAPI) -> dict[str, Any]:
             model_schema = model.model_json_schema(ref_template="#/components/schemas/{model}")
             components.update(model_schema.pop("$defs", {}))
             components[model.__name__] = model_schema
+        _declare_errors(schema)
         app.openapi_schema = schema
     return app.openapi_schema
+
+
+async def _start_live_view(settings: Settings, service: MapService) -> Any:
+    """The Foxglove live view (``app.foxglove_live``) when configured; the module and its SDK are imported only then."""
+    if settings.foxglove_port is None:
+        return None
+    try:
+        from app import foxglove_live
+
+        return foxglove_live.attach(service, host=settings.foxglove_host, port=settings.foxglove_port,
+                                    interval_s=settings.foxglove_interval_s, loop=asyncio.get_running_loop())
+    except BaseException as exc:
+        LOG.error("cannot start: %s", exc)
+        await service.stop()
+        raise
 
 
 def create_app(settings: Settings | None = None) -> FastAPI:
@@ -51,6 +125,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         service = MapService(settings, SqliteStorage(settings.database_path), metrics)
         await service.start()
+        live = await _start_live_view(settings, service)  # None unless FUZZYRISK_FOXGLOVE_PORT is set
         app.state.service = service
         LOG.info("answering requests: GET /health says alive, GET /ready says ready for traffic",
                  extra={"fields": {"url": f"http://{settings.host}:{settings.port}"}})
@@ -58,11 +133,16 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             yield
         finally:
             # uvicorn has waited for requests in flight (SIGTERM): snapshot and close
+            if live is not None:  # first: its publisher thread reads grids through the service
+                await asyncio.to_thread(live.close)
             await service.stop()
 
     # FastAPI's own schema and docs routes off: app/routes/docs.py serves them (pages without a CDN)
+    # operation ids are the route functions' names (create_map, post_scans, plan...): what generated
+    # clients name their functions after, instead of FastAPI's create_map_maps_post
     app = FastAPI(title="fuzzyrisk", version="0.1.0", description=DESCRIPTION, lifespan=lifespan,
-                  openapi_url=None, docs_url=None, redoc_url=None)
+                  openapi_url=None, docs_url=None, redoc_url=None,
+                  generate_unique_id_function=lambda route: route.name)
     app.state.settings = settings
     app.state.metrics = metrics
     install_error_handlers(app)
@@ -75,7 +155,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
     app.include_router(system.router)
     protected = [Depends(require_api_key)]
-    for module in (maps, scans, risk, plans):
+    for module in (maps, scans, bags, risk, plans):
         app.include_router(module.router, dependencies=protected)
     app.include_router(ui.router)  # the web page (app/routes/ui.py): its files need no key
     app.include_router(docs.router)  # /docs and /redoc with their files (no CDN), no key

@@ -14,11 +14,12 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 from pydantic import SecretStr
 
 from app.auth import is_protected, key_error
+from app.errors import error_body, status_code_name
 from app.logs import ACCESS
 from app.metrics import Metrics
 
-#: The one route whose bodies may be large (scan uploads): every other body gets the small limit.
-UPLOAD_PATH = re.compile(r"^/maps/[^/]+/scans$")
+#: The routes whose bodies may be large (scan and bag uploads): every other body gets the small limit.
+UPLOAD_PATH = re.compile(r"^/maps/[^/]+/(scans|bags)$")
 
 
 def _too_large_message(limit: int, setting: str, upload: bool) -> str:
@@ -27,8 +28,8 @@ def _too_large_message(limit: int, setting: str, upload: bool) -> str:
     return f"request body larger than {limit} bytes ({setting}): {advice}"
 
 
-async def _answer(send: Send, status: int, detail: str, headers: list[tuple[bytes, bytes]] | None = None) -> None:
-    body = json.dumps({"detail": detail}).encode()
+async def _answer(send: Send, status: int, message: str, headers: list[tuple[bytes, bytes]] | None = None) -> None:
+    body = json.dumps(error_body(status_code_name(status), message)).encode()
     await send({
         "type": "http.response.start",
         "status": status,
@@ -95,7 +96,7 @@ class BodyLimitMiddleware:
                 received += len(message.get("body", b""))
                 if received > limit:
                     # an HTTPException: FastAPI's body parsing re-raises it and the exception
-                    # middleware answers {"detail": ...} with 413
+                    # middleware answers it with 413 and the error body
                     raise HTTPException(status_code=413, detail=too_large)
             return message
 

@@ -1,10 +1,15 @@
 """What runs inside a planner worker process, and the pool that runs it.
 
 OMPL's ``solve()`` holds the GIL for the whole solve, so plans never run on the
-event loop's process: a bounded ``ProcessPoolExecutor`` (forkserver, or spawn where
-there is no forkserver) receives the risk grid and the parameters, and returns
-plain data. The forkserver imports the planner stack (OMPL, and numba's kernels compiled
-at import) once; each worker forked from it warms the rest up as it starts.
+event loop's process: each worker is a process of its own (a one-process
+``ProcessPoolExecutor``, forkserver, or spawn where there is no forkserver) that receives
+the risk grid and the parameters, and returns plain data. One worker per executor, so that a
+stuck or dead worker is ended and replaced alone: the plans of the others go on. The
+forkserver imports the planner stack (OMPL, and numba's kernels compiled at import) once;
+each worker forked from it warms the rest up as it starts.
+
+Waiting plans take free workers in turns by map (round robin), and one map holds at most
+half the queue, so a client that floods one map with plans does not delay or refuse another's.
 
 A plan on a published grid (``app.plangrids``) gets only the grid's files with its parameters
 (``run_shared_plan``), and the worker keeps the ``RiskField`` of each grid it planned on (with the
@@ -22,12 +27,14 @@ forkserver waits on, and waits for work itself).
 from __future__ import annotations
 
 import asyncio
+import collections
 import concurrent.futures
 import logging
 import math
 import multiprocessing
 import multiprocessing.forkserver
 import os
+import threading
 import time
 from collections.abc import Callable
 from concurrent.futures.process import BrokenProcessPool
@@ -60,23 +67,18 @@ def _ensure_forkserver(context: multiprocessing.context.BaseContext) -> None:
         _FORKSERVER_STARTER.submit(multiprocessing.forkserver.ensure_running).result()
 
 
-#: In a worker: the barrier its pool's warm-up tasks meet at (``_warm``), so that each lands in its own worker.
-_STARTED_TOGETHER: Any = None
-#: Seconds the warm-up waits for all workers to be up (from numba's cache they start in seconds).
-WARM_BARRIER_TIMEOUT_S = 120.0
 #: Bytes of fields a worker keeps when its pool is not told (``PlanPool(field_cache_bytes=...)``).
 DEFAULT_FIELD_CACHE_BYTES = 256 * 2**20
 #: In a worker: the fields of the published grids it planned on (``run_shared_plan``).
 _FIELDS = FieldCache(DEFAULT_FIELD_CACHE_BYTES)
 
 
-def _init_worker(native: bool, together: Any = None, field_cache_bytes: int = DEFAULT_FIELD_CACHE_BYTES) -> None:
+def _init_worker(native: bool, field_cache_bytes: int = DEFAULT_FIELD_CACHE_BYTES) -> None:
     """In each new worker: end with the server, use the compiled planner callbacks (``planning/native.py``)
     or not, and compile or load every kernel now, so that no plan waits for it."""
-    global _STARTED_TOGETHER, _FIELDS
+    global _FIELDS
     lifecycle.die_with_parent()  # the forkserver, which dies with the server
     lifecycle.exit_with_parent()  # the server itself: other systems, or the forkserver gone before the line above
-    _STARTED_TOGETHER = together
     _FIELDS = FieldCache(field_cache_bytes)
     import planning
     from planning import native as compiled
@@ -88,14 +90,8 @@ def _init_worker(native: bool, together: Any = None, field_cache_bytes: int = DE
     planning.warm_up()  # its plans load (or compile) the compiled callbacks too
 
 
-def _warm(together: bool = False) -> int:
-    """A task that starts a worker (its initializer warms the planner stack up); the worker's pid.
-
-    ``together``: wait until every worker of the pool runs one, so that tasks submitted together
-    each start their own worker instead of being taken one after another by the first that is free.
-    """
-    if together and _STARTED_TOGETHER is not None:
-        _STARTED_TOGETHER.wait(WARM_BARRIER_TIMEOUT_S)
+def _warm() -> int:
+    """A task that starts a worker (its initializer warms the planner stack up); the worker's pid."""
     return os.getpid()
 
 
@@ -180,21 +176,48 @@ def _context() -> multiprocessing.context.BaseContext:
     return context
 
 
+class _Worker:
+    """One planner process (a one-process executor, started at its first task): replaced alone."""
+
+    def __init__(self, index: int) -> None:
+        self.index = index
+        self.lock = threading.Lock()
+        self.executor: concurrent.futures.ProcessPoolExecutor | None = None
+        self.last_key: str | None = None  # the map of its last plan: its field cache may hold that grid
+
+    def processes(self) -> list[Any]:
+        executor = self.executor
+        return [] if executor is None else list(getattr(executor, "_processes", {}).values())
+
+    def end(self) -> None:
+        """End the process now (a stuck solve never returns: ending it is the only way to get it back)."""
+        with self.lock:
+            executor, self.executor = self.executor, None
+        if executor is None:
+            return
+        processes = list(getattr(executor, "_processes", {}).values())
+        for process in processes:
+            process.terminate()
+        executor.shutdown(wait=False, cancel_futures=True)
+
+
 class PlanPool:
-    """At most ``workers`` plans run at once; up to ``queue`` more wait; beyond that, 503.
+    """At most ``workers`` plans run at once, each in a worker process of its own; up to ``queue`` more
+    wait, each map at most half of them (at least one); beyond that, 503.
 
     ``field_cache_bytes``: what each worker may keep of the fields of published grids (``run_shared_plan``).
     """
 
     def __init__(self, *, workers: int, queue: int, native: bool = True,
                  field_cache_bytes: int = DEFAULT_FIELD_CACHE_BYTES) -> None:
-        self._workers = workers
         self._queue = queue
+        self._per_key_queue = max(1, queue // 2)
         self._native = native
         self._field_cache_bytes = field_cache_bytes
-        self._waiting = 0
-        self._running = asyncio.Semaphore(workers)
-        self._executor: concurrent.futures.ProcessPoolExecutor | None = None
+        self._workers = [_Worker(i) for i in range(workers)]
+        self._free: list[_Worker] = list(self._workers)
+        self._waiters: dict[str, collections.deque[asyncio.Future[_Worker]]] = {}
+        self._turns: collections.deque[str] = collections.deque()  # maps with waiting plans, in turn order
         self._context = _context()
         self._warming: asyncio.Task[None] | None = None
         #: pids of the workers warmed up by ``start``
@@ -210,110 +233,152 @@ class PlanPool:
             return "off"
         return "ready" if self._warming.done() else "starting"
 
+    @property
+    def waiting(self) -> int:
+        """Plans waiting for a worker."""
+        return sum(len(q) for q in self._waiters.values())
+
     def start(self) -> None:
-        """Start the worker processes in the background (otherwise they start at the first plan).
+        """Start the worker processes in the background (otherwise each starts at its first plan).
 
         One worker first: it compiles the planner kernels into numba's cache (or loads them); then the
         others, which load them. Compiled once, not once per worker at the same time.
         """
-        self._warming = asyncio.get_running_loop().create_task(self._warm_up(self._ensure()))
+        self._warming = asyncio.get_running_loop().create_task(self._warm_up())
 
-    async def _warm_up(self, executor: concurrent.futures.ProcessPoolExecutor) -> None:
+    async def _warm_up(self) -> None:
         loop = asyncio.get_running_loop()
         started = time.perf_counter()
         LOG.info("starting the planner workers (each compiles or loads its kernels)",
-                 extra={"fields": {"workers": self._workers}})
+                 extra={"fields": {"workers": len(self._workers)}})
+
+        async def warm(worker: _Worker) -> int:
+            # submit() starts the process, and the first waits for the forkserver to import the planner
+            # stack (seconds): never on the event loop
+            future = await loop.run_in_executor(None, self._submit, worker, _warm)
+            return await asyncio.wrap_future(future)
+
         try:
-            # submit() starts processes, and the first one waits for the forkserver to import the
-            # planner stack (seconds): never on the event loop
-            first = await loop.run_in_executor(None, self._submit, executor, _warm)
-            self.warmed.add(await asyncio.wrap_future(first))
+            first, *others = self._workers
+            self.warmed.add(await warm(first))
             LOG.info("planner worker ready", extra={"fields": {
-                "workers_ready": 1, "workers": self._workers, "seconds": round(time.perf_counter() - started, 1)}})
-            if self._workers > 1:  # the first worker is free again: it and each new one take one task
-                others = [await loop.run_in_executor(None, self._submit, executor, _warm, True)
-                          for _ in range(self._workers)]
-                self.warmed.update(await asyncio.gather(*(asyncio.wrap_future(f) for f in others)))
+                "workers_ready": 1, "workers": len(self._workers),
+                "seconds": round(time.perf_counter() - started, 1)}})
+            self.warmed.update(await asyncio.gather(*(warm(w) for w in others)))
         except Exception as exc:  # noqa: BLE001 - reported by readiness and the log, and again by the first plan
             self.warm_error = f"the planner workers did not start: {exc!r}"
             LOG.error(self.warm_error, exc_info=True)
             return
         LOG.info("planner workers ready", extra={"fields": {
-            "workers_ready": len(self.warmed), "workers": self._workers,
+            "workers_ready": len(self.warmed), "workers": len(self._workers),
             "seconds": round(time.perf_counter() - started, 1)}})
 
-    def _submit(self, executor: concurrent.futures.ProcessPoolExecutor, fn: Callable[..., T], *args: Any
-                ) -> concurrent.futures.Future[T]:
-        """``executor.submit`` (which may start a worker), the forkserver started by the long-lived thread first."""
+    def _submit(self, worker: _Worker, fn: Callable[..., T], *args: Any) -> concurrent.futures.Future[T]:
+        """``submit`` to the worker's executor (made here; the forkserver started by the long-lived thread first)."""
         _ensure_forkserver(self._context)
-        return executor.submit(fn, *args)
+        with worker.lock:  # the warm-up and a plan may submit to one worker from two threads at once
+            if worker.executor is None:
+                # creating the executor starts no process; submit() does
+                worker.executor = concurrent.futures.ProcessPoolExecutor(
+                    1, mp_context=self._context, initializer=_init_worker,
+                    initargs=(self._native, self._field_cache_bytes),
+                )
+            return worker.executor.submit(fn, *args)
 
-    def _ensure(self) -> concurrent.futures.ProcessPoolExecutor:
-        if self._executor is None:
-            # creating the executor starts no process; submit() does
-            together = self._context.Barrier(self._workers)  # passed at start: a barrier cannot travel in a task
-            self._executor = concurrent.futures.ProcessPoolExecutor(
-                self._workers, mp_context=self._context, initializer=_init_worker,
-                initargs=(self._native, together, self._field_cache_bytes),
-            )
-        return self._executor
-
-    def _restart(self, broken: concurrent.futures.ProcessPoolExecutor) -> None:
-        """Throw away the workers of ``broken`` (one is stuck or dead); the next plan starts afresh."""
-        if self._executor is broken:
-            self._executor = None
-        # a stuck solve never returns: the only way to get its process back is to end it
-        for process in list(getattr(broken, "_processes", {}).values()):
-            process.terminate()
-        broken.shutdown(wait=False, cancel_futures=True)
-
-    async def run(self, fn: Callable[..., T], timeout_s: float, *args: Any) -> T:
-        """``fn(*args)`` in a worker (``run_plan`` in the service); ``Unavailable`` when too busy, stuck or crashed."""
-        if self._waiting >= self._queue + self._workers:
+    async def _acquire(self, key: str) -> _Worker:
+        """A free worker (the one that last planned on ``key`` if it is free), or wait for this map's turn."""
+        if self._free:
+            worker = next((w for w in self._free if w.last_key == key), self._free[0])
+            self._free.remove(worker)
+            return worker
+        mine = len(self._waiters.get(key, ()))
+        if mine >= self._per_key_queue or self.waiting >= self._queue:
             raise Unavailable(
-                f"{self._waiting} plans are already waiting or running; retry shortly "
-                "(FUZZYRISK_PLAN_WORKERS, FUZZYRISK_PLAN_QUEUE)",
+                f"{len(self._workers)} plans are running and {self.waiting} waiting ({mine} of them on "
+                "this map); retry shortly (FUZZYRISK_PLAN_WORKERS, FUZZYRISK_PLAN_QUEUE)",
                 headers={"Retry-After": "1"},
             )
-        self._waiting += 1
+        waiting = self._waiters.setdefault(key, collections.deque())
+        turn: asyncio.Future[_Worker] = asyncio.get_running_loop().create_future()
+        waiting.append(turn)
+        if key not in self._turns:
+            self._turns.append(key)
         try:
-            async with self._running:
-                loop = asyncio.get_running_loop()
-                for attempt in (1, 2):
-                    executor = self._ensure()
-                    try:
-                        future = await loop.run_in_executor(None, self._submit, executor, fn, *args)
-                        break
-                    except BrokenProcessPool:
-                        # a worker died while idle (the OOM killer, a kill): this plan has not run, so it
-                        # may go to a new pool; without this, every later plan would fail the same way
-                        LOG.error("a planner worker had died; restarting the workers")
-                        self._restart(executor)
-                        if attempt == 2:
-                            raise Unavailable("the planner workers stopped unexpectedly; retry") from None
+            return await turn
+        except asyncio.CancelledError:
+            if turn.done() and not turn.cancelled():
+                self._release(turn.result())  # handed over as the request went away: pass it on
+            elif turn in waiting:  # else a release has already dropped it (it skips cancelled turns)
+                waiting.remove(turn)
+                if not waiting and self._waiters.get(key) is waiting:
+                    del self._waiters[key]
+                    self._turns.remove(key)
+            raise
+
+    def _release(self, worker: _Worker) -> None:
+        """Hand the worker to the map whose turn it is (round robin over maps with waiting plans), or free it."""
+        while self._turns:
+            key = self._turns.popleft()
+            waiting = self._waiters[key]
+            turn = waiting.popleft()
+            if waiting:
+                self._turns.append(key)  # its next plan waits for the other maps' turns
+            else:
+                del self._waiters[key]
+            if not turn.done():
+                turn.set_result(worker)
+                return
+        self._free.append(worker)
+
+    async def run(self, fn: Callable[..., T], timeout_s: float, *args: Any, key: str = "") -> T:
+        """``fn(*args)`` in a worker (``run_plan`` in the service) for map ``key``; ``Unavailable`` when too
+        busy, or when its worker was stuck (ended and replaced) or crashed."""
+        worker = await self._acquire(key)
+        loop = asyncio.get_running_loop()
+        future: concurrent.futures.Future[T] | None = None
+        try:
+            for attempt in (1, 2):
                 try:
-                    return await asyncio.wait_for(asyncio.wrap_future(future), timeout_s)
-                except TimeoutError:
-                    LOG.error("planner worker did not answer in %.1f s; restarting the workers", timeout_s)
-                    self._restart(executor)
-                    raise Unavailable(f"the planner did not finish within {timeout_s:.1f} s; retry") from None
+                    future = await loop.run_in_executor(None, self._submit, worker, fn, *args)
+                    break
                 except BrokenProcessPool:
-                    LOG.error("a planner worker died; restarting the workers")
-                    self._restart(executor)
-                    raise Unavailable("the planner worker stopped unexpectedly; retry") from None
+                    # the worker died while idle (the OOM killer, a kill): this plan has not run, so it
+                    # may go to a new process; without this, every later plan would fail the same way
+                    LOG.error("a planner worker had died; starting a new one",
+                              extra={"fields": {"worker": worker.index}})
+                    worker.end()
+                    if attempt == 2:
+                        raise Unavailable("the planner workers stopped unexpectedly; retry") from None
+            try:
+                return await asyncio.wait_for(asyncio.wrap_future(future), timeout_s)
+            except TimeoutError:
+                LOG.error("planner worker did not answer in %.1f s; ending it and starting a new one", timeout_s,
+                          extra={"fields": {"worker": worker.index, "map": key}})
+                worker.end()
+                raise Unavailable(f"the planner did not finish within {timeout_s:.1f} s; retry") from None
+            except BrokenProcessPool:
+                LOG.error("a planner worker died; starting a new one", extra={"fields": {"worker": worker.index}})
+                worker.end()
+                raise Unavailable("the planner worker stopped unexpectedly; retry") from None
         finally:
-            self._waiting -= 1
+            worker.last_key = key
+            if future is not None and not future.done() and worker.executor is not None:
+                # the request went away (cancelled) while its worker still solves: the worker is free only
+                # when that solve ends, or the next plan would wait behind it on the next plan's clock
+                future.add_done_callback(lambda _: loop.call_soon_threadsafe(self._release, worker))
+            else:
+                self._release(worker)
 
     def shutdown(self) -> None:
         """Stop the workers: idle ones at once, one still busy (a plan whose request the graceful shutdown
         gave up on, or a warm-up) after ``SHUTDOWN_GRACE_S``, so that a stop fits ``docker stop``'s time."""
         if self._warming is not None:
             self._warming.cancel()
-        executor, self._executor = self._executor, None
-        if executor is None:
-            return
-        processes = list(getattr(executor, "_processes", {}).values())
-        executor.shutdown(wait=False, cancel_futures=True)
+        processes = [p for w in self._workers for p in w.processes()]
+        for worker in self._workers:
+            executor, worker.executor = worker.executor, None
+            if executor is not None:
+                executor.shutdown(wait=False, cancel_futures=True)
         deadline = time.monotonic() + SHUTDOWN_GRACE_S
         for process in processes:
             process.join(max(0.0, deadline - time.monotonic()))

@@ -20,6 +20,7 @@ from pydantic import (
     Field,
     FiniteFloat,
     PlainValidator,
+    StringConstraints,
     Tag,
     model_validator,
 )
@@ -40,6 +41,26 @@ def check_map_name(name: str) -> str:
 
 
 MapName = Annotated[str, AfterValidator(check_map_name)]
+
+#: A ROS frame id as tf2 takes it: no leading slash (tf2 refuses one), ROS name tokens joined by single
+#: slashes (a fleet's namespaces: ``robot1/map``).
+FRAME_ID_PATTERN = r"^[A-Za-z_][A-Za-z0-9_]*(/[A-Za-z_][A-Za-z0-9_]*)*$"
+_FRAME_ID_RE = re.compile(FRAME_ID_PATTERN)
+FRAME_ID_MAX_CHARS = 256
+DEFAULT_FRAME_ID = "map"
+FRAME_ID_RULE = ("tokens of A-Z a-z 0-9 _ that start with a letter or _, joined by single '/', with no leading or "
+                 f"trailing '/' (tf2 refuses a leading one), at most {FRAME_ID_MAX_CHARS} characters: e.g. "
+                 "'map' or 'robot1/map'")
+
+
+def check_frame_id(frame_id: str) -> str:
+    """Return ``frame_id`` when tf2 and ROS name rules accept it, else raise ``ValueError`` saying the rule."""
+    if len(frame_id) > FRAME_ID_MAX_CHARS or not _FRAME_ID_RE.fullmatch(frame_id):
+        raise ValueError(f"frame_id {frame_id[:80]!r} is not allowed: use {FRAME_ID_RULE}")
+    return frame_id
+
+
+FrameId = Annotated[str, AfterValidator(check_frame_id)]
 NonNegativeFinite = Annotated[float, Field(ge=0.0, allow_inf_nan=False)]
 PositiveFinite = Annotated[float, Field(gt=0.0, allow_inf_nan=False)]
 Vector = Annotated[list[FiniteFloat], Field(min_length=2, max_length=3)]
@@ -232,7 +253,7 @@ class SensorIn(BaseModel):
 
 
 class MapCreate(BaseModel):
-    """A new map: a box of cells in the ``map`` frame (origin = corner of cell 0, as in a Nav2 YAML)."""
+    """A new map: a box of cells in its ROS frame (``frame_id``; origin = corner of cell 0, as in a Nav2 YAML)."""
 
     model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [EXAMPLE_MAP, EXAMPLE_MAP_3D]})
 
@@ -247,6 +268,11 @@ class MapCreate(BaseModel):
     sensor: SensorIn = Field(default_factory=SensorIn)
     engine: EngineField = Field(
         None, description="fuzzy maps: a preset name, or an EngineDefinition; left out: the default preset"
+    )
+    frame_id: FrameId = Field(
+        DEFAULT_FRAME_ID, description="the ROS frame of the map (a fleet's namespaces: robot1/map): the frame_id of "
+        "its OccupancyGrid and of its plans' paths; " + FRAME_ID_RULE,
+        json_schema_extra={"pattern": FRAME_ID_PATTERN, "maxLength": FRAME_ID_MAX_CHARS},
     )
 
     @model_validator(mode="after")
@@ -279,6 +305,7 @@ class MapInfo(BaseModel):
     model: Literal["fuzzy", "bayes"]
     sensor: SensorIn
     engine: EngineInfo | None = Field(description="the fuzzy engine; null for a bayes map")
+    frame_id: str = Field(description="the map's ROS frame (maps made before frames could be chosen: map)")
     scans_fused: int
     version: int = Field(description="grows with every accepted scan batch: by one, except after a batch that "
                          "failed inside the service after it was stored (its number is not reused)")
@@ -288,8 +315,11 @@ class MapInfo(BaseModel):
 
 # ---------------------------------------------------------------- scans
 
-#: JSON has no inf or NaN: a range may also be null (skipped, like NaN) or one of these strings.
-RangeToken = Literal["inf", "+inf", "-inf", "nan", "Infinity", "+Infinity", "-Infinity", "NaN"]
+#: JSON has no inf or NaN: a range may also be null (skipped, like NaN) or one of these strings:
+#: inf, +inf, -inf, Infinity, +Infinity, -Infinity, nan, NaN. A pattern rather than an enum: client
+#: generators name enum members by upper-casing them, and "nan" and "NaN" would collide.
+RANGE_TOKEN_PATTERN = r"^([+-]?(inf|Infinity)|nan|NaN)$"
+RangeToken = Annotated[str, StringConstraints(pattern=RANGE_TOKEN_PATTERN)]
 RangeValue = float | None | RangeToken
 
 
@@ -387,7 +417,7 @@ class ScanBatch(BaseModel):
 #: Query parameters of a binary scan upload (``POST /maps/{name}/scans``).
 SCAN_QUERY_FIELDS = (
     "x", "y", "z", "theta", "qx", "qy", "qz", "qw", "angle_min", "angle_increment", "range_min", "range_max",
-    "registration_sigma",
+    "registration_sigma", "point_step",
 )
 SCAN_QUERY_DOC = "binary uploads only; see the description"
 
@@ -416,6 +446,8 @@ class ScanQuery(BaseModel):
     range_min: FiniteFloat | None = None
     range_max: FiniteFloat | None = None
     registration_sigma: FiniteFloat | None = None
+    # raw float32 points: bytes per point (x, y, z float32 at its start), so a stride is never guessed
+    point_step: Annotated[int, Field(ge=12, le=65536)] | None = None
 
 
 class BatchResult(BaseModel):
@@ -457,6 +489,7 @@ class RiskGridJSON(BaseModel):
 
     name: str
     version: int
+    frame_id: str = Field(description="the map's ROS frame, in which origin is given")
     resolution: float
     origin: list[float]
     shape: list[int]
@@ -486,6 +519,10 @@ class PlanRequest(BaseModel):
     seed: Annotated[int, Field(ge=0, lt=2**32)] | None = None
     turning_radius: PositiveFinite | None = Field(None, description="metres; required by Dubins and ReedsShepp")
     goal_tolerance: PositiveFinite | None = Field(None, description="reach the goal within this; default one cell")
+    goal_yaw: FiniteFloat | None = Field(
+        None, description="R2 and R3: the yaw (radians, REP 103) of the answer's last pose, as Nav2 gives the last "
+        "pose the goal's orientation; left out: the heading of the path's last step. SE2, Dubins and ReedsShepp "
+        "take the goal's yaw as its third value instead")
 
 
 class PlanResult(BaseModel):
@@ -515,9 +552,17 @@ class PlanResult(BaseModel):
     first_solution_time: float | None = Field(
         description="seconds until the planner first held a path (null without one)")
     version: int = Field(description="the map version planned on")
+    header: Header = Field(
+        description="nav_msgs/Path header: frame_id is the map's frame; stamp is when the service took the plan "
+        "up (its clock as ROS time: Unix seconds and nanoseconds), as Nav2's planners stamp a path when they start it")
+    poses: list[PoseStamped] = Field(
+        description="nav_msgs/Path poses (with header, this answer is a nav_msgs/Path as rosbridge and Foxglove "
+        "write it in JSON): one per path point, each with the path's header; z = 0 on 2-D maps; orientation a yaw "
+        "about +z (REP 103): SE2, Dubins, ReedsShepp the planned yaw; R2 and R3 the heading of the step to the next "
+        "point over the ground (no pitch), the last pose that of the step before it, or goal_yaw when given")
 
 
-# ---------------------------------------------------------------- nav_msgs/OccupancyGrid
+# ---------------------------------------------------------------- nav_msgs (OccupancyGrid, Path)
 
 
 class Point(BaseModel):
@@ -548,6 +593,13 @@ class Header(BaseModel):
     frame_id: str
 
 
+class PoseStamped(BaseModel):
+    """``geometry_msgs/PoseStamped``."""
+
+    header: Header
+    pose: PoseMsg
+
+
 class MapMetaData(BaseModel):
     map_load_time: Time
     resolution: float
@@ -557,11 +609,16 @@ class MapMetaData(BaseModel):
 
 
 class OccupancyGrid(BaseModel):
-    """``nav_msgs/OccupancyGrid``: ``data[j * width + i]`` for cell (i, j) from the origin, -1 unknown."""
+    """``nav_msgs/OccupancyGrid``: ``data[j * width + i]`` for cell (i, j) from the origin, -1 unknown.
+
+    ``header.stamp`` and ``info.map_load_time`` are the time of the map's last batch (its creation
+    before one): every read of one version is the same document. ``version`` is not a message field.
+    """
 
     header: Header
     info: MapMetaData
     data: list[int]
+    version: int = Field(description="the map version (not part of the ROS message: drop it before publishing)")
 
 
 class Health(BaseModel):

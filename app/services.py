@@ -47,13 +47,13 @@ from collections.abc import Callable, Coroutine, Mapping
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
-from typing import Any, Literal, TypeVar
+from typing import Any, Literal, Protocol, TypeVar
 
 import numpy as np
 from fastapi.exceptions import RequestValidationError
 from pydantic import ValidationError
 
-from app import batches, engines, exports, plangrids, warmup
+from app import batches, conditional, engines, exports, plangrids, rosmsgs, rosout, warmup
 from app.committer import GroupCommitter
 from app.config import Settings
 from app.errors import (
@@ -70,6 +70,7 @@ from app.metrics import Metrics
 from app.plangrids import Lease, PlanGrids
 from app.planworker import PlanPool, run_plan, run_shared_plan
 from app.schemas import (
+    DEFAULT_FRAME_ID,
     BatchResult,
     EngineInfo,
     LastScan,
@@ -94,6 +95,22 @@ LOG = logging.getLogger("fuzzyrisk.maps")
 T = TypeVar("T")
 
 OccupancyMap = FuzzyMap | BayesMap
+
+
+class MapObserver(Protocol):
+    """Told of each change right after it happened (a live view: ``app.foxglove_live``).
+
+    Called on the event loop, the batch's apply lock held: a method must return at once (hand the
+    work to a thread of its own) and should not raise (what it raises is logged, never answered).
+    """
+
+    def batch_applied(self, name: str, version: int, last_scan: batches.Scan) -> None: ...
+
+    def plan_made(self, name: str, result: PlanResult) -> None: ...
+
+    def map_deleted(self, name: str) -> None: ...
+
+
 #: Above this many cells the JSON risk grid is refused (use format=npy or png).
 MAX_JSON_CELLS = 4_000_000
 #: Most pixels of one PNG.
@@ -237,6 +254,16 @@ class MapEntry:
     def spec(self) -> GridSpec:
         return self.map.spec
 
+    @property
+    def frame_id(self) -> str:
+        """The map's ROS frame (maps stored before frames could be chosen are in ``map``)."""
+        return str(self.meta.get("frame_id", DEFAULT_FRAME_ID))
+
+    @functools.cached_property
+    def etag_seed(self) -> str:
+        """Tells this map apart from another of the same name, across restarts (``conditional.map_seed``)."""
+        return conditional.map_seed(self.meta)
+
     @functools.cached_property
     def engine_info(self) -> EngineInfo | None:
         """The fuzzy engine as ``MapInfo`` shows it (once: a map's engine never changes)."""
@@ -256,6 +283,7 @@ class MapEntry:
             model=self.meta["model"],
             sensor=SensorIn(**self.meta["sensor"]),
             engine=self.engine_info,
+            frame_id=self.frame_id,
             scans_fused=self.scans_fused,
             version=self.version,
             created=self.meta["created"],
@@ -265,12 +293,21 @@ class MapEntry:
 
 @dataclass(frozen=True)
 class GridSnapshot:
-    """Copies of a map's risk and observed arrays at one version."""
+    """Copies of a map's risk and observed arrays at one version, with what its outputs carry."""
 
     spec: GridSpec
     version: int
     risk: np.ndarray
     observed: np.ndarray
+    frame_id: str = DEFAULT_FRAME_ID
+    #: when the map reached this version (its last batch's ``updated``; its creation at version 0), ISO 8601
+    updated: str = ""
+    #: ``MapEntry.etag_seed``
+    etag_seed: str = ""
+
+    def etag(self, variant: Mapping[str, Any]) -> str:
+        """The strong ETag of one representation of this version (``conditional.entity_tag``)."""
+        return conditional.entity_tag(self.etag_seed, self.version, variant)
 
     def planar(self, z_min: float | None, z_max: float | None) -> tuple[np.ndarray, np.ndarray]:
         """2-D risk and observed: the map itself, or a 3-D map projected over ``[z_min, z_max]``."""
@@ -362,6 +399,16 @@ class MapService:
         self._limits = batches.Limits(max_scans=settings.max_scans_per_batch, max_rays=settings.max_rays_per_scan)
         self._kernels: asyncio.Task[None] | None = None
         self._kernels_error: str | None = None
+        #: told of batches applied, plans made and maps deleted (``MapObserver``); None: nobody
+        self.observer: MapObserver | None = None
+
+    def _notify(self, event: str, *args: Any) -> None:
+        """Tell the observer, if any; its failure is logged and goes no further (the change is done)."""
+        if self.observer is not None:
+            try:
+                getattr(self.observer, event)(*args)
+            except Exception:  # noqa: BLE001 - a viewer's bug must not fail a batch, a plan or a delete
+                LOG.exception("map observer failed on %s", event)
 
     async def _run(self, fn: Callable[..., T], *args: Any) -> T:
         return await asyncio.get_running_loop().run_in_executor(self._threads, fn, *args)
@@ -535,6 +582,7 @@ class MapService:
                 "resolution": request.resolution,
                 "model": request.model,
                 "sensor": request.sensor.model_dump(),
+                "frame_id": request.frame_id,
                 "created": now,
             }
             if request.model == "fuzzy":
@@ -577,6 +625,7 @@ class MapService:
             entry.deleted = True
             del self._maps[entry.name]
             self._grids.retire(entry.uid)  # its files go now, or when the last plan on them ends
+            self._notify("map_deleted", entry.name)
         finally:
             entry.line.done(ticket)
         self.metrics.maps.set(len(self._maps))
@@ -593,12 +642,15 @@ class MapService:
         media = content_type.split(";")[0].strip().lower()
         if media in batches.BINARY_TYPES:
             return batches.from_binary(body, params, dims, self._limits)
+        if media in rosmsgs.MEDIA_TYPES:  # a CDR-serialized LaserScan or PointCloud2, the pose in the query
+            return rosmsgs.from_cdr(body, media, params, dims, self._limits)
         if media != "application/json":
             # none at all is refused too: a web page can send a body without one, and without a
             # CORS preflight (issue 11: a browser's no-cors fetch injected scans)
             given = f"Content-Type {media!r} is not accepted" if media else "a scan upload needs a Content-Type"
             raise UnsupportedMediaType(
-                f"{given}: send application/json, or a binary scan as {' or '.join(batches.BINARY_TYPES)}"
+                f"{given}: send application/json, or a binary scan as {' or '.join(batches.BINARY_TYPES)}, "
+                f"or a ROS 2 message as {' or '.join(map(rosmsgs.media_type, rosmsgs.MSGTYPES))}"
             )
         try:
             batch = ScanBatch.model_validate_json(body)
@@ -698,6 +750,18 @@ class MapService:
         # batch committed but not applied
         return await _shielded(self._write(entry, ticket, scans, payload))
 
+    async def add_parsed_scans(self, name: str, scans: list[batches.Scan]) -> BatchResult:
+        """Fuse one batch of scans validated by the caller for this map (a bag upload's), as ``add_scans`` does."""
+        entry = self._entry(name)
+        self._admit(entry)
+        ticket = entry.line.take()
+        try:
+            payload = await self._run_parser(batches.encode, scans)
+        except BaseException:
+            entry.line.done(ticket)
+            raise
+        return await _shielded(self._write(entry, ticket, scans, payload))
+
     async def _write(self, entry: MapEntry, ticket: int, scans: list[batches.Scan], payload: bytes) -> BatchResult:
         """Commit, then apply, a parsed batch in its turns; gives both turns up when done, whatever happens."""
         try:
@@ -726,6 +790,7 @@ class MapService:
                 entry.version, entry.scans_fused, entry.updated = result.version, entry.map.scans_fused, updated
                 entry.last_scan, entry.last_view = scans[-1], None
                 self._grids.retire(entry.uid, below=entry.version)  # no plan will ask for an older one
+                self._notify("batch_applied", entry.name, entry.version, entry.last_scan)
             if self._snapshot_due(entry):
                 await self._snapshot(entry)
             return result
@@ -747,6 +812,11 @@ class MapService:
 
     # ---------------------------------------------------------------- risk
 
+    def current_etag(self, name: str, variant: Mapping[str, Any]) -> tuple[str, int]:
+        """The ETag a read of ``variant`` would carry now, and the version (no grid read: for If-None-Match)."""
+        entry = self._entry(name)
+        return conditional.entity_tag(entry.etag_seed, entry.version, variant), entry.version
+
     async def read_grid(self, name: str) -> GridSnapshot:
         """The map's risk and observed arrays, consistent with one version.
 
@@ -757,7 +827,9 @@ class MapService:
     async def _read_grid(self, entry: MapEntry) -> GridSnapshot:
         async with entry.apply_lock:
             risk, observed = await self._run(lambda: (entry.map.risk(), entry.map.observed()))
-            return GridSnapshot(entry.spec, entry.version, risk, observed)
+            # version and updated are assigned together under this lock (``_write``): they match the arrays
+            return GridSnapshot(entry.spec, entry.version, risk, observed, entry.frame_id, entry.updated,
+                                entry.etag_seed)
 
     async def risk_at(self, name: str, points: list[list[float]]) -> RiskValues:
         if len(points) > self.settings.max_query_points:
@@ -777,7 +849,7 @@ class MapService:
                 raise Invalid(str(exc)) from None
             return RiskValues(risk=[float(v) for v in values], version=entry.version)
 
-    async def risk_json(self, name: str) -> bytes:
+    async def risk_json(self, name: str) -> tuple[bytes, GridSnapshot]:
         """The grid as ``RiskGridJSON``, serialised (off the event loop: big maps make big documents)."""
         grid = await self.read_grid(name)
         if grid.spec.num_cells > MAX_JSON_CELLS:
@@ -788,12 +860,12 @@ class MapService:
 
         def encode() -> bytes:
             return RiskGridJSON(
-                name=name, version=grid.version, resolution=grid.spec.resolution, origin=list(grid.spec.origin),
-                shape=list(grid.spec.shape), risk=np.round(grid.risk.astype(np.float64), 6).tolist(),
-                observed=grid.observed.tolist(),
+                name=name, version=grid.version, frame_id=grid.frame_id, resolution=grid.spec.resolution,
+                origin=list(grid.spec.origin), shape=list(grid.spec.shape),
+                risk=np.round(grid.risk.astype(np.float64), 6).tolist(), observed=grid.observed.tolist(),
             ).model_dump_json().encode()
 
-        return await self._run(encode)
+        return await self._run(encode), grid
 
     async def risk_npy(self, name: str, layer: Literal["risk", "observed"] = "risk") -> tuple[bytes, GridSnapshot]:
         """The risk (float32) or the observed mask (bool) as ``.npy``, of one version."""
@@ -807,8 +879,8 @@ class MapService:
         if nx * ny * scale * scale > MAX_PNG_PIXELS:
             raise Invalid(f"scale {scale} would make a {nx * scale} x {ny * scale} image; use a smaller scale")
         text = {
-            "map": name, "version": str(grid.version), "resolution": repr(grid.spec.resolution),
-            "origin": repr(list(grid.spec.origin)),
+            "map": name, "version": str(grid.version), "frame_id": grid.frame_id,
+            "resolution": repr(grid.spec.resolution), "origin": repr(list(grid.spec.origin)),
         }
 
         def render() -> bytes:
@@ -820,7 +892,8 @@ class MapService:
     async def nav2_zip(
         self, name: str, *, mode: Literal["trinary", "scale", "raw"], image_format: Literal["pgm", "png"],
         free_thresh: float, occupied_thresh: float, z_min: float | None, z_max: float | None,
-    ) -> bytes:
+    ) -> tuple[bytes, GridSnapshot]:
+        """The zip for map_server; its entries are dated by the map's last batch, so one version gives one file."""
         _check_band(z_min, z_max)
         _check_thresholds(free_thresh, occupied_thresh)
         try:
@@ -834,26 +907,41 @@ class MapService:
             return exports.nav2_zip(
                 risk, observed, resolution=grid.spec.resolution, origin_xy=grid.spec.origin[:2], mode=mode,
                 image_format=image_format, free_thresh=free_thresh, occupied_thresh=occupied_thresh,
+                frame_id=grid.frame_id, date_time=rosout.zip_date_time(grid.updated),
             )
 
-        return await self._run(render)
+        return await self._run(render), grid
 
     async def occupancy_grid(
         self, name: str, *, mode: Literal["trinary", "scale", "probability"], free_thresh: float,
         occupied_thresh: float, z_min: float | None, z_max: float | None,
-    ) -> OccupancyGrid:
+        encoding: Literal["json", "cdr", "mcap"] = "json",
+    ) -> tuple[bytes, GridSnapshot]:
+        """The map as a ``nav_msgs/OccupancyGrid``: JSON (``OccupancyGrid``), CDR bytes, or an MCAP file.
+
+        The stamp and ``map_load_time`` are when the map reached this version (``GridSnapshot.updated``),
+        so every read of one version gives the same bytes.
+        """
         _check_band(z_min, z_max)
         _check_thresholds(free_thresh, occupied_thresh)
         grid = await self.read_grid(name)
 
-        def render() -> OccupancyGrid:
+        def render() -> bytes:
             risk, observed = grid.planar(z_min, z_max)
             data = exports.occupancy_data(risk, observed, mode=mode, free_thresh=free_thresh,
                                           occupied_thresh=occupied_thresh)
-            now = time.time()
-            stamp = {"sec": int(now), "nanosec": int((now % 1.0) * 1e9)}
+            stamp = rosout.ros_time_of_iso(grid.updated)
+            if encoding != "json":
+                message = rosout.occupancy_grid_message(
+                    data, width=risk.shape[0], height=risk.shape[1], resolution=grid.spec.resolution,
+                    origin_xy=grid.spec.origin[:2], frame_id=grid.frame_id, stamp=stamp,
+                )
+                cdr = rosout.occupancy_grid_cdr(message)
+                if encoding == "cdr":
+                    return cdr
+                return rosout.occupancy_grid_mcap(cdr, log_time_ns=stamp["sec"] * 1_000_000_000 + stamp["nanosec"])
             return OccupancyGrid.model_validate({
-                "header": {"stamp": stamp, "frame_id": "map"},
+                "header": {"stamp": stamp, "frame_id": grid.frame_id},
                 "info": {
                     "map_load_time": stamp, "resolution": grid.spec.resolution,
                     "width": int(risk.shape[0]), "height": int(risk.shape[1]),
@@ -861,9 +949,10 @@ class MapService:
                                "orientation": {"x": 0.0, "y": 0.0, "z": 0.0, "w": 1.0}},
                 },
                 "data": data.tolist(),
-            })
+                "version": grid.version,
+            }).model_dump_json().encode()
 
-        return await self._run(render)
+        return await self._run(render), grid
 
     # ---------------------------------------------------------------- plans
 
@@ -875,8 +964,11 @@ class MapService:
         """
         self._check_plan(request)
         started = time.perf_counter()  # the wait for the grid is part of what the client waits for
+        # the path's stamp: when the plan was taken up, as Nav2's planners stamp a path when they start it
+        stamp = rosout.ros_time_of_ns(time.time_ns())
         entry = self._entry(name)
-        params = request.model_dump(exclude_none=True)
+        # goal_yaw only orients the answer's last pose: the planner never sees it
+        params = request.model_dump(exclude_none=True, exclude={"goal_yaw"})
         timeout = wall_clock_limit(request.time_limit, request.seed is not None) + PLAN_GRACE_S
         outcome, source, version = "error", "shared", entry.version
         lease: Lease | None = self._grids.lease(entry.uid, version)  # no await since the version was read
@@ -891,11 +983,12 @@ class MapService:
                 )
             self.metrics.plan_grids.labels("shipped" if lease is None else source).inc()
             if lease is not None:
-                answer = await self._plans.run(run_shared_plan, timeout, lease.ref, params)
+                answer = await self._plans.run(run_shared_plan, timeout, lease.ref, params, key=name)
             else:
                 assert grid is not None
                 answer = await self._plans.run(
-                    run_plan, timeout, grid.risk, grid.observed, grid.spec.resolution, grid.spec.origin, params
+                    run_plan, timeout, grid.risk, grid.observed, grid.spec.resolution, grid.spec.origin, params,
+                    key=name,
                 )
             if "error" in answer:
                 outcome = "rejected"
@@ -905,7 +998,11 @@ class MapService:
                 raise Invalid(answer["invalid"])
             result = answer["result"]
             outcome = result["status"]
-            return PlanResult(**result, version=version)
+            path_msg = rosout.path_message(result["path"], state_space=result["state_space"], frame_id=entry.frame_id,
+                                           stamp=stamp, goal_yaw=request.goal_yaw)
+            plan = PlanResult(**result, version=version, **path_msg)
+            self._notify("plan_made", name, plan)
+            return plan
         finally:
             if lease is not None:
                 lease.release()
@@ -922,6 +1019,9 @@ class MapService:
             planner_spec(request.planner)  # lists the planners that work
         except ValueError as exc:
             raise Invalid(str(exc)) from None
+        if request.goal_yaw is not None and request.state_space in rosout.YAW_SPACES:
+            raise Invalid(f"goal_yaw is for R2 and R3 paths; in {request.state_space} give the goal's yaw as its "
+                          "third value [x, y, theta] and leave goal_yaw out")
 
 
 def _is_current(entry: MapEntry, version: int) -> bool:

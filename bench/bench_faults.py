@@ -19,13 +19,13 @@
 2. **Full disk.** The data directory is a 3 MB tmpfs (``mount -t tmpfs -o size=3m``; when
    mounting is not permitted, the server runs under ``RLIMIT_FSIZE`` instead and the method is
    printed). Batches are posted until one is refused; the refusal must be a 5xx with a JSON
-   ``detail`` (503 expected), the map must keep its version and risk, the service must answer
+   error body (503 expected), the map must keep its version and risk, the service must answer
    again once space is back (tmpfs grown), and a kill -9 + restart must load the same map.
 
 3. **Read-only data directory.** The server is stopped, the tmpfs remounted read-only
    (``mount -o remount,ro``; the kernel refuses that under a running server's open files, and
    as non-root ``chmod a-w`` does the same) and the server started on it: it must start, serve
-   reads, and answer writes with a 5xx carrying a JSON ``detail``; finally the directory is made
+   reads, and answer writes with a 5xx carrying a JSON error body; finally the directory is made
    writable again and the map checked against the acknowledged batches.
 """
 
@@ -334,7 +334,8 @@ def _json_detail(response: httpx.Response) -> bool:
         body = response.json()
     except ValueError:
         return False
-    return isinstance(body, dict) and isinstance(body.get("detail"), (str, dict)) and bool(body["detail"])
+    # the service's one error body: {code, message, details}
+    return isinstance(body, dict) and isinstance(body.get("code"), str) and bool(body.get("message"))
 
 
 def _check_map(client: httpx.Client, mirror: Mirror, refused: list[Batch] | None = None) -> tuple[bool, str, int]:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from fastapi import APIRouter, Response
 
+from app import conditional
 from app.deps import MapNamePath, ServiceDep
 from app.schemas import MapCreate, MapInfo
 
@@ -26,9 +27,11 @@ async def list_maps(service: ServiceDep) -> list[MapInfo]:
 
 
 @router.get("/{name}", responses=_NOT_FOUND)
-async def get_map(name: MapNamePath, service: ServiceDep) -> MapInfo:
-    """One map, with ``scans_fused`` and ``version``."""
-    return service.get_map(name)
+async def get_map(name: MapNamePath, service: ServiceDep, response: Response) -> MapInfo:
+    """One map, with ``scans_fused`` and ``version`` (also in the ``X-Map-Version`` header)."""
+    info = service.get_map(name)
+    response.headers[conditional.VERSION_HEADER] = str(info.version)
+    return info
 
 
 @router.delete("/{name}", status_code=204, response_class=Response, responses=_NOT_FOUND)

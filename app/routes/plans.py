@@ -2,11 +2,12 @@
 
 from __future__ import annotations
 
-from fastapi import APIRouter
+from fastapi import APIRouter, Response
 
 from planning import STATE_SPACE_NAMES, available_planners
 from planning.planners import PLANNERS
 
+from app import conditional
 from app.deps import MapNamePath, ServiceDep
 from app.schemas import PlannerInfo, Planners, PlanRequest, PlanResult
 
@@ -27,17 +28,19 @@ async def planners() -> Planners:
     responses={
         404: {"description": "no map of that name"},
         422: {
-            "description": "invalid parameters; a start or goal that cannot be used answers "
-            '{"detail": {"code": "START_OUTSIDE_MAP" | "GOAL_OUTSIDE_MAP" | "START_OCCUPIED" | '
-            '"GOAL_OCCUPIED", "message": ...}}'
+            "description": "invalid parameters (code INVALID or VALIDATION_ERROR); a start or goal that "
+            "cannot be used answers Nav2's name for why as the code: START_OUTSIDE_MAP, GOAL_OUTSIDE_MAP, "
+            "START_OCCUPIED or GOAL_OCCUPIED"
         },
         503: {"description": "every planner worker is busy; retry (Retry-After)"},
     },
 )
-async def plan(name: MapNamePath, body: PlanRequest, service: ServiceDep) -> PlanResult:
+async def plan(name: MapNamePath, body: PlanRequest, service: ServiceDep, response: Response) -> PlanResult:
     """A path from ``start`` to ``goal`` whose risk stays at or below ``max_risk`` under the robot.
 
     Cost = length + ``risk_weight`` * integral of risk along the path. ``allow_unknown: false``
     forbids never-observed cells whatever ``max_risk`` says. Runs in a worker process.
     """
-    return await service.plan(name, body)
+    result = await service.plan(name, body)
+    response.headers[conditional.VERSION_HEADER] = str(result.version)
+    return result

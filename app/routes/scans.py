@@ -4,10 +4,12 @@ from __future__ import annotations
 
 from typing import Any
 
-from fastapi import APIRouter, Request
+from fastapi import APIRouter, Request, Response
 
+from app import conditional
 from app.batches import BINARY_TYPES
 from app.deps import MapNamePath, ServiceDep
+from app.rosmsgs import MSGTYPES, media_type
 from app.schemas import EXAMPLE_CLOUD, EXAMPLE_LASER, SCAN_QUERY_DOC, SCAN_QUERY_FIELDS, BatchResult, LastScan
 
 router = APIRouter(prefix="/maps", tags=["scans"])
@@ -22,13 +24,21 @@ above `range_max` is a no-return (free space up to `range_max`). JSON has no inf
 `.npy` file (float32 or float64, read with `allow_pickle=False`) or raw little-endian float32;
 the pose and scan parameters go in the query:
 
-* 3-D map: points in the sensor frame, `.npy` of shape (N, 3) or raw `x y z x y z ...`;
-  query `x, y, z` (sensor position), `qx, qy, qz, qw` (orientation, default identity), `range_max`.
+* 3-D map: points in the sensor frame, `.npy` of shape (N, 3), or raw points of `point_step` bytes
+  each (x, y, z little-endian float32 at its start: `point_step=12` packed, 16 with an intensity;
+  without it a raw body is refused, its layout unknown); query `x, y, z` (sensor position), `qx, qy,
+  qz, qw` (orientation, default identity), `range_max`.
 * 2-D map, LaserScan: raw float32 ranges (or a 1-D `.npy`); query `x, y, theta, angle_min,
   angle_increment, range_min, range_max`.
 * 2-D map, points: `.npy` of shape (N, 2) in the sensor frame; query `x, y, theta, range_max`.
 
-`registration_sigma` (metres) is optional in both forms. The answer comes once the batch is on
+**A ROS 2 message** (`application/vnd.ros2.sensor_msgs.msg.LaserScan+cdr` or
+`application/vnd.ros2.sensor_msgs.msg.PointCloud2+cdr`): one CDR-serialized message (the bytes of
+`rclpy.serialization.serialize_message`), the pose of its `frame_id` in the map frame in the query as
+`x, y, z, qx, qy, qz, qw` (all seven); a PointCloud2 also takes `range_max`. A LaserScan on a 2-D map
+needs a level scanner (z up, or down when mounted upside down); on a 3-D map any mounting.
+
+`registration_sigma` (metres) is optional in every form. The answer comes once the batch is on
 disk (fsync) and applied; `version` is the map's new version.
 """
 
@@ -44,6 +54,7 @@ _BODY: dict[str, Any] = {
                 },
             },
             **{media: {"schema": {"type": "string", "format": "binary"}} for media in BINARY_TYPES},
+            **{media_type(t): {"schema": {"type": "string", "format": "binary"}} for t in MSGTYPES},
         },
     }
 }
@@ -82,6 +93,8 @@ async def post_scans(name: MapNamePath, request: Request, service: ServiceDep) -
 
 
 @router.get("/{name}/scans/last", responses={404: {"description": "no such map, or no scan yet"}})
-async def last_scan(name: MapNamePath, service: ServiceDep) -> LastScan:
+async def last_scan(name: MapNamePath, service: ServiceDep, response: Response) -> LastScan:
     """Beam ends of the last scan fused (map frame, at most 4096): the web page draws them."""
-    return await service.last_scan(name)
+    scan = await service.last_scan(name)
+    response.headers[conditional.VERSION_HEADER] = str(scan.version)
+    return scan

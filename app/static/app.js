@@ -30,34 +30,32 @@
   // ---------------------------------------------------------------- API
 
   class ApiError extends Error {
-    constructor(status, detail) {
-      super(describeDetail(status, detail));
+    // every error answer of the service is {code, message, details}
+    constructor(status, code, message, details) {
+      super(describeError(status, message, details));
       this.status = status;
-      this.detail = detail;
-      this.code = detail && typeof detail === "object" && !Array.isArray(detail) ? detail.code : undefined;
+      this.code = code;
+      this.details = details;
     }
 
     static async from(response) {
-      let detail = response.statusText;
+      let body = {};
       try {
-        const body = await response.json();
-        detail = body.detail ?? body;
+        body = await response.json();
       } catch (_) { /* not JSON: keep the status text */ }
-      return new ApiError(response.status, detail);
+      return new ApiError(response.status, body.code, body.message || response.statusText, body.details);
     }
   }
 
-  function describeDetail(status, detail) {
-    if (typeof detail === "string" && detail) return detail;
-    if (Array.isArray(detail)) {
-      // FastAPI's validation errors: name the field the server complained about
-      return detail.map((e) => {
+  function describeError(status, message, details) {
+    if (Array.isArray(details) && details.length) {
+      // a request that does not match the schema: name the fields the server complained about
+      return details.map((e) => {
         const where = (e.loc || []).filter((p) => p !== "body").join(".");
         return where ? `${where}: ${e.msg}` : e.msg;
       }).join("; ");
     }
-    if (detail && typeof detail === "object" && detail.message) return detail.message;
-    return `HTTP ${status}`;
+    return message || `HTTP ${status}`;
   }
 
   let keyRequest = null;  // one form for every request that met a 401
@@ -756,7 +754,7 @@
       if (gen !== state.gen) return;
       state.path = null;
       showPathList(null);
-      if (error instanceof ApiError && error.code) {
+      if (error instanceof ApiError && error.code in CODE_TEXT) {
         const words = CODE_TEXT[error.code] || "";
         setResult("error", `Cannot plan: ${error.code}. ${words} The service says: ${error.message}`, 0);
         $("plan-result").dataset.code = error.code;

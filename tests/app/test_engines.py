@@ -179,7 +179,7 @@ def test_a_bad_engine_answers_422_naming_the_field_and_creates_nothing(client: T
     body = json.dumps({**kit.MAP_2D, "engine": engine})  # json.dumps writes NaN and Infinity tokens
     response = client.post("/maps", content=body, headers={"Content-Type": "application/json"})
     assert response.status_code == 422, response.text
-    (error,) = response.json()["detail"]
+    (error,) = response.json()["details"]
     assert error["loc"] == ["body", "engine"] and needle in error["msg"], error
     assert client.get("/maps").json() == [] and stored_maps(client) == []
 
@@ -187,7 +187,7 @@ def test_a_bad_engine_answers_422_naming_the_field_and_creates_nothing(client: T
 def test_an_engine_on_a_bayes_map_is_refused(client: TestClient, kit: Any) -> None:
     response = client.post("/maps", json={**kit.MAP_2D, "model": "bayes", "engine": "paper"})
     assert response.status_code == 422
-    assert "engine applies to fuzzy maps only" in str(response.json()["detail"])
+    assert "engine applies to fuzzy maps only" in str(response.json())
     assert client.get("/maps").json() == [] and stored_maps(client) == []
 
 

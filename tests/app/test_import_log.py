@@ -134,9 +134,11 @@ class _BusyOnce(http.server.BaseHTTPRequestHandler):
         if self.path == "/maps":
             self._answer(201, {"name": scans["name"], "model": "fuzzy", "version": 0})
         elif self.posts.count(self.path) == 1:
-            self._answer(503, {"detail": "map busy: 32 batches in line"}, {"Retry-After": "0.2"})
+            self._answer(503, {"code": "UNAVAILABLE", "message": "map busy: 32 batches in line",
+                                "details": None}, {"Retry-After": "0.2"})
         elif len(scans["scans"]) > 4:
-            self._answer(413, {"detail": "too many scans in one batch (FUZZYRISK_MAX_SCANS_PER_BATCH)"})
+            self._answer(413, {"code": "TOO_LARGE", "message": "too many scans in one batch (FUZZYRISK_MAX_SCANS_PER_BATCH)",
+                                "details": None})
         else:
             self._answer(200, {"scans_fused": len(scans["scans"]), "rays": 1, "version": len(self.posts)})
 
@@ -163,7 +165,7 @@ def test_a_busy_service_is_waited_for_and_other_errors_show_its_detail(
     capsys.readouterr()
     assert main([str(orebro), "--every", "30", "--batch", "8", "--url", busy_service, "--map", "m"]) == 1
     err = capsys.readouterr().err
-    assert "answered 413: too many scans in one batch (FUZZYRISK_MAX_SCANS_PER_BATCH)" in err
+    assert "answered 413: TOO_LARGE: too many scans in one batch (FUZZYRISK_MAX_SCANS_PER_BATCH)" in err
     assert "0 of 8 scans were fused into 'm'" in err
 
 

@@ -9,6 +9,7 @@ from typing import Any
 
 import numpy as np
 from fastapi.testclient import TestClient
+from tests.conftest import error_message
 
 NPY = {"Content-Type": "application/x-npy"}
 LASER_QUERY = {"x": 0.0, "y": 0.0, "theta": 0.0, "angle_min": -0.7, "angle_increment": 0.01, "range_min": 0.05,
@@ -40,7 +41,7 @@ def test_a_header_that_does_not_tokenize_answers_422_and_changes_nothing(lab: Te
     body = b"\x93NUMPY\x01\x00" + struct.pack("<H", 20) + b"{'descr': __import__" + b" " * 10
     response = _post(lab, body)
     assert response.status_code == 422, response.text
-    assert ".npy header" in response.json()["detail"] and "numpy.save" in response.json()["detail"]
+    assert ".npy header" in error_message(response) and "numpy.save" in error_message(response)
     assert _unchanged(lab, kit, before)
 
 
@@ -48,7 +49,7 @@ def test_a_header_claiming_a_trillion_beams_answers_413_without_allocating(lab: 
     before = kit.risk_npy(lab, "lab")
     response = _post(lab, _claim("(1000000000000,)", np.full(100, 1.5, "<f4").tobytes()))
     assert response.status_code == 413, response.text
-    detail = response.json()["detail"]
+    detail = error_message(response)
     assert "1000000000000" in detail and "FUZZYRISK_MAX_RAYS_PER_SCAN" in detail
     assert _unchanged(lab, kit, before)
 
@@ -60,7 +61,7 @@ def test_a_shape_that_does_not_match_the_bytes_sent_answers_422(lab: TestClient,
                          (_claim("(-1,)", ranges), "negative")):
         response = _post(lab, body)
         assert response.status_code == 422, response.text
-        assert needle in response.json()["detail"]
+        assert needle in error_message(response)
     assert _unchanged(lab, kit, before)
 
 
@@ -71,7 +72,7 @@ def test_big_endian_and_integer_arrays_are_refused_with_what_to_send(lab: TestCl
         np.save(out, array)
         response = _post(lab, out.getvalue())
         assert response.status_code == 422, response.text
-        assert needle in json.dumps(response.json()["detail"])
+        assert needle in json.dumps(response.json())
 
 
 def test_a_fortran_order_npy_fuses_like_the_same_points_in_c_order(client: TestClient, kit: Any) -> None:

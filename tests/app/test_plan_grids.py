@@ -56,7 +56,7 @@ def test_a_plan_after_a_scan_runs_on_the_new_version(lab: TestClient, kit: Any) 
     assert lab.post("/maps/lab/scans", json={"scans": [kit.laser(wall=2.0)] * 3}).status_code == 200
     assert _files(lab) == []  # version 1's files went as version 2 was applied
     blocked = _plan(lab)
-    assert blocked.status_code == 422 and blocked.json()["detail"]["code"] == "GOAL_OCCUPIED", blocked.text
+    assert blocked.status_code == 422 and blocked.json()["code"] == "GOAL_OCCUPIED", blocked.text
     short = _plan(lab, goal=[1.0, 0.3])
     assert short.status_code == 200 and short.json()["version"] == 2
     assert _versions(_files(lab)) == {2}
@@ -78,7 +78,7 @@ def test_the_grids_of_a_deleted_map_and_of_a_stopped_service_are_gone(make_clien
     # a new map of the same name is not served the old map's grid
     assert client.post("/maps", json=kit.MAP_2D).status_code == 201
     assert client.post("/maps/lab/scans", json={"scans": [kit.laser(wall=2.0)] * 3}).status_code == 200
-    assert _plan(client).json()["detail"]["code"] == "GOAL_OCCUPIED"
+    assert _plan(client).json()["code"] == "GOAL_OCCUPIED"
     root = client.app.state.settings.data_dir / "plan-grids"
     client.__exit__(None, None, None)
     assert not root.exists()  # nothing of the run is left

@@ -1,4 +1,5 @@
-"""The planner worker pool: a stuck or dead worker answers 503 and is replaced; a full queue answers 503."""
+"""The planner worker pool: a stuck or dead worker answers 503 and is replaced alone; a full queue answers 503;
+waiting plans take turns by map."""
 
 from __future__ import annotations
 
@@ -48,7 +49,8 @@ def test_a_worker_that_died_while_idle_is_replaced_for_the_next_task() -> None:
             pid = await pool.run(os.getpid, 30.0)
             os.kill(pid, signal.SIGKILL)  # the OOM killer, between two plans
             for _ in range(100):  # until the pool has noticed (it is then broken for every later task)
-                if pool._executor is not None and pool._executor._broken:  # type: ignore[attr-defined]
+                executor = pool._workers[0].executor
+                if executor is not None and executor._broken:  # type: ignore[attr-defined]
                     break
                 await asyncio.sleep(0.05)
             assert await pool.run(math.sqrt, 30.0, 25.0) == 5.0  # this task had not run: it goes to a new worker
@@ -71,6 +73,88 @@ def test_plans_beyond_workers_and_queue_are_refused_at_once() -> None:
             assert refused.value.headers == {"Retry-After": "1"}
             await asyncio.gather(running, waiting)
             assert await pool.run(math.sqrt, 30.0, 1.0) == 1.0  # room again
+        finally:
+            pool.shutdown()
+
+    asyncio.run(scenario())
+
+
+def test_a_stuck_worker_is_replaced_alone_and_the_other_plan_goes_on() -> None:
+    async def scenario() -> None:
+        pool = PlanPool(workers=2, queue=2)
+        try:
+            other_pid = await pool.run(os.getpid, 30.0, key="b")
+            stuck = asyncio.ensure_future(pool.run(time.sleep, 1.0, 60, key="a"))  # takes the other worker
+            await asyncio.sleep(0.1)
+            other = asyncio.ensure_future(pool.run(_sleep_then_pid, 30.0, 2.0, key="b"))
+            with pytest.raises(Unavailable, match="did not finish"):
+                await stuck
+            assert await other == other_pid  # the stuck worker's end did not touch it
+            assert await pool.run(math.sqrt, 30.0, 4.0, key="a") == 2.0
+        finally:
+            pool.shutdown()
+
+    asyncio.run(scenario())
+
+
+def _sleep_then_pid(seconds: float) -> int:
+    time.sleep(seconds)
+    return os.getpid()
+
+
+def test_a_cancelled_plan_frees_its_worker_only_when_its_solve_ends() -> None:
+    # the request of a long plan goes away; the next plan (another map) must not wait behind the
+    # abandoned solve on its own clock, nor have the worker ended under it
+    async def scenario() -> None:
+        pool = PlanPool(workers=1, queue=2)
+        try:
+            pid = await pool.run(os.getpid, 30.0, key="a")
+            abandoned = asyncio.ensure_future(pool.run(time.sleep, 30.0, 2.5, key="a"))
+            await asyncio.sleep(0.3)
+            abandoned.cancel()
+            started = time.monotonic()
+            # it waits for the abandoned solve (2.2 s more), then runs on its own 1 s clock, on the same process
+            assert await pool.run(os.getpid, 1.0, key="b") == pid
+            assert time.monotonic() - started >= 2.0
+        finally:
+            pool.shutdown()
+
+    asyncio.run(scenario())
+
+
+def test_waiting_plans_take_turns_by_map() -> None:
+    async def scenario() -> list[str]:
+        pool = PlanPool(workers=1, queue=8)
+        order: list[str] = []
+
+        async def plan(key: str, tag: str) -> None:
+            order.append(await pool.run(str, 30.0, tag, key=key))
+
+        try:
+            busy = asyncio.ensure_future(pool.run(time.sleep, 30.0, 0.5, key="a"))
+            await asyncio.sleep(0.05)
+            waiting = [asyncio.ensure_future(plan(key, tag)) for key, tag in
+                       [("a", "a1"), ("a", "a2"), ("a", "a3"), ("b", "b1")]]
+            await asyncio.gather(busy, *waiting)
+        finally:
+            pool.shutdown()
+        return order
+
+    assert asyncio.run(scenario()) == ["a1", "b1", "a2", "a3"]  # b's plan does not wait for all of a's
+
+
+def test_one_map_holds_at_most_half_the_queue() -> None:
+    async def scenario() -> None:
+        pool = PlanPool(workers=1, queue=4)
+        try:
+            busy = asyncio.ensure_future(pool.run(time.sleep, 30.0, 0.5, key="a"))
+            await asyncio.sleep(0.05)
+            queued = [asyncio.ensure_future(pool.run(math.sqrt, 30.0, 1.0, key="a")) for _ in range(2)]
+            await asyncio.sleep(0.05)
+            with pytest.raises(Unavailable, match="2 of them on this map"):
+                await pool.run(math.sqrt, 30.0, 1.0, key="a")
+            assert await pool.run(math.sqrt, 30.0, 9.0, key="b") == 3.0  # another map still gets in
+            await asyncio.gather(busy, *queued)
         finally:
             pool.shutdown()
 

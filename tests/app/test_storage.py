@@ -15,6 +15,7 @@ from app.config import Settings
 from app.main import create_app
 from app.storage import SqliteStorage, StorageUnavailable
 from fuzzyocc import FuzzyMap
+from tests.conftest import error_message
 
 
 def _rows(data_dir: Path, table: str) -> list[tuple[Any, ...]]:
@@ -195,7 +196,7 @@ def test_a_damaged_row_quarantines_its_map_and_the_others_start(make_settings: A
     with TestClient(create_app(settings)) as client:
         damaged = client.get("/maps/lab")
         assert damaged.status_code == 503
-        assert "quarantined" in damaged.json()["detail"] and "checksum" in damaged.json()["detail"]
+        assert "quarantined" in error_message(damaged) and "checksum" in error_message(damaged)
         assert client.post("/maps/lab/scans", json=_scans(kit, 1)[0]).status_code == 503  # nothing is added to it
         assert client.get("/ready").json()["maps_quarantined"] == ["lab"]
         assert client.get("/maps/other/risk", params={"format": "npy"}).content == other

@@ -52,7 +52,7 @@ def test_a_full_disk_answers_503_json_and_applies_nothing(lab: TestClient, kit: 
     big = {"scans": [kit.laser(beams=20_000, wall=2.5 + 0.01 * k) for k in range(4)]}  # larger than any free page
     response = lab.post("/maps/lab/scans", json=big)
     assert response.status_code == 503, response.text
-    assert response.json() == {"detail": STORAGE_UNAVAILABLE_DETAIL}
+    assert response.json() == {"code": "STORAGE_UNAVAILABLE", "message": STORAGE_UNAVAILABLE_DETAIL, "details": None}
     assert int(response.headers["retry-after"]) > 0
     assert kit.version(lab, "lab") == 1 and np.array_equal(kit.risk_npy(lab, "lab"), before)
     _free_disk(lab)

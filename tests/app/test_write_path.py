@@ -32,6 +32,7 @@ from app.schemas import MapCreate, ScanBatch
 from app.services import MapService
 from app.storage import BatchRecord, SqliteStorage, StorageUnavailable
 from fuzzyocc import FuzzyMap, GridSpec, LaserScan, SensorModel
+from tests.conftest import error_message
 
 
 def _rows(data_dir: Path) -> list[tuple[str, int]]:
@@ -283,14 +284,16 @@ def test_query_parameters_are_refused_as_fastapi_refuses_them(lab: TestClient, k
                                                               error: str) -> None:
     response = lab.post("/maps/lab/scans", params={**RAW_QUERY, "theta": value}, content=_raw_ranges(), headers=RAW)
     assert response.status_code == 422
-    assert response.json() == {"detail": [{"type": error, "loc": ["query", "theta"], "msg": response.json()["detail"][0]["msg"],
-                                           "input": value}]}
+    body = response.json()
+    assert body["code"] == "VALIDATION_ERROR" and body["message"].startswith("query.theta: ")
+    assert body["details"] == [{"type": error, "loc": ["query", "theta"], "msg": body["details"][0]["msg"],
+                                "input": value}]
     assert kit.version(lab, "lab") == 0
 
 
 def test_the_query_is_checked_before_the_content_type_and_for_json_too(lab: TestClient, kit: Any) -> None:
     text = lab.post("/maps/lab/scans", params={"qx": "nan"}, content=b"x", headers={"content-type": "text/plain"})
-    assert text.status_code == 422 and text.json()["detail"][0]["loc"] == ["query", "qx"]
+    assert text.status_code == 422 and text.json()["details"][0]["loc"] == ["query", "qx"]
     assert lab.post("/maps/lab/scans", content=b"x", headers={"content-type": "text/plain"}).status_code == 415
     body = _bodies(kit, 1)[0]
     assert lab.post("/maps/lab/scans", params={"x": "inf"}, json=body).status_code == 422
@@ -303,14 +306,16 @@ def test_a_scan_upload_without_a_content_type_is_refused_and_changes_nothing(lab
     # what a web page's no-cors fetch sends, with no preflight: it must not reach the map (issue 11)
     body = json.dumps(_bodies(kit, 1)[0]).encode()
     response = lab.post("/maps/lab/scans", content=body, headers=headers)
-    assert response.status_code == 415 and "needs a Content-Type" in response.json()["detail"]
+    assert response.status_code == 415 and "needs a Content-Type" in error_message(response)
     assert kit.version(lab, "lab") == 0
 
 
 def test_the_scan_query_is_documented_as_before(client: TestClient) -> None:
     params = client.get("/openapi.json").json()["paths"]["/maps/{name}/scans"]["post"]["parameters"]
+    # point_step (issue 12): raw binary points state their stride
     assert [p["name"] for p in params] == ["name", "x", "y", "z", "theta", "qx", "qy", "qz", "qw", "angle_min",
-                                           "angle_increment", "range_min", "range_max", "registration_sigma"]
+                                           "angle_increment", "range_min", "range_max", "registration_sigma",
+                                           "point_step"]
     assert params[10] == {
         "name": "angle_increment", "in": "query", "required": False,
         "description": "binary uploads only; see the description",
@@ -503,7 +508,7 @@ def test_a_map_with_a_full_line_refuses_more_batches_with_503_and_other_maps_go_
         _wait_for(lambda: _rows(settings.data_dir) == [("lab", 1), ("lab", 2)])
         refused = client.post("/maps/lab/scans", json=bodies[2])
         assert refused.status_code == 503 and refused.headers["Retry-After"] == "1"
-        assert "FUZZYRISK_MAX_PENDING_BATCHES" in refused.json()["detail"]
+        assert "FUZZYRISK_MAX_PENDING_BATCHES" in error_message(refused)
         assert _rows(settings.data_dir) == [("lab", 1), ("lab", 2)]  # nothing of it was stored
         # another map's line is its own
         assert client.post("/maps/other/scans", json=bodies[2]).json()["version"] == 1

@@ -3,7 +3,7 @@
 kill -9 at random moments during a stream of batches, then restart: no acknowledged batch
 lost, every map loads, no half-applied batch, risk bit-identical to an in-process replay of
 the acknowledged batches. A full disk and a read-only data directory: a 5xx with a JSON
-``detail``, no batch applied that was refused, nothing corrupted, recovery once writable.
+error body, no batch applied that was refused, nothing corrupted, recovery once writable.
 """
 
 from __future__ import annotations

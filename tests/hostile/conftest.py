@@ -98,11 +98,18 @@ def map_states(client: httpx.Client) -> dict[str, tuple[int, int]]:
 
 
 def assert_refused(response: httpx.Response, allowed: set[int] | frozenset[int]) -> None:
-    """A 4xx from ``allowed`` with a JSON ``detail`` a person can read."""
+    """A 4xx from ``allowed`` with the service's error body: a code and a message a person can read."""
     assert response.status_code in allowed, f"{response.status_code} {response.text[:300]}"
     assert 400 <= response.status_code < 500
+    assert_error_body(response)
+
+
+def assert_error_body(response: httpx.Response) -> None:
+    """The one error body: ``{code, message, details}``, code in upper snake case, message not empty."""
     body = response.json()
-    assert isinstance(body, dict) and body.get("detail"), body
+    assert isinstance(body, dict) and set(body) == {"code", "message", "details"}, body
+    assert isinstance(body["code"], str) and body["code"].replace("_", "").isupper(), body
+    assert isinstance(body["message"], str) and body["message"], body
 
 
 def pytest_terminal_summary(terminalreporter: Any) -> None:

@@ -4,7 +4,7 @@ Each case is one request a careless or malicious client could send: NaN and infi
 every number, arrays over the configured limits, deeply nested JSON, wrong dimensions, map
 names with ``../`` (also percent-encoded), truncated and mislabelled binary bodies, wrong
 content types, and a missing or wrong API key. Each must answer its 4xx with a JSON
-``detail`` and leave every map exactly as it was (version and scan count of all maps).
+error body (code, message, details) and leave every map exactly as it was (version and scan count of all maps).
 """
 
 from __future__ import annotations

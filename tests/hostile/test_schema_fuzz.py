@@ -3,8 +3,9 @@
 Every operation gets valid and invalid inputs (schemathesis' positive and negative modes)
 on a small, derandomized budget. Two thirds of the generated map names are redirected to maps
 that exist (one 2-D, one 3-D), so the generated bodies reach fusion, risk and planning instead
-of stopping at a 404. The property: no answer is a 5xx, except a 503 where the operation
-documents one (a busy planner).
+of stopping at a 404. The properties: no answer is a 5xx, except a 503 where the operation
+documents one (a busy planner); every error answer is the one error body, with a status the
+operation declares.
 """
 
 from __future__ import annotations
@@ -26,7 +27,7 @@ from app.config import Settings
 from app.main import create_app
 from bench._client import ServerProcess
 
-from .conftest import SENT, STATUSES, auth, cloud, laser
+from .conftest import SENT, STATUSES, assert_error_body, auth, cloud, laser
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(300)]
 
@@ -105,5 +106,8 @@ def test_no_generated_request_gets_a_server_error(operation: Any, mode: Generati
         assert status < 500 or (status == 503 and _documented(case, 503)), (
             f"{case.method} {case.formatted_path} -> {status}: {response.text[:300]}"
         )
+        if status >= 400:
+            assert _documented(case, status), f"{case.method} {case.formatted_path} -> {status} is not declared: {response.text[:300]}"
+            assert_error_body(response)
 
     check()
