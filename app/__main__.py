@@ -16,7 +16,7 @@ from pathlib import Path
 from pydantic import ValidationError
 
 from app.config import Settings
-from app.lifecycle import StartupError, bind, prepare_directories
+from app.lifecycle import StartupError, bind, foxglove_sdk_missing, prepare_directories
 from app.logs import configure_logging
 
 #: Exit status when the service cannot start (a bad setting, a port in use, an unusable data directory).
@@ -48,9 +48,7 @@ def main(argv: list[str] | None = None) -> None:
         try:  # here, so that a missing optional extra stops the start at once with what to do
             import foxglove  # noqa: F401
         except ImportError as exc:
-            log.error("cannot start: FUZZYRISK_FOXGLOVE_PORT is set but the Foxglove SDK is not installed (%s): install "
-                      "the foxglove extra (pip install 'fuzzyrisk[foxglove]', i.e. foxglove-sdk), or unset "
-                      "FUZZYRISK_FOXGLOVE_PORT", exc)
+            log.error("cannot start: %s", foxglove_sdk_missing(exc))
             sys.exit(EXIT_STARTUP_FAILURE)
     if settings.api_key is None and settings.host not in ("127.0.0.1", "localhost", "::1"):
         log.warning("listening on %s without FUZZYRISK_API_KEY: anyone who can reach it can change maps", settings.host)
@@ -63,10 +61,12 @@ def main(argv: list[str] | None = None) -> None:
     # numba, OMPL, the web stack: imported only now that NUMBA_CACHE_DIR is set
     import uvicorn
 
+    from app import httpserver
     from app.main import create_app
 
     server = uvicorn.Server(uvicorn.Config(
         create_app(settings),
+        http=httpserver.protocol(settings.header_timeout_s),  # h11 with a deadline on request headers
         log_config=None,  # keep our structured handler
         access_log=False,  # one access record per request comes from our middleware
         timeout_graceful_shutdown=settings.graceful_timeout_s,

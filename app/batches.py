@@ -19,13 +19,14 @@ import numpy as np
 from pydantic import ValidationError
 
 from app.errors import Invalid, TooLarge
+from app.mediatypes import NPY, OCTET_STREAM
 from app.schemas import LaserScanIn, PointCloudIn, Pose2D, Pose3D, ScanBatch
 from fuzzyocc import LaserScan, PointCloud
 
 Scan = LaserScan | PointCloud
 
 #: Content types of the binary upload (one scan per request, pose in the query).
-BINARY_TYPES = ("application/octet-stream", "application/x-npy")
+BINARY_TYPES = (OCTET_STREAM, NPY)
 _NPY_MAGIC = b"\x93NUMPY"
 #: The scans/last view draws at most this many beams.
 MAX_VIEW_BEAMS = 4096

@@ -43,6 +43,11 @@ class Settings(BaseSettings):
         "(413 beyond, before any chunk is read).",
     )
     max_scans_per_batch: int = Field(256, ge=1, description="Most scans in one POST /maps/{name}/scans.")
+    max_batch_cells: int = Field(
+        400_000_000, ge=1,
+        description="Most cells one batch's rays may walk, estimated before it is stored (413 beyond): about "
+        "40 s of one fusion thread at 10 M cells a second.",
+    )
     max_rays_per_scan: int = Field(
         2_000_000, ge=1, description="Most ranges in a LaserScan, or points in a point cloud."
     )
@@ -55,6 +60,11 @@ class Settings(BaseSettings):
     )
     body_read_timeout_s: float = Field(
         30.0, gt=0.0, le=3600.0, description="Longest wait for the next chunk of a request body, seconds (408 beyond)."
+    )
+    header_timeout_s: float = Field(
+        10.0, gt=0.0, le=3600.0,
+        description="Longest time a request's headers may take to arrive, from the connection or the previous "
+        "response, seconds (the connection is closed beyond).",
     )
     max_maps: int = Field(100, ge=1, description="Most maps the service holds (507 beyond).")
     max_total_cells: int = Field(
@@ -79,10 +89,31 @@ class Settings(BaseSettings):
         "every plan ships its grid to a worker, which keeps nothing.",
     )
     max_pending_batches: int = Field(
-        32, ge=1, description="Scan batches one map may hold in line (parsed, committing or fusing) before 503."
+        32, ge=1,
+        description="Scan batches one map may hold in line (bodies arriving, parsed, committing or fusing) before 503.",
     )
     fusion_threads: int = Field(2, ge=1, le=64, description="Threads that fuse scans (different maps in parallel).")
+    read_threads: int = Field(
+        2, ge=1, le=64,
+        description="Threads that read and encode grids (risk, exports, queries): apart from fusion's, so that a "
+        "read of one map never waits behind the fusion of others.",
+    )
     snapshot_every: int = Field(200, ge=1, description="Snapshot a map after this many batches since the last.")
+    disk_reserve_bytes: int = Field(
+        16 * 2**20, ge=0,
+        description="A file of this many bytes kept in the data directory and given up when a map deletion meets "
+        "a full disk, so that space can still be freed through the API (0: none).",
+    )
+    snapshot_log_bytes: int = Field(
+        256 * 2**20, ge=1,
+        description="Snapshot a map once its batches since the last snapshot take this many bytes: a map's disk is "
+        "its snapshot plus at most this much log (and one batch).",
+    )
+    max_recording_bytes: int = Field(
+        256 * 2**20, ge=1024,
+        description="Most bytes of messages in one MCAP export of a map (GET /maps/{name}/export/mcap: its grid and "
+        "the scans of its batch log), counted before the file is built (413 beyond); the file is built in memory.",
+    )
     graceful_timeout_s: float = Field(
         30.0, gt=0.0, description="On SIGTERM, wait this long for requests in flight before stopping."
     )
@@ -98,6 +129,11 @@ class Settings(BaseSettings):
     foxglove_interval_s: float = Field(
         1.0, ge=0.05, le=3600.0,
         description="Shortest time between two publications of one map's grid to Foxglove, seconds.",
+    )
+    foxglove_max_cells: int = Field(
+        1_000_000, ge=10_000, le=4_000_000,
+        description="Most cells of a grid published to Foxglove (8 bytes each): a larger map is shown in k x k "
+        "blocks, each its cells' largest risk.",
     )
 
     @field_validator("api_key", "foxglove_port", mode="before")
@@ -123,6 +159,12 @@ class Settings(BaseSettings):
     def database_path(self) -> Path:
         """The SQLite file holding every map."""
         return self.data_dir / "fuzzyrisk.sqlite3"
+
+    @property
+    def temp_dir(self) -> Path:
+        """``<data dir>/tmp``: an uploaded bag's file while it is read (on the data directory's disk, not in a
+        tmpfs /tmp that is memory), and the process's temporary files when the system has no writable one."""
+        return self.data_dir / "tmp"
 
     @property
     def numba_cache_dir(self) -> Path:

@@ -166,6 +166,19 @@ def _validation_message(errors: list[dict[str, Any]]) -> str:
     return ("; ".join(parts) + more) if parts else "the request does not match the operation's schema"
 
 
+def error_body_of(exc: BaseException) -> dict[str, Any]:
+    """The ``ErrorBody`` the handlers below answer ``exc`` with, as a dict (for an error told inside a 200: a bag
+    import stopped part-way)."""
+    if isinstance(exc, ServiceError):
+        return error_body(exc.code, exc.message, exc.details)
+    if isinstance(exc, StorageUnavailable):
+        return error_body(STORAGE_UNAVAILABLE, STORAGE_UNAVAILABLE_DETAIL)
+    if isinstance(exc, StarletteHTTPException):
+        return error_body(status_code_name(exc.status_code), str(exc.detail))
+    return error_body(status_code_name(500), f"internal error ({type(exc).__name__}); nothing more is told here: "
+                      "the service's log has the traceback")
+
+
 def error_response(status: int, code: str, message: str, details: Any = None,
                    headers: dict[str, str] | None = None) -> JSONResponse:
     return JSONResponse(error_body(code, message, details), status_code=status, headers=headers)

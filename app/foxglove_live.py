@@ -18,12 +18,21 @@ carries the float32 risk itself and the page's colours; ``foxglove.LaserScan`` c
 so a scan needs no TF tree; ``nav_msgs/Path`` is drawn as arrows or a line depending on settings,
 a SceneUpdate line is drawn as a line.
 
-Fusion never waits for the view: the service tells this module what changed (``MapObserver``,
-on the event loop, O(1)): each map has a latest-value slot, drained by one publisher thread at
-most once per ``FUZZYRISK_FOXGLOVE_INTERVAL_S`` per map. The thread reads the grid as any
-reader does (``MapService.read_grid``: a copy under the map's apply lock, between two batches)
-and only when a client is subscribed to the grid; a client that subscribes gets the latest
-grid, scan and plan at once.
+Every message of a map is in the map's frame (``frame_id``, ``map`` unless the map was created
+with another): the service gives it with each change, and the slots of the maps there at start
+take it from their ``MapInfo``.
+
+What the view costs the service: the service tells this module what changed (``MapObserver``, on
+the event loop, O(1)): each map has a latest-value slot, drained by one publisher thread at most
+once per ``FUZZYRISK_FOXGLOVE_INTERVAL_S`` per map. The thread reads the grid as any reader does
+(``MapService.read_grid``: ``risk()`` and ``observed()`` copied under the map's apply lock, between
+two batches), only when a client is subscribed to the grid, so a batch of that map may wait for
+one such copy per interval (docs/DESIGN.md 8.2 has the figure); everything else (the projection
+of a 3-D map, the downsampling, the colours, the encoding) happens after, in the publisher
+thread. A grid is published with at most ``FUZZYRISK_FOXGLOVE_MAX_CELLS`` cells: a larger map
+is shown in blocks of k x k cells (k the smallest integer that fits), each the largest risk of its
+observed cells, so an obstacle never vanishes from the view. A client that subscribes gets the
+latest grid, scan and plan at once.
 """
 
 from __future__ import annotations
@@ -40,8 +49,8 @@ from typing import Any
 import numpy as np
 
 from app import exports
-from app.lifecycle import StartupError
-from app.schemas import PlanResult
+from app.lifecycle import StartupError, foxglove_sdk_missing
+from app.schemas import DEFAULT_FRAME_ID, PlanResult
 from fuzzyocc import scans as fuzzy_scans
 
 try:
@@ -65,19 +74,19 @@ try:
         Vector3,
     )
 except ImportError as exc:  # the optional extra is not installed
-    raise StartupError(
-        f"FUZZYRISK_FOXGLOVE_PORT is set but the Foxglove SDK cannot be imported ({exc}): install the foxglove "
-        "extra (pip install 'fuzzyrisk[foxglove]', i.e. foxglove-sdk), or unset FUZZYRISK_FOXGLOVE_PORT"
-    ) from None
+    raise foxglove_sdk_missing(exc) from None
 
 LOG = logging.getLogger("fuzzyrisk.foxglove")
 TOPIC_PREFIX = "/fuzzyrisk/"
-#: The frame of a map's messages until its grid says otherwise (``GridSnapshot.frame_id``).
-FRAME_ID = "map"
 #: Most points of a published point cloud (evenly thinned beyond): a view, not the data.
 MAX_CLOUD_POINTS = 200_000
-#: Messages a slow client may have queued; beyond, its oldest data message goes (a newer grid follows).
-CLIENT_BACKLOG = 16
+#: What a slow client's queue may hold, about: the SDK bounds it in messages only
+#: (``message_backlog_size``; beyond, the client's oldest data message goes, and a newer grid
+#: follows), so the count is this budget over the largest message (``client_backlog``).
+CLIENT_BACKLOG_BYTES = 64 * 2**20
+#: Fewest and most messages a client's queue holds. The SDK gives its control queue (channels
+#: advertised and withdrawn) the same size and disconnects a client that fills it: not too few.
+MIN_CLIENT_BACKLOG, MAX_CLIENT_BACKLOG = 4, 16
 #: Seconds the publisher waits for a grid read before giving that publication up.
 READ_TIMEOUT_S = 60.0
 _F32, _U8 = PackedElementFieldNumericType.Float32, PackedElementFieldNumericType.Uint8
@@ -108,16 +117,18 @@ class _Slot:
     plan_due: bool = False
     deleted: bool = False
     published_at: float = -math.inf
-    frame_id: str = FRAME_ID  # the map's, from its last grid read (per-map frames)
+    frame_id: str = DEFAULT_FRAME_ID  # the map's (MapInfo at start, then each change says it)
     channels: dict[str, Any] = field(default_factory=dict)
 
 
 class LiveView:
     """The Foxglove server and its publisher thread; a ``MapObserver`` of the service (``app.services``)."""
 
-    def __init__(self, *, host: str, port: int, interval_s: float, read_grid: ReadGrid) -> None:
+    def __init__(self, *, host: str, port: int, interval_s: float, read_grid: ReadGrid,
+                 max_cells: int = 1_000_000) -> None:
         self._host, self._port, self._interval_s = host, port, interval_s
         self._read_grid = read_grid
+        self._max_cells = max_cells
         self._context = foxglove.Context()  # ours alone: no other code's channels reach this server
         self._slots: dict[str, _Slot] = {}
         self._cond = threading.Condition()
@@ -127,19 +138,19 @@ class LiveView:
 
     # ------------------------------------------------------------ lifecycle
 
-    def start(self, names: list[str]) -> int:
-        """Listen, advertise the maps ``names`` and start publishing; the port listened on."""
+    def start(self, frames: dict[str, str]) -> int:
+        """Listen, publish the maps ``frames`` (name -> frame_id) and start publishing; the port listened on."""
         try:
             self._server = foxglove.start_server(
                 name="fuzzyrisk", host=self._host, port=self._port, context=self._context, server_listener=self,
-                message_backlog_size=CLIENT_BACKLOG,
+                message_backlog_size=client_backlog(self._max_cells),
             )
         except Exception as exc:  # noqa: BLE001 - the SDK's error types are its own; the message says it
             raise StartupError(f"the Foxglove live view cannot listen on {self._host}:{self._port} ({exc}): choose "
                                "another FUZZYRISK_FOXGLOVE_PORT, or unset it") from None
         with self._cond:
-            for name in names:
-                self._slots[name] = _Slot(grid_due=True)
+            for name, frame_id in frames.items():
+                self._slots[name] = _Slot(grid_due=True, frame_id=frame_id)
         self._thread = threading.Thread(target=self._run, name="foxglove-live", daemon=True)
         self._thread.start()
         LOG.info("Foxglove live view listening", extra={"fields": {"url": f"ws://{self._host}:{self._server.port}"}})
@@ -157,15 +168,17 @@ class LiveView:
 
     # ------------------------------------------------------------ MapObserver: on the event loop, O(1)
 
-    def batch_applied(self, name: str, version: int, last_scan: Any) -> None:
+    def batch_applied(self, name: str, version: int, last_scan: Any, frame_id: str) -> None:
         with self._cond:
             slot = self._slots.setdefault(name, _Slot())
+            slot.frame_id = frame_id
             slot.grid_due, slot.scan, slot.scan_due = True, last_scan, True
             self._cond.notify_all()
 
-    def plan_made(self, name: str, result: PlanResult) -> None:
+    def plan_made(self, name: str, result: PlanResult, frame_id: str) -> None:
         with self._cond:
             slot = self._slots.setdefault(name, _Slot())
+            slot.frame_id = frame_id
             slot.plan, slot.plan_due = result, True
             self._cond.notify_all()
 
@@ -202,21 +215,21 @@ class LiveView:
                     work = self._next_due()
                 if self._stopping:
                     return
-            name, slot, grid, scan, plan, deleted = work
+            name, slot, frame_id, grid, scan, plan, deleted = work
             try:
-                self._publish(name, slot, grid=grid, scan=scan, plan=plan, deleted=deleted)
+                self._publish(name, slot, frame_id, grid=grid, scan=scan, plan=plan, deleted=deleted)
             except Exception:
                 LOG.exception("Foxglove publication failed", extra={"fields": {"map": name}})
 
-    def _next_due(self) -> tuple[str, _Slot, bool, Any, PlanResult | None, bool] | None:
-        """The first map with something due, its due flags taken (caller holds the lock)."""
+    def _next_due(self) -> tuple[str, _Slot, str, bool, Any, PlanResult | None, bool] | None:
+        """The first map with something due, its frame, its due flags taken (caller holds the lock)."""
         now = time.monotonic()
         for name, slot in self._slots.items():
             grid = slot.grid_due and now - slot.published_at >= self._interval_s
             if slot.deleted or grid or slot.scan_due or slot.plan_due:
                 if slot.deleted:
                     del self._slots[name]
-                    return name, slot, False, None, None, True
+                    return name, slot, slot.frame_id, False, None, None, True
                 scan = slot.scan if (slot.scan_due and (grid or not slot.grid_due)) else None
                 plan = slot.plan if slot.plan_due else None
                 if not (grid or scan is not None or plan is not None):
@@ -226,7 +239,7 @@ class LiveView:
                 slot.plan_due = False
                 if grid:
                     slot.published_at = now
-                return name, slot, grid, scan, plan, False
+                return name, slot, slot.frame_id, grid, scan, plan, False
         return None
 
     def _wait_s(self) -> float | None:
@@ -240,7 +253,7 @@ class LiveView:
             channel = slot.channels[kind] = make(topic(name, kind), context=self._context)
         return channel
 
-    def _publish(self, name: str, slot: _Slot, *, grid: bool, scan: Any, plan: PlanResult | None,
+    def _publish(self, name: str, slot: _Slot, frame_id: str, *, grid: bool, scan: Any, plan: PlanResult | None,
                  deleted: bool) -> None:
         if deleted:
             for channel in slot.channels.values():
@@ -253,15 +266,14 @@ class LiveView:
             except Exception as exc:  # noqa: BLE001 - a map deleted meanwhile, or the service stopping
                 LOG.debug("grid not published: %s", exc)
                 return
-            slot.frame_id = str(getattr(snapshot, "frame_id", FRAME_ID))
-            grid_channel.log(grid_message(snapshot, slot.frame_id))
+            grid_channel.log(grid_message(snapshot, snapshot.frame_id, max_cells=self._max_cells))
         if scan is not None:
             if isinstance(scan, fuzzy_scans.LaserScan):
-                self._channel(slot, name, "scan", LaserScanChannel).log(laser_message(scan, slot.frame_id))
+                self._channel(slot, name, "scan", LaserScanChannel).log(laser_message(scan, frame_id))
             else:
-                self._channel(slot, name, "cloud", PointCloudChannel).log(cloud_message(scan, slot.frame_id))
+                self._channel(slot, name, "cloud", PointCloudChannel).log(cloud_message(scan, frame_id))
         if plan is not None:
-            self._channel(slot, name, "plan", SceneUpdateChannel).log(plan_message(plan, slot.frame_id))
+            self._channel(slot, name, "plan", SceneUpdateChannel).log(plan_message(plan, frame_id))
 
 
 # ---------------------------------------------------------------- messages
@@ -288,20 +300,52 @@ def grid_cells(risk: np.ndarray, observed: np.ndarray) -> np.ndarray:
     return cells
 
 
-def grid_message(snapshot: Any, frame_id: str = FRAME_ID) -> Grid:
-    """A ``GridSnapshot`` as a foxglove.Grid: cell (0, 0) at the map's origin corner, x along columns."""
+def block_factor(shape: tuple[int, int], max_cells: int) -> int:
+    """The smallest k whose k x k blocks of a ``shape`` grid (partial blocks at the far edges) number ``max_cells`` at most."""
+    nx, ny = shape
+    k = max(1, math.ceil(math.sqrt(nx * ny / max_cells)))
+    while math.ceil(nx / k) * math.ceil(ny / k) > max_cells:
+        k += 1
+    return k
+
+
+def max_blocks(risk: np.ndarray, observed: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """A 2-D (nx, ny) grid in k x k blocks: the largest risk of each block's observed cells, observed if one is.
+
+    A block with no observed cell is unknown (risk 0.5, not observed), as a column is in
+    ``exports.project_z``; the blocks at the far edges hold what is left of the map (partial blocks).
+    """
+    if k == 1:
+        return risk, observed
+    nx, ny = risk.shape
+    bx, by = math.ceil(nx / k), math.ceil(ny / k)
+    values = np.full((bx * k, by * k), np.float32(-1.0), dtype=np.float32)  # -1: no observed cell
+    np.copyto(values[:nx, :ny], risk, where=observed)
+    blocks = values.reshape(bx, k, by, k).max(axis=3).max(axis=1)
+    seen = blocks >= 0.0
+    return np.where(seen, blocks, np.float32(0.5)), seen
+
+
+def grid_message(snapshot: Any, frame_id: str = DEFAULT_FRAME_ID, *, max_cells: int | None = None) -> Grid:
+    """A ``GridSnapshot`` as a foxglove.Grid: cell (0, 0) at the map's origin corner, x along columns.
+
+    At most ``max_cells`` cells (None: no limit): a larger map goes in blocks (``max_blocks``), its
+    cells ``k`` times the map's resolution.
+    """
     risk, observed = snapshot.planar(None, None)  # a 3-D map: its max-risk projection, as the page shows
+    k = 1 if max_cells is None else block_factor(risk.shape, max_cells)
+    risk, observed = max_blocks(risk, observed, k)
     cells = grid_cells(risk, observed)
     spec = snapshot.spec
     return Grid(
         timestamp=_now(), frame_id=frame_id, pose=_pose(spec.origin[0], spec.origin[1]),
-        column_count=int(risk.shape[0]), cell_size=Vector2(x=spec.resolution, y=spec.resolution),
+        column_count=int(risk.shape[0]), cell_size=Vector2(x=spec.resolution * k, y=spec.resolution * k),
         row_stride=GRID_CELL.itemsize * int(risk.shape[0]), cell_stride=GRID_CELL.itemsize, fields=GRID_FIELDS,
         data=cells.tobytes(),
     )
 
 
-def laser_message(scan: Any, frame_id: str = FRAME_ID) -> LaserScan:
+def laser_message(scan: Any, frame_id: str = DEFAULT_FRAME_ID) -> LaserScan:
     """A fuzzyocc LaserScan at its pose (no-returns stay +inf: Foxglove draws no point for them)."""
     x, y, theta = scan.pose
     count = int(scan.ranges.size)
@@ -311,7 +355,7 @@ def laser_message(scan: Any, frame_id: str = FRAME_ID) -> LaserScan:
     )
 
 
-def cloud_message(scan: Any, frame_id: str = FRAME_ID) -> PointCloud:
+def cloud_message(scan: Any, frame_id: str = DEFAULT_FRAME_ID) -> PointCloud:
     """A fuzzyocc PointCloud's points in the map frame (a 2-D cloud at z = 0), thinned to MAX_CLOUD_POINTS."""
     points = np.asarray(scan.points, dtype=np.float32)
     points = points[:: max(1, math.ceil(len(points) / MAX_CLOUD_POINTS))]
@@ -321,7 +365,7 @@ def cloud_message(scan: Any, frame_id: str = FRAME_ID) -> PointCloud:
                       data=np.ascontiguousarray(points, dtype="<f4").tobytes())
 
 
-def plan_message(result: PlanResult, frame_id: str = FRAME_ID) -> SceneUpdate:
+def plan_message(result: PlanResult, frame_id: str = DEFAULT_FRAME_ID) -> SceneUpdate:
     """The path as one line strip (entity ``plan``: each plan replaces the last); no path, no line."""
     three_d = result.state_space == "R3"
     points = [Point3(x=p[0], y=p[1], z=p[2] if three_d else 0.0) for p in result.path]
@@ -333,14 +377,21 @@ def plan_message(result: PlanResult, frame_id: str = FRAME_ID) -> SceneUpdate:
 # ---------------------------------------------------------------- wiring into the service
 
 
-def attach(service: Any, *, host: str, port: int, interval_s: float, loop: asyncio.AbstractEventLoop) -> LiveView:
+def client_backlog(max_cells: int) -> int:
+    """Messages a client's queue holds: ``CLIENT_BACKLOG_BYTES`` over the largest message, within the bounds."""
+    largest = max(max_cells * GRID_CELL.itemsize, MAX_CLOUD_POINTS * 12)  # a grid at the cap, a cloud (xyz float32)
+    return max(MIN_CLIENT_BACKLOG, min(MAX_CLIENT_BACKLOG, CLIENT_BACKLOG_BYTES // largest))
+
+
+def attach(service: Any, *, host: str, port: int, interval_s: float, max_cells: int,
+           loop: asyncio.AbstractEventLoop) -> LiveView:
     """Start the live view on ``service`` (a ``MapService``, started) and make it the service's observer."""
 
     def read_grid(name: str) -> Any:
         # from the publisher thread: the read runs on the event loop (the map's apply lock is an asyncio lock)
         return asyncio.run_coroutine_threadsafe(service.read_grid(name), loop).result(READ_TIMEOUT_S)
 
-    view = LiveView(host=host, port=port, interval_s=interval_s, read_grid=read_grid)
-    view.start([info.name for info in service.list_maps()])
+    view = LiveView(host=host, port=port, interval_s=interval_s, read_grid=read_grid, max_cells=max_cells)
+    view.start({info.name: info.frame_id for info in service.list_maps()})
     service.observer = view
     return view

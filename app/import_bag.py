@@ -1,19 +1,21 @@
 """``python -m app.import_bag``: a map from a ROS bag (ROS 1 ``.bag``, rosbag2 with mcap or sqlite3 storage).
 
-    python -m app.import_bag BAG [--topic T ...] [--map-frame map] [--pose-topic T [--pose-frame F]]
+    python -m app.import_bag BAG [--topic T ...] [--map-frame F] [--pose-topic T [--pose-frame F]]
                              [--cloud-range-max M] [--dimensions 2|3] [--resolution 0.05] [--margin 1]
                              [--every N] [--model fuzzy|bayes] [--png FILE] [--nav2 FILE.zip] [--npy FILE]
                              [--url http://127.0.0.1:8000 --map NAME [--api-key KEY] [--append] [--body cdr|json]]
 
-The bag is read with rosbags, twice: first ``/tf`` and ``/tf_static`` (or the pose topic) into a
-:class:`fuzzyocc.tf.TransformBuffer`, then the LaserScan and PointCloud2 topics, in the order they
-were recorded. Each message's sensor pose is ``T_map_frame`` at its ``header.stamp``, interpolated
+A :class:`BagStream` reads the bag with rosbags: first ``/tf`` and ``/tf_static`` (or the pose topic)
+into a :class:`fuzzyocc.tf.TransformBuffer`, then the LaserScan and PointCloud2 topics, in the order they
+were recorded, one message at a time, so that scans are fused (or posted) batch by batch and the bag is
+never held in memory. Without ``--origin`` (or a map to ``--append`` to) the command reads the bag
+twice: once for the bounds of the placed scans (the grid), once to fuse them. Each message's sensor pose is ``T_map_frame`` at its ``header.stamp``, interpolated
 along the chain of transforms from its ``header.frame_id`` to ``--map-frame``; a message the
 transforms do not cover is skipped, and the summary counts why. Each message is converted by
 :mod:`app.rosmsgs`, the code the service runs on a CDR body, so the three ways in (fused here,
 posted as CDR bodies, posted as JSON batches) give the same map bit for bit.
 
-``POST /maps/{name}/bags`` (``app/routes/bags.py``) runs :func:`read_bag` on an uploaded bag.
+``POST /maps/{name}/bags`` (``app/bag_upload.py``) reads an uploaded bag with a :class:`BagStream` too.
 Progress goes to stderr, a one-line summary to stdout; errors exit 1 with a message.
 """
 
@@ -21,6 +23,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import itertools
 import json
 import math
 import os
@@ -28,9 +31,9 @@ import re
 import sys
 import time
 from collections import Counter
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterable, Iterator, Mapping
 from pathlib import Path
-from typing import Any, TextIO
+from typing import Any, Self, TextIO
 from urllib.parse import quote, urlencode
 
 import numpy as np
@@ -44,6 +47,8 @@ from app.batches import Limits, Scan
 from app.config import Settings
 from app.errors import ServiceError
 from app.import_log import ImportFailed, ServiceClient, _non_negative, _positive
+from app.rostypes import ns_of_ros_time
+from app.schemas import DEFAULT_FRAME_ID
 from fuzzyocc import BayesMap, FuzzyMap, GridSpec, SensorModel
 from fuzzyocc.tf import LookupFailed, Transform, TransformBuffer
 
@@ -76,13 +81,13 @@ class BagOptions:
 
 @dataclasses.dataclass(frozen=True)
 class BagScan:
-    """One scan message of the bag, placed: its pose, what it is, the scan fused, and its CDR bytes (if kept)."""
+    """One scan message of the bag, placed: its pose, the scan fused, and (if kept) what it is and its CDR bytes."""
 
     topic: str
     msgtype: str
     stamp_ns: int
     pose: rosmsgs.SensorPose
-    sensor: rosmsgs.SensorScan
+    sensor: rosmsgs.SensorScan | None  # None unless kept (``keep_sensor``): the scan holds the same numbers
     scan: Scan
     cdr: bytes | None
 
@@ -98,10 +103,6 @@ class BagRead:
     transforms: int  # TF (or pose) samples buffered
 
 
-def _stamp_ns(stamp: Any) -> int:
-    return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
-
-
 def _reason(exc: ServiceError) -> str:
     # numbers differ from scan to scan ("tilted 12.3 degrees"): counted by the kind of refusal
     text = re.sub(r"^(\S+)\[\d+\]", r"\1", str(exc))  # "/scan[12]: ..." -> "/scan: ..."
@@ -112,7 +113,7 @@ def _pose_sample(msg: Any, msgtype: str, pose_frame: str) -> tuple[str, str, int
     pose = msg.pose if msgtype == "geometry_msgs/msg/PoseStamped" else msg.pose.pose
     child = msg.child_frame_id if msgtype == "nav_msgs/msg/Odometry" else pose_frame
     p, q = pose.position, pose.orientation
-    return (msg.header.frame_id, child, _stamp_ns(msg.header.stamp),
+    return (msg.header.frame_id, child, ns_of_ros_time(msg.header.stamp),
             Transform.of((p.x, p.y, p.z), (q.x, q.y, q.z, q.w)))
 
 
@@ -142,7 +143,7 @@ def _buffer(reader: Any, options: BagOptions) -> tuple[TransformBuffer, int]:
                 transform = Transform.of((r.x, r.y, r.z), (q.x, q.y, q.z, q.w))
             except ValueError:
                 continue  # a NaN or zero quaternion in one sample: tf2 would refuse it too
-            tfs.append((t.header.frame_id, t.child_frame_id, _stamp_ns(t.header.stamp), transform, static))
+            tfs.append((t.header.frame_id, t.child_frame_id, ns_of_ros_time(t.header.stamp), transform, static))
     buffer = TransformBuffer()
     for parent, child, stamp, transform in poses:
         buffer.add(parent, child, stamp, transform)
@@ -169,50 +170,110 @@ def _scan_connections(reader: Any, options: BagOptions) -> list[Any]:
     return wanted
 
 
-def read_bag(path: Path, options: BagOptions, *, dims: int, limits: Limits, keep_cdr: bool = False,
-             progress: Callable[[int, int], None] | None = None) -> BagRead:
-    """Every scan message of the bag at ``path``, placed and converted for a map of ``dims`` dimensions.
+class BagStream:
+    """The placed scans of a bag, read as they are asked for, with what was read and left out so far.
+
+    Opening reads the transforms (``/tf``, ``/tf_static``, the pose topic) into a buffer and checks
+    the topics; iterating then reads the scan messages in recorded order, one message at a time
+    (rosbags decompresses one chunk at a time), so that a caller fusing batch by batch holds one
+    batch, never the bag. Used as a context manager (it closes the file); :func:`read_bag` keeps them all.
 
     ``keep_cdr`` keeps each message's ROS 2 CDR bytes (a ROS 2 bag's as recorded, a ROS 1 bag's
-    re-serialized) for posting. ``progress(done, total)`` is called as messages are read.
-    Raises :class:`BagUnreadable` for a bag that cannot be read at all.
+    re-serialized) for posting; ``keep_sensor`` what each is (``SensorScan``, for JSON). ``progress(done,
+    total)`` is called as messages are read. Raises :class:`BagUnreadable` for a bag that cannot be read
+    at all, on opening or part-way (a damaged chunk).
     """
-    try:
-        with AnyReader([path]) as reader:
-            buffer, samples = _buffer(reader, options)
-            connections = _scan_connections(reader, options)
-            total = sum(c.msgcount for c in connections)
-            out = BagRead([], 0, {c.topic: c.msgtype for c in connections}, Counter(), samples)
-            for connection, _, raw in reader.messages(connections=connections):
-                out.messages += 1
-                if progress is not None:
-                    progress(out.messages, total)
-                if (out.messages - 1) % options.every:
-                    out.skipped[f"--every {options.every}"] += 1
+
+    def __init__(self, path: Path, options: BagOptions, *, dims: int, limits: Limits, keep_cdr: bool = False,
+                 keep_sensor: bool = False, progress: Callable[[int, int], None] | None = None) -> None:
+        self.path, self.options, self.dims, self.limits = path, options, dims, limits
+        self.keep_cdr, self.keep_sensor, self.progress = keep_cdr, keep_sensor, progress
+        self.messages = 0  # scan messages read so far on the topics read
+        self.placed = 0  # scans yielded so far
+        self.total = 0  # scan messages on the topics read, as the bag's index counts them
+        self.topics: dict[str, str] = {}  # topic -> message type
+        self.skipped: Counter[str] = Counter()
+        self.transforms = 0  # TF (or pose) samples buffered
+        self._reader: Any = None
+        self._buffer: TransformBuffer | None = None
+        self._connections: list[Any] = []
+
+    def __enter__(self) -> Self:
+        try:
+            self._reader = AnyReader([self.path])
+            self._reader.open()
+            self._buffer, self.transforms = _buffer(self._reader, self.options)
+            self._connections = _scan_connections(self._reader, self.options)
+        except _BAG_ERRORS as exc:
+            self.close()
+            raise BagUnreadable(f"{self.path.name}: not a readable bag ({exc})") from None
+        except BaseException:
+            self.close()
+            raise
+        self.total = sum(c.msgcount for c in self._connections)
+        self.topics = {c.topic: c.msgtype for c in self._connections}
+        return self
+
+    def __exit__(self, *_exc: object) -> None:
+        self.close()
+
+    def close(self) -> None:
+        reader, self._reader = self._reader, None
+        if reader is not None and reader.stack is not None:  # opened (a failed open closes itself)
+            reader.close()
+
+    def __iter__(self) -> Iterator[BagScan]:
+        reader, buffer, options = self._reader, self._buffer, self.options
+        if reader is None or buffer is None:
+            raise RuntimeError("BagStream: iterate inside 'with'")
+        try:
+            for connection, _, raw in reader.messages(connections=self._connections):
+                self.messages += 1
+                if self.progress is not None:
+                    self.progress(self.messages, self.total)
+                if (self.messages - 1) % options.every:
+                    self.skipped[f"--every {options.every}"] += 1
                     continue
                 try:
                     msg = reader.deserialize(raw, connection.msgtype)
-                except SerdeError as exc:
-                    out.skipped[f"does not deserialize: {type(exc).__name__}"] += 1
+                except (SerdeError, AnyReaderError) as exc:  # rosbags wraps a SerdeError in AnyReaderError
+                    self.skipped[f"does not deserialize: {type(exc).__name__}"] += 1
                     continue
-                placed = _place(msg, connection.msgtype, buffer, options, dims=dims, limits=limits,
-                                name=f"{connection.topic}[{out.messages - 1}]", skipped=out.skipped)
+                placed = _place(msg, connection.msgtype, buffer, options, dims=self.dims, limits=self.limits,
+                                name=f"{connection.topic}[{self.messages - 1}]", skipped=self.skipped)
                 if placed is None:
                     continue
                 stamp, pose, sensor, scan = placed
                 cdr = None
-                if keep_cdr:
+                if self.keep_cdr:
                     cdr = bytes(raw) if reader.is2 else rosmsgs.encode(msg, connection.msgtype)
-                out.scans.append(BagScan(connection.topic, connection.msgtype, stamp, pose, sensor, scan, cdr))
-            return out
-    except _BAG_ERRORS as exc:
-        raise BagUnreadable(f"{path.name}: not a readable bag ({exc})") from None
+                self.placed += 1
+                yield BagScan(connection.topic, connection.msgtype, stamp, pose,
+                              sensor if self.keep_sensor else None, scan, cdr)
+        except _BAG_ERRORS as exc:
+            raise BagUnreadable(f"{self.path.name}: not a readable bag ({exc})") from None
+
+    def batches(self, size: int) -> Iterator[list[BagScan]]:
+        """The placed scans in lists of at most ``size``, in recorded order."""
+        scans = iter(self)
+        while batch := list(itertools.islice(scans, size)):
+            yield batch
+
+
+def read_bag(path: Path, options: BagOptions, *, dims: int, limits: Limits, keep_cdr: bool = False,
+             keep_sensor: bool = False, progress: Callable[[int, int], None] | None = None) -> BagRead:
+    """Every scan message of the bag at ``path``, placed and converted for a map of ``dims`` dimensions, kept
+    in memory (a small bag; :class:`BagStream` reads one batch at a time). Options as :class:`BagStream`'s."""
+    with BagStream(path, options, dims=dims, limits=limits, keep_cdr=keep_cdr, keep_sensor=keep_sensor,
+                   progress=progress) as stream:
+        scans = list(stream)
+        return BagRead(scans, stream.messages, stream.topics, stream.skipped, stream.transforms)
 
 
 def _place(msg: Any, msgtype: str, buffer: TransformBuffer, options: BagOptions, *, dims: int, limits: Limits,
            name: str, skipped: Counter[str]) -> tuple[int, rosmsgs.SensorPose, rosmsgs.SensorScan, Scan] | None:
     """(stamp, pose, what it is, the scan) of one message, or None with the reason counted in ``skipped``."""
-    stamp = _stamp_ns(msg.header.stamp)
+    stamp = ns_of_ros_time(msg.header.stamp)
     try:
         pose = rosmsgs.SensorPose.of(buffer.lookup(options.map_frame, msg.header.frame_id, stamp))
     except LookupFailed as exc:
@@ -231,21 +292,21 @@ def _place(msg: Any, msgtype: str, buffer: TransformBuffer, options: BagOptions,
     return stamp, pose, sensor, scan
 
 
-def grid_for(scans: Sequence[Scan], dims: int, resolution: float, margin: float, max_cells: int) -> GridSpec:
+def grid_for(scans: Iterable[Scan], dims: int, resolution: float, margin: float, max_cells: int) -> GridSpec:
     """The grid holding every sensor position and hit, padded by ``margin``, snapped to whole cells.
 
     No-returns do not widen it (they clear free space up to ``range_max`` and would stretch the
-    map over space seen empty), as :func:`fuzzyocc.carmen.grid_for_scans` does for a log.
+    map over space seen empty), as :func:`fuzzyocc.carmen.grid_for_scans` does for a log. The
+    scans are looked at one at a time (a stream of them is fine): only the bounds are kept.
     """
-    if not scans:
-        raise ValueError("no scan could be placed: nothing to map (see the reasons skipped)")
-    points = []
+    lower, upper = np.full(dims, np.inf), np.full(dims, -np.inf)
     for scan in scans:
         rays = scan.to_rays()
-        points.append(rays.origin[None, :])
-        points.append(rays.endpoints[rays.hit])
-    cloud = np.concatenate(points)[:, :dims]
-    lower, upper = cloud.min(axis=0) - margin, cloud.max(axis=0) + margin
+        points = np.concatenate([rays.origin[None, :], rays.endpoints[rays.hit]])[:, :dims]
+        lower, upper = np.minimum(lower, points.min(axis=0)), np.maximum(upper, points.max(axis=0))
+    if not np.isfinite(lower).all():
+        raise ValueError("no scan could be placed: nothing to map (see the reasons skipped)")
+    lower, upper = lower - margin, upper + margin
     origin = tuple(round(math.floor(v / resolution) * resolution, 10) for v in lower)
     cells = [max(1, math.ceil((u - o) / resolution - 1e-9)) for u, o in zip(upper, origin)]
     return GridSpec(origin=origin, size=tuple(n * resolution for n in cells), resolution=resolution,
@@ -256,101 +317,125 @@ def grid_for(scans: Sequence[Scan], dims: int, resolution: float, margin: float,
 
 
 class Progress:
-    """A line on a stream at most once a second, and at the end."""
+    """A line on a stream at most once a second, and the last one (``final``)."""
 
     def __init__(self, stream: TextIO, started: float, every_s: float = 1.0) -> None:
         self.stream, self.started, self.every_s = stream, started, every_s
         self._last = -math.inf
 
-    def __call__(self, what: str, done: int, total: int) -> None:
+    def __call__(self, what: str, done: int, total: int, *, final: bool = False) -> None:
         now = time.perf_counter()
-        if now - self._last >= self.every_s or done == total:
+        if now - self._last >= self.every_s or final:
             self._last = now
             print(f"{PROG}: {done}/{total} {what}, {now - self.started:.1f} s", file=self.stream, flush=True)
 
 
-def _fuse_here(args: argparse.Namespace, read: BagRead, spec: GridSpec, progress: Progress) -> tuple[str, int]:
+@dataclasses.dataclass
+class _Fused:
+    """What the second pass did: scans fused (or posted) and their rays."""
+
+    scans: int = 0
+    rays: int = 0
+
+
+#: Fuses (or posts) one batch of placed scans; returns the rays fused.
+_Sink = Callable[[list[BagScan]], int]
+
+
+def _in_process(args: argparse.Namespace, spec: GridSpec) -> tuple[_Sink, Callable[[], str]]:
+    """Fuse each batch into a map held here; at the end, write the outputs asked for."""
     occupancy: FuzzyMap | BayesMap = FuzzyMap(spec) if args.model == "fuzzy" else BayesMap(spec)
-    scans = [s.scan for s in read.scans]
-    rays = 0
-    for i in range(0, len(scans), args.batch):
-        rays += occupancy.integrate_batch(scans[i:i + args.batch]).rays
-        progress("scans fused", min(i + args.batch, len(scans)), len(scans))
-    risk, observed = occupancy.risk(), occupancy.observed()
-    if args.png or args.nav2:
-        flat, seen = (risk, observed) if spec.ndim == 2 else exports.project_z(
-            risk, observed, origin_z=spec.origin[2], resolution=spec.resolution)
-        if args.png:
-            text = {"source": args.bag.name, "resolution": repr(spec.resolution), "origin": repr(list(spec.origin))}
-            args.png.write_bytes(exports.risk_png(flat, seen, scale=args.scale, text=text))
-        if args.nav2:
-            args.nav2.write_bytes(exports.nav2_zip(flat, seen, resolution=spec.resolution,
-                                                   origin_xy=(spec.origin[0], spec.origin[1]), mode=args.nav2_mode,
-                                                   image_format=args.nav2_format))
-    if args.npy:
-        args.npy.write_bytes(exports.npy_bytes(np.asarray(risk, dtype=np.float32)))
-    return f"{args.model} map in-process", rays
+
+    def fuse(batch: list[BagScan]) -> int:
+        return int(occupancy.integrate_batch([s.scan for s in batch]).rays)
+
+    def finish() -> str:
+        risk, observed = occupancy.risk(), occupancy.observed()
+        if args.png or args.nav2:
+            flat, seen = (risk, observed) if spec.ndim == 2 else exports.project_z(
+                risk, observed, origin_z=spec.origin[2], resolution=spec.resolution)
+            if args.png:
+                text = {"source": args.bag.name, "resolution": repr(spec.resolution),
+                        "origin": repr(list(spec.origin))}
+                args.png.write_bytes(exports.risk_png(flat, seen, scale=args.scale, text=text))
+            if args.nav2:
+                args.nav2.write_bytes(exports.nav2_zip(flat, seen, resolution=spec.resolution,
+                                                       origin_xy=(spec.origin[0], spec.origin[1]),
+                                                       mode=args.nav2_mode, image_format=args.nav2_format))
+        if args.npy:
+            args.npy.write_bytes(exports.npy_bytes(np.asarray(risk, dtype=np.float32)))
+        return f"{args.model} map in-process"
+
+    return fuse, finish
 
 
-def _create_or_reuse(client: ServiceClient, args: argparse.Namespace, spec: GridSpec) -> dict[str, Any]:
+def _existing_map(client: ServiceClient, name: str) -> dict[str, Any] | None:
+    """The service's MapInfo of ``name``, or None when it has no such map."""
+    status, data = client.call("GET", f"/maps/{quote(name, safe='')}", ok=(200, 404))
+    return dict(json.loads(data)) if status == 200 else None
+
+
+def _spec_of(info: Mapping[str, Any]) -> GridSpec:
+    return GridSpec(origin=tuple(info["origin"]), size=tuple(info["size"]), resolution=info["resolution"],
+                    max_cells=2**62)  # the service's map, whatever this side's default limit
+
+
+def _create(client: ServiceClient, args: argparse.Namespace, spec: GridSpec, map_frame: str) -> dict[str, Any]:
+    """Create the map (in ``--map-frame``: its ``frame_id``); a name taken without ``--append`` fails."""
     request = {"name": args.map, "dimensions": spec.ndim, "resolution": spec.resolution, "origin": list(spec.origin),
-               "size": list(spec.size), "model": args.model, "sensor": dataclasses.asdict(SensorModel())}
+               "size": list(spec.size), "model": args.model, "sensor": dataclasses.asdict(SensorModel()),
+               "frame_id": map_frame}
     status, data = client.call("POST", "/maps", json.dumps(request).encode(), ok=(201, 409))
     if status == 201:
         return dict(json.loads(data))
-    if not args.append:
-        raise ImportFailed(f"a map named {args.map!r} exists on {client.url}: pass --append to add the scans to it, "
-                           "or choose another --map")
-    info = dict(json.loads(client.call("GET", f"/maps/{quote(args.map, safe='')}")[1]))
-    if info["dimensions"] != spec.ndim:
-        raise ImportFailed(f"map {args.map!r} on {client.url} is {info['dimensions']}-D; pass --dimensions "
-                           f"{info['dimensions']} to append to it")
-    return info
+    raise ImportFailed(f"a map named {args.map!r} exists on {client.url}: pass --append to add the scans to it, "
+                       "or choose another --map")
 
 
-def _post_requests(args: argparse.Namespace, read: BagRead) -> list[tuple[str, bytes, str]]:
-    """(path and query, body, content type) of each request: one CDR body a scan, or JSON batches."""
+def _through_service(args: argparse.Namespace, client: ServiceClient,
+                     info: dict[str, Any]) -> tuple[_Sink, Callable[[], str]]:
+    """Post each batch (one CDR body a scan, or one JSON batch); at the end, download the outputs asked for."""
     name = quote(args.map, safe="")
-    if args.body == "json":
-        out = []
-        for i in range(0, len(read.scans), args.batch):
-            chunk = read.scans[i:i + args.batch]
-            body = json.dumps({"scans": [s.sensor.to_json() for s in chunk]}).encode()
-            out.append((f"/maps/{name}/scans", body, "application/json"))
-        return out
-    requests = []
-    for s in read.scans:
-        query = s.pose.query()
-        if s.msgtype == rosmsgs.POINT_CLOUD2:
-            query["range_max"] = args.cloud_range_max
-        assert s.cdr is not None
-        requests.append((f"/maps/{name}/scans?{urlencode(query)}", s.cdr, rosmsgs.media_type(s.msgtype)))
-    return requests
+    version = info.get("version")
+    fused = 0
 
-
-def _through_service(args: argparse.Namespace, read: BagRead, spec: GridSpec, progress: Progress) -> tuple[str, int]:
-    client = ServiceClient(args.url, args.api_key)
-    info = _create_or_reuse(client, args, spec)
-    version, fused, rays = info.get("version"), 0, 0
-    for target, body, content_type in _post_requests(args, read):
+    def post(target: str, body: bytes, content_type: str) -> int:
+        nonlocal version, fused
         try:
             _, data = client.call("POST", target, body, content_type=content_type)
         except ImportFailed as exc:
-            raise ImportFailed(f"{exc} ({fused} of {len(read.scans)} scans were fused into {args.map!r} "
-                               "before this request)") from None
+            raise ImportFailed(f"{exc} ({fused} scans were fused into {args.map!r} before this request)") from None
         result = json.loads(data)
-        version, fused, rays = result["version"], fused + int(result["scans_fused"]), rays + int(result["rays"])
-        progress("scans fused", fused, len(read.scans))
-    name = quote(args.map, safe="")
-    downloads = [
-        (args.png, f"/maps/{name}/risk?" + urlencode({"format": "png", "scale": args.scale})),
-        (args.nav2, f"/maps/{name}/export/nav2?" + urlencode({"mode": args.nav2_mode, "format": args.nav2_format})),
-        (args.npy, f"/maps/{name}/risk?format=npy"),
-    ]
-    for path, target in downloads:
-        if path:
-            path.write_bytes(client.call("GET", target)[1])
-    return f"{info.get('model', args.model)} map {args.map!r} version {version} on {client.url}", rays
+        version, fused = result["version"], fused + int(result["scans_fused"])
+        return int(result["rays"])
+
+    def send(batch: list[BagScan]) -> int:
+        if args.body == "json":
+            assert all(s.sensor is not None for s in batch)  # kept for --body json
+            body = json.dumps({"scans": [s.sensor.to_json() for s in batch]}).encode()  # type: ignore[union-attr]
+            return post(f"/maps/{name}/scans", body, "application/json")
+        rays = 0
+        for s in batch:
+            query = s.pose.query()
+            if s.msgtype == rosmsgs.POINT_CLOUD2:
+                query["range_max"] = args.cloud_range_max
+            assert s.cdr is not None
+            rays += post(f"/maps/{name}/scans?{urlencode(query)}", s.cdr, rosmsgs.media_type(s.msgtype))
+        return rays
+
+    def finish() -> str:
+        downloads = [
+            (args.png, f"/maps/{name}/risk?" + urlencode({"format": "png", "scale": args.scale})),
+            (args.nav2, f"/maps/{name}/export/nav2?" + urlencode({"mode": args.nav2_mode,
+                                                                  "format": args.nav2_format})),
+            (args.npy, f"/maps/{name}/risk?format=npy"),
+        ]
+        for path, target in downloads:
+            if path:
+                path.write_bytes(client.call("GET", target)[1])
+        return f"{info.get('model', args.model)} map {args.map!r} version {version} on {client.url}"
+
+    return send, finish
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -362,7 +447,9 @@ def _parser() -> argparse.ArgumentParser:
     r = p.add_argument_group("what to read")
     r.add_argument("--topic", action="append", default=[], metavar="T", dest="topics",
                    help="a LaserScan or PointCloud2 topic to map (repeatable; default: all of them)")
-    r.add_argument("--map-frame", default="map", help="the frame the map is in (default map)")
+    r.add_argument("--map-frame", default=None,
+                   help="the frame the map is in: the scans are placed in it, and a map created on the service "
+                        f"gets it as its frame_id (default: an --append map's own frame_id, else {DEFAULT_FRAME_ID})")
     r.add_argument("--pose-topic", metavar="T", help="place the sensor by this PoseStamped, "
                    "PoseWithCovarianceStamped or Odometry topic instead of /tf for its frame")
     r.add_argument("--pose-frame", default="base_link",
@@ -441,30 +528,60 @@ def summary_reasons(skipped: Counter[str]) -> str:
 
 
 def _run(args: argparse.Namespace) -> str:
+    """Read the bag in two passes (the first only to size the map: without ``--origin`` or an existing map),
+    fusing or posting each batch as it is read: the bag is never held in memory."""
     started = time.perf_counter()
     progress = Progress(sys.stderr, started)
     dims = _dimensions(args)
-    options = BagOptions(map_frame=args.map_frame, topics=tuple(args.topics), pose_topic=args.pose_topic,
+    client = ServiceClient(args.url, args.api_key) if args.url else None
+    existing = _existing_map(client, args.map) if client is not None and args.append else None
+    if existing is not None and existing["dimensions"] != dims:
+        raise ImportFailed(f"map {args.map!r} on {args.url} is {existing['dimensions']}-D; pass --dimensions "
+                           f"{existing['dimensions']} to append to it")
+    # the frame the scans are placed in: as given, else the existing map's own, else the default
+    map_frame = args.map_frame or (existing or {}).get("frame_id") or DEFAULT_FRAME_ID
+    options = BagOptions(map_frame=map_frame, topics=tuple(args.topics), pose_topic=args.pose_topic,
                          pose_frame=args.pose_frame, cloud_range_max=args.cloud_range_max, every=args.every)
-    read = read_bag(args.bag, options, dims=dims, limits=DEFAULT_LIMITS,
-                    keep_cdr=bool(args.url) and args.body == "cdr",
-                    progress=lambda done, total: progress("scan messages read", done, total))
     max_cells = Settings.model_fields["max_map_cells"].default
-    if args.origin is not None:
+    placed = ""
+    if existing is not None:
+        spec = _spec_of(existing)
+    elif args.origin is not None:
         spec = GridSpec(origin=tuple(args.origin), size=tuple(args.size), resolution=args.resolution,
                         max_cells=max_cells)
+    else:  # a first pass: the bounds of every placed scan, nothing kept
+        with BagStream(args.bag, options, dims=dims, limits=DEFAULT_LIMITS,
+                       progress=lambda done, total: progress("scan messages read (sizing the map)", done,
+                                                             total)) as sizing:
+            spec = grid_for((s.scan for s in sizing), dims, args.resolution, args.margin, max_cells)
+            progress("scan messages read (sizing the map)", sizing.messages, sizing.total, final=True)
+            placed = f"; {sizing.placed} placed"
+    if client is None:
+        send, finish = _in_process(args, spec)
     else:
-        spec = grid_for([s.scan for s in read.scans], dims, args.resolution, args.margin, max_cells)
+        send, finish = _through_service(args, client, existing or _create(client, args, spec, map_frame))
     shape = " x ".join(str(n) for n in spec.shape)
-    print(f"{PROG}: {args.bag.name}: {read.messages} scan messages on {', '.join(sorted(read.topics))}, "
-          f"{read.transforms} transforms; {len(read.scans)} placed; map {shape} cells of {spec.resolution} m from "
-          f"({', '.join(f'{v:g}' for v in spec.origin)})", file=sys.stderr, flush=True)
-    where, rays = (_through_service if args.url else _fuse_here)(args, read, spec, progress)
-    elapsed = time.perf_counter() - started
-    return (f"{args.bag.name}: {read.messages} scan messages read, {len(read.scans)} fused, "
-            f"{sum(read.skipped.values())} skipped ({summary_reasons(read.skipped)}); {rays:,} rays; {where}, "
-            f"{shape} cells of {spec.resolution} m; {elapsed:.1f} s "
-            f"({len(read.scans) / max(elapsed, 1e-9):.0f} scans/s)")
+    fused = _Fused()
+
+    def reading(done: int, total: int) -> None:
+        progress(f"scan messages read, {fused.scans} scans fused", done, total)
+
+    with BagStream(args.bag, options, dims=dims, limits=DEFAULT_LIMITS, keep_cdr=client is not None and
+                   args.body == "cdr", keep_sensor=client is not None and args.body == "json",
+                   progress=reading) as bag:
+        print(f"{PROG}: {args.bag.name}: {bag.total} scan messages on {', '.join(sorted(bag.topics))}, "
+              f"{bag.transforms} transforms{placed}; map {shape} cells of {spec.resolution} m from "
+              f"({', '.join(f'{v:g}' for v in spec.origin)}) in frame {map_frame}", file=sys.stderr, flush=True)
+        for batch in bag.batches(args.batch):
+            fused.rays += send(batch)
+            fused.scans += len(batch)
+        progress(f"scan messages read, {fused.scans} scans fused", bag.messages, bag.total, final=True)
+        where = finish()
+        elapsed = time.perf_counter() - started
+        return (f"{args.bag.name}: {bag.messages} scan messages read, {fused.scans} fused, "
+                f"{sum(bag.skipped.values())} skipped ({summary_reasons(bag.skipped)}); {fused.rays:,} rays; "
+                f"{where}, {shape} cells of {spec.resolution} m; {elapsed:.1f} s "
+                f"({fused.scans / max(elapsed, 1e-9):.0f} scans/s)")
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -32,6 +32,18 @@ class StartupError(Exception):
     """The service cannot start; the message says why and what to change."""
 
 
+def foxglove_sdk_missing(exc: ImportError) -> StartupError:
+    """The error when ``FUZZYRISK_FOXGLOVE_PORT`` is set and the Foxglove SDK cannot be imported.
+
+    Said by ``python -m app`` before anything starts, and by ``app.foxglove_live`` when imported
+    (``create_app`` in a process of one's own): one message, what to do included.
+    """
+    return StartupError(
+        f"FUZZYRISK_FOXGLOVE_PORT is set but the Foxglove SDK is not installed ({exc}): install the foxglove extra "
+        "(pip install 'fuzzyrisk[foxglove]', i.e. foxglove-sdk), or unset FUZZYRISK_FOXGLOVE_PORT"
+    )
+
+
 def bind(host: str, port: int) -> socket.socket:
     """A TCP socket bound to ``host:port`` (not listening yet: uvicorn listens once the maps are loaded).
 
@@ -82,7 +94,7 @@ def prepare_directories(settings: Settings) -> Directories:
     except OSError as exc:
         raise StartupError(f"cannot create the data directory {settings.data_dir} ({exc.strerror}): choose a "
                            "writable one with --data-dir or FUZZYRISK_DATA_DIR") from None
-    temp = _ensure_temp_dir(settings.data_dir)
+    temp = _ensure_temp_dir(settings.temp_dir)
     cache, warning = settings.numba_cache_dir, None
     try:
         cache.mkdir(parents=True, exist_ok=True)
@@ -107,8 +119,9 @@ def _check_writable(directory: Path) -> None:
         pass
 
 
-def _ensure_temp_dir(data_dir: Path) -> Path | None:
-    """``<data dir>/tmp`` as TMPDIR when no standard temporary directory is writable, else None."""
+def _ensure_temp_dir(private_dir: Path) -> Path | None:
+    """``private_dir`` (``Settings.temp_dir``: ``<data dir>/tmp``) as TMPDIR when no standard temporary directory
+    is writable, else None."""
     tempfile.tempdir = None  # look again: TMPDIR may have changed since the last look
     try:
         chosen: Path | None = Path(tempfile.gettempdir())
@@ -117,7 +130,7 @@ def _ensure_temp_dir(data_dir: Path) -> Path | None:
     # tempfile falls back to the working directory when /tmp, /var/tmp and /usr/tmp all refuse a file
     if chosen is not None and chosen != Path.cwd():
         return None
-    private = (data_dir / "tmp").resolve()
+    private = private_dir.resolve()
     shutil.rmtree(private, ignore_errors=True)  # what a killed run left (multiprocessing's sockets)
     private.mkdir(parents=True)
     os.environ["TMPDIR"] = str(private)

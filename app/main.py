@@ -11,13 +11,14 @@ from typing import Any
 from fastapi import Depends, FastAPI
 from fastapi.openapi.utils import get_openapi
 
+from app import bag_upload
 from app.config import Settings, get_settings
 from app.deps import require_api_key
 from app.auth import is_protected
 from app.errors import ErrorBody, install_error_handlers
 from app.metrics import Metrics
 from app.middleware import ApiKeyMiddleware, BodyBudgetMiddleware, BodyLimitMiddleware, ObserveMiddleware
-from app.routes import bags, docs, maps, plans, risk, scans, system, ui
+from app.routes import bags, docs, maps, plans, recordings, risk, scans, system, ui
 from app.schemas import RiskGridJSON, ScanBatch
 from app.services import MapService
 from app.storage import SqliteStorage
@@ -26,7 +27,8 @@ LOG = logging.getLogger("fuzzyrisk")
 DESCRIPTION = """\
 Robots post range scans with their poses; the service fuses them into named fuzzy occupancy
 maps (Payeur's fuzzy inference fusion, or a Bayesian baseline) and plans paths whose collision
-risk is low and bounded. Metres, radians, REP 103 frames; maps live in the `map` frame.
+risk is low and bounded. Metres, radians, REP 103 frames; each map lives in its own frame
+(`frame_id`, `map` unless created otherwise).
 When the service runs with `FUZZYRISK_API_KEY`, send `Authorization: Bearer <key>`.
 """
 
@@ -40,7 +42,8 @@ _KEY_ERRORS = {"401": "FUZZYRISK_API_KEY is set and the request does not carry i
 _BODY_ERRORS = {
     "400": "the body could not be read as its Content-Type says (code BAD_REQUEST)",
     "408": "the body stalled (FUZZYRISK_BODY_READ_TIMEOUT_S)",
-    "413": "the body is larger than FUZZYRISK_MAX_JSON_BODY_BYTES (scan uploads: FUZZYRISK_MAX_BODY_BYTES)",
+    "413": "the body is larger than FUZZYRISK_MAX_JSON_BODY_BYTES (scan and bag uploads: "
+           "FUZZYRISK_MAX_BODY_BYTES)",
     "503": "the bodies in flight fill FUZZYRISK_MAX_BODIES_IN_FLIGHT_BYTES, or the service is busy (Retry-After)",
 }
 #: ... and those of the operations on one map.
@@ -109,7 +112,8 @@ async def _start_live_view(settings: Settings, service: MapService) -> Any:
         from app import foxglove_live
 
         return foxglove_live.attach(service, host=settings.foxglove_host, port=settings.foxglove_port,
-                                    interval_s=settings.foxglove_interval_s, loop=asyncio.get_running_loop())
+                                    interval_s=settings.foxglove_interval_s, max_cells=settings.foxglove_max_cells,
+                                    loop=asyncio.get_running_loop())
     except BaseException as exc:
         LOG.error("cannot start: %s", exc)
         await service.stop()
@@ -124,6 +128,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         service = MapService(settings, SqliteStorage(settings.database_path), metrics)
+        await asyncio.to_thread(bag_upload.remove_leftovers, settings.temp_dir)  # a killed run's uploads
         await service.start()
         live = await _start_live_view(settings, service)  # None unless FUZZYRISK_FOXGLOVE_PORT is set
         app.state.service = service
@@ -155,7 +160,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
     app.include_router(system.router)
     protected = [Depends(require_api_key)]
-    for module in (maps, scans, bags, risk, plans):
+    for module in (maps, scans, bags, risk, recordings, plans):
         app.include_router(module.router, dependencies=protected)
     app.include_router(ui.router)  # the web page (app/routes/ui.py): its files need no key
     app.include_router(docs.router)  # /docs and /redoc with their files (no CDN), no key

@@ -3,7 +3,7 @@
 One conversion for every way a ROS message reaches a map: a CDR body posted to
 ``POST /maps/{name}/scans`` (:func:`from_cdr`), and the messages of a bag, imported in-process, posted
 by ``python -m app.import_bag --url`` or uploaded to ``POST /maps/{name}/bags`` (:func:`sensor_scan`).
-Messages are read with rosbags' typestores (no ROS install); the sensor pose ``T_map_sensor`` (the
+Messages are read with rosbags' typestore (``app.rostypes``, no ROS install); the sensor pose ``T_map_sensor`` (the
 pose of the message's ``header.frame_id`` in the map frame, REP 103) comes with the message.
 
 A message becomes a :class:`PlanarScan` or a :class:`SensorCloud`: exactly what a JSON batch carries
@@ -32,17 +32,16 @@ import math
 import struct
 from collections.abc import Mapping
 from dataclasses import dataclass
-from functools import lru_cache
 from typing import Any
 
 import numpy as np
 from pydantic import ValidationError
 from rosbags.serde import SerdeError
-from rosbags.typesys import Stores, get_typestore
 from scipy.spatial.transform import Rotation
 
 from app import batches
 from app.errors import Invalid, TooLarge
+from app.rostypes import typestore
 from app.schemas import Pose2D, Pose3D
 from fuzzyocc.tf import Transform
 
@@ -72,13 +71,6 @@ _FROM_MESSAGE = ("theta", "angle_min", "angle_increment", "range_min")
 _POSE_PARAMS = ("x", "y", "z", "qx", "qy", "qz", "qw")
 #: sensor_msgs/PointField datatypes -> numpy type codes (byte order added per message).
 _FIELD_TYPES = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4", 7: "f4", 8: "f8"}
-
-
-@lru_cache(maxsize=1)
-def typestore() -> Any:
-    """The store CDR bodies are read and written with: Jazzy's. LaserScan, PointCloud2, PointField and
-    Header are the same in every ROS 2 release from Humble on (a test posts bodies of both)."""
-    return get_typestore(Stores.ROS2_JAZZY)
 
 
 # ---------------------------------------------------------------- the sensor pose

@@ -6,12 +6,12 @@ the same message (little-endian CDR after its 4-byte encapsulation header), and 
 is what ``ros2 bag record -s mcap`` writes for one message on ``/map``. Nothing here knows
 about maps or HTTP: frames, stamps and arrays come in as arguments.
 
-Stamps are ROS time without simulation time: Unix time as ``{"sec", "nanosec"}``.
+Stamps are ROS time without simulation time: Unix time as ``{"sec", "nanosec"}`` (``app.rostypes``, with
+the typestore).
 """
 
 from __future__ import annotations
 
-import functools
 import io
 import math
 from collections.abc import Sequence
@@ -20,16 +20,12 @@ from typing import Any
 
 import numpy as np
 from mcap.writer import CompressionType, Writer
-from rosbags.typesys import Stores, get_typestore
-from rosbags.typesys.store import Typestore
 
-#: Message definitions of ROS 2 Jazzy; nav_msgs/OccupancyGrid and nav_msgs/Path are the same since Humble.
-STORE = Stores.ROS2_JAZZY
+from app.rostypes import typestore
+
 OCCUPANCY_GRID = "nav_msgs/msg/OccupancyGrid"
 #: The content type of a CDR-serialized OccupancyGrid (``format=cdr``): a vendor type naming the message.
 CDR_MEDIA_TYPE = "application/vnd.ros2.nav_msgs.msg.OccupancyGrid+cdr"
-#: The content type of the MCAP file (``format=mcap``; no type is registered for MCAP).
-MCAP_MEDIA_TYPE = "application/mcap"
 #: The topic of the OccupancyGrid in the MCAP file: map_server's.
 MAP_TOPIC = "/map"
 #: map_server's QoS for /map (reliable, transient local, keep last 1), as rosbag2 writes it in a channel's
@@ -41,39 +37,20 @@ MAP_QOS_PROFILES = (
     f"  deadline: {_INFINITE}\n  lifespan: {_INFINITE}\n  liveliness: automatic\n"
     f"  liveliness_lease_duration: {_INFINITE}\n  avoid_ros_namespace_conventions: false"
 )
+#: rclcpp's default QoS (reliable, volatile, keep last 10), as rosbag2 records it: what a player offers for the
+#: other topics (a reliable offer serves both reliable and best-effort subscribers).
+DEFAULT_QOS_PROFILES = (
+    "- history: keep_last\n  depth: 10\n  reliability: reliable\n  durability: volatile\n"
+    f"  deadline: {_INFINITE}\n  lifespan: {_INFINITE}\n  liveliness: automatic\n"
+    f"  liveliness_lease_duration: {_INFINITE}\n  avoid_ros_namespace_conventions: false"
+)
 #: The state spaces whose path points carry the planned yaw as a third value.
 YAW_SPACES = frozenset({"SE2", "Dubins", "ReedsShepp"})
 #: Shorter horizontal steps than this have no heading of their own (repeated points, a vertical R3 step).
 _MIN_STEP_M = 1e-9
-_EPOCH = datetime(1970, 1, 1, tzinfo=UTC)
 
 
-@functools.cache
-def typestore() -> Typestore:
-    """The message types (built once: about 0.1 s)."""
-    return get_typestore(STORE)
-
-
-# ---------------------------------------------------------------- time
-
-
-def ros_time_of(when: datetime) -> dict[str, int]:
-    """``builtin_interfaces/Time`` of an aware datetime, exact to the microsecond (integer arithmetic)."""
-    delta = when - _EPOCH
-    micros = (delta.days * 86_400 + delta.seconds) * 1_000_000 + delta.microseconds
-    sec, micro = divmod(micros, 1_000_000)
-    return {"sec": sec, "nanosec": micro * 1000}
-
-
-def ros_time_of_iso(text: str) -> dict[str, int]:
-    """``builtin_interfaces/Time`` of an ISO 8601 time with offset (the service's ``created``/``updated``)."""
-    return ros_time_of(datetime.fromisoformat(text))
-
-
-def ros_time_of_ns(nanoseconds: int) -> dict[str, int]:
-    """``builtin_interfaces/Time`` of Unix nanoseconds (``time.time_ns()``)."""
-    sec, nanosec = divmod(nanoseconds, 1_000_000_000)
-    return {"sec": sec, "nanosec": nanosec}
+# ---------------------------------------------------------------- time (ROS time itself: app.rostypes)
 
 
 def zip_date_time(text: str) -> tuple[int, int, int, int, int, int]:
@@ -189,13 +166,23 @@ def occupancy_grid_mcap(cdr: bytes, *, log_time_ns: int, topic: str = MAP_TOPIC)
     channel's ``offered_qos_profiles`` is map_server's (``MAP_QOS_PROFILES``). The same message and
     time give the same bytes.
     """
-    definition, _ = typestore().generate_msgdef(OCCUPANCY_GRID, ros_version=2)
     out = io.BytesIO()
     writer = Writer(out, compression=CompressionType.ZSTD)
     writer.start(profile="ros2", library="fuzzyrisk")
-    schema = writer.register_schema(name=OCCUPANCY_GRID, encoding="ros2msg", data=definition.encode())
-    channel = writer.register_channel(topic=topic, message_encoding="cdr", schema_id=schema,
-                                      metadata={"offered_qos_profiles": MAP_QOS_PROFILES})
+    channel = ros2_channel(writer, msgtype=OCCUPANCY_GRID, topic=topic, qos_profiles=MAP_QOS_PROFILES)
     writer.add_message(channel, log_time=log_time_ns, data=cdr, publish_time=log_time_ns)
     writer.finish()
     return out.getvalue()
+
+
+def ros2_channel(writer: Writer, *, msgtype: str, topic: str, qos_profiles: str = DEFAULT_QOS_PROFILES) -> int:
+    """Register ``topic`` of ``msgtype`` on an MCAP writer (ROS 2 profile) as rosbag2 does; its channel id.
+
+    The schema is the ``ros2msg`` definition with its dependencies (what Foxglove and rosbags read
+    without our typestore), messages are ``cdr``, and ``offered_qos_profiles`` is what ``ros2 bag
+    play`` offers when it republishes the topic.
+    """
+    definition, _ = typestore().generate_msgdef(msgtype, ros_version=2)
+    schema = writer.register_schema(name=msgtype, encoding="ros2msg", data=definition.encode())
+    return writer.register_channel(topic=topic, message_encoding="cdr", schema_id=schema,
+                                   metadata={"offered_qos_profiles": qos_profiles})

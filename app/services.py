@@ -38,12 +38,14 @@ counted and retried later, never answered as an error.
 from __future__ import annotations
 
 import asyncio
+import collections
+import contextlib
 import functools
 import io
 import logging
 import os
 import time
-from collections.abc import Callable, Coroutine, Mapping
+from collections.abc import Callable, Coroutine, Iterator, Mapping
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
@@ -53,9 +55,10 @@ import numpy as np
 from fastapi.exceptions import RequestValidationError
 from pydantic import ValidationError
 
-from app import batches, conditional, engines, exports, plangrids, rosmsgs, rosout, warmup
+from app import batches, conditional, engines, exports, plangrids, rosmsgs, rosout, rostypes, warmup
 from app.committer import GroupCommitter
 from app.config import Settings
+from app.diskreserve import DiskReserve
 from app.errors import (
     Conflict,
     InsufficientStorage,
@@ -87,7 +90,7 @@ from app.schemas import (
     SensorIn,
 )
 from app.storage import BatchRecord, NameTaken, Storage, StorageUnavailable, StoredMap
-from fuzzyocc import BayesMap, FuzzyMap, GridSpec, SensorModel
+from fuzzyocc import BayesMap, FuzzyMap, GridSpec, SensorModel, cast_work
 from planning.budget import wall_clock_limit
 from planning.planners import planner_spec
 
@@ -102,11 +105,12 @@ class MapObserver(Protocol):
 
     Called on the event loop, the batch's apply lock held: a method must return at once (hand the
     work to a thread of its own) and should not raise (what it raises is logged, never answered).
+    ``frame_id`` is the map's frame (``MapEntry.frame_id``), what its messages carry.
     """
 
-    def batch_applied(self, name: str, version: int, last_scan: batches.Scan) -> None: ...
+    def batch_applied(self, name: str, version: int, last_scan: batches.Scan, frame_id: str) -> None: ...
 
-    def plan_made(self, name: str, result: PlanResult) -> None: ...
+    def plan_made(self, name: str, result: PlanResult, frame_id: str) -> None: ...
 
     def map_deleted(self, name: str) -> None: ...
 
@@ -243,6 +247,10 @@ class MapEntry:
     #: version at the last failed snapshot attempt (the next attempt waits snapshot_every batches more)
     snapshot_failed_version: int = 0
     deleted: bool = False
+    #: uploads for this map whose bodies are still arriving (they count against its line: ``receiving``)
+    arriving: int = 0
+    #: (version, bytes) of each batch in the log after the latest snapshot: the log is bounded in bytes too
+    log: collections.deque[tuple[int, int]] = field(default_factory=collections.deque)
     #: names this map among every map the process held (a deleted map's name may come back; its uid does not)
     uid: int = field(default_factory=plangrids.new_uid)
 
@@ -368,6 +376,8 @@ def _restore(stored: StoredMap, up_to: int | None = None) -> MapEntry:
             continue
         entry.version = version
         entry.last_scan = scans[-1]
+    entry.log.extend((version, len(payload)) for version, payload in stored.batches
+                     if up_to is None or version <= up_to)
     entry.scans_fused = built.scans_fused
     # the next batch takes a version above every stored one, replayed or skipped
     entry.committed = max([entry.version, *(version for version, _ in stored.batches)])
@@ -388,12 +398,15 @@ class MapService:
         # parsing has its own threads: a burst of queued batches must not put its parsing ahead of
         # the commit and fusion of the batch whose turn it is, nor ahead of readers' copies
         self._parsers = ThreadPoolExecutor(settings.fusion_threads, thread_name_prefix="parse")
+        # and reads too: a read of one map must not wait behind minutes of fusion of others (issue 11)
+        self._readers = ThreadPoolExecutor(settings.read_threads, thread_name_prefix="read")
         self._committer = GroupCommitter(storage, metrics)
         self._plans = PlanPool(
             workers=settings.plan_workers, queue=settings.plan_queue, native=settings.native_planning,
             field_cache_bytes=settings.plan_cache_bytes,
         )
         # map versions published for the planner workers, so that a plan does not copy its map's grid
+        self._reserve = DiskReserve(settings.data_dir, settings.disk_reserve_bytes)
         self._grids = PlanGrids(settings.data_dir / plangrids.DIRECTORY, settings.plan_cache_bytes, self._run,
                                 metrics.plan_grid_bytes.set)
         self._limits = batches.Limits(max_scans=settings.max_scans_per_batch, max_rays=settings.max_rays_per_scan)
@@ -416,25 +429,36 @@ class MapService:
     async def _run_parser(self, fn: Callable[..., T], *args: Any) -> T:
         return await asyncio.get_running_loop().run_in_executor(self._parsers, fn, *args)
 
+    async def _run_read(self, fn: Callable[..., T], *args: Any) -> T:
+        return await asyncio.get_running_loop().run_in_executor(self._readers, fn, *args)
+
     # ---------------------------------------------------------------- lifecycle
 
     async def start(self) -> None:
         """Load every stored map (snapshot + replay) and, if configured, start the planner workers."""
         started = time.perf_counter()
         await self._run(self._grids.open)  # and remove what a killed run left
-        stored = await self._run(self.storage.load_all)
-        for item in stored:
+        await self._run(self._reserve.hold)
+        # one map at a time: a start holds one map's snapshot and log, not every map's (issue 11: 377 MB
+        # of log read at once peaked at 1.1 GB)
+        replayed = 0
+        for name in await self._run(self.storage.map_names):
+            item = await self._run(self.storage.load_map, name)
+            if item is None:  # cannot happen: nothing else writes before the start is done
+                continue
             try:
                 entry = await self._run(_restore, item)
             except Exception as exc:  # noqa: BLE001 - any damage: this map is set aside, the others start
                 self._quarantined[item.name] = str(exc)
                 LOG.error("map %s quarantined: %s", item.name, exc)
                 continue
+            replayed += len(item.batches)
             self._maps[entry.name] = entry
+            del item
         self.metrics.maps.set(len(self._maps))
         LOG.info(
             "maps loaded",
-            extra={"fields": {"maps": len(self._maps), "replayed_batches": sum(len(s.batches) for s in stored),
+            extra={"fields": {"maps": len(self._maps), "replayed_batches": replayed,
                               "seconds": round(time.perf_counter() - started, 3)}},
         )
         # in the background: /health answers meanwhile, /ready once they are done; a scan that comes first
@@ -494,6 +518,7 @@ class MapService:
         self._committer.shutdown()
         self._plans.shutdown()
         self._parsers.shutdown(wait=True)
+        self._readers.shutdown(wait=True)
         self._threads.shutdown(wait=True)  # grids being written included
         self._grids.close()
         self.storage.close()
@@ -520,12 +545,22 @@ class MapService:
             )
             return
         entry.snapshot_version = version
+        while entry.log and entry.log[0][0] <= version:  # dropped from the log with the snapshot
+            entry.log.popleft()
         self.metrics.snapshots.inc()
 
     def _snapshot_due(self, entry: MapEntry) -> bool:
+        """Every ``FUZZYRISK_SNAPSHOT_EVERY`` batches, or once the log holds ``FUZZYRISK_SNAPSHOT_LOG_BYTES``.
+
+        The bytes bound the disk a map takes (its snapshot, plus at most that much log and a batch):
+        200 batches of 64 MiB would otherwise be 12.5 GiB of log for one map (issue 11).
+        """
         every = self.settings.snapshot_every
         # after a failure, wait another ``every`` batches: a full disk should not cost a snapshot per batch
-        return entry.version - max(entry.snapshot_version, entry.snapshot_failed_version) >= every
+        if entry.snapshot_failed_version > entry.snapshot_version and entry.version - entry.snapshot_failed_version < every:
+            return False
+        logged = sum(size for version, size in entry.log if version <= entry.version)
+        return entry.version - entry.snapshot_version >= every or logged >= self.settings.snapshot_log_bytes
 
     # ---------------------------------------------------------------- maps
 
@@ -546,6 +581,16 @@ class MapService:
 
     def get_map(self, name: str) -> MapInfo:
         return self._entry(name).info()
+
+    def map_uid(self, name: str) -> int:
+        """Tells the map now named ``name`` apart from an earlier or later map of that name (``MapEntry.uid``)."""
+        return self._entry(name).uid
+
+    @property
+    def limits(self) -> batches.Limits:
+        """The scans of one batch and the rays of one scan the service takes (``FUZZYRISK_MAX_SCANS_PER_BATCH``,
+        ``FUZZYRISK_MAX_RAYS_PER_SCAN``)."""
+        return self._limits
 
     def _check_room(self, meta: Mapping[str, Any]) -> None:
         """``InsufficientStorage`` when a new map would pass ``FUZZYRISK_MAX_MAPS`` or ``FUZZYRISK_MAX_TOTAL_CELLS``.
@@ -607,7 +652,7 @@ class MapService:
         A quarantined map (damaged rows, found at start) is dropped with its rows.
         """
         if name in self._quarantined and name not in self._maps:
-            await self._run(self.storage.delete_map, name)
+            await self._run(self._delete_rows, name)
             del self._quarantined[name]
             return
         entry = self._entry(name)
@@ -616,12 +661,22 @@ class MapService:
         # and the map still served
         await _shielded(self._delete(entry, ticket))
 
+    def _delete_rows(self, name: str) -> None:
+        """``storage.delete_map``; on a full disk, with the disk reserve given up first (then taken back)."""
+        try:
+            self.storage.delete_map(name)
+        except StorageUnavailable:
+            if not self._reserve.release():
+                raise
+            self.storage.delete_map(name)
+        self._reserve.hold()  # once there is room again (a deletion frees pages for SQLite, not always disk)
+
     async def _delete(self, entry: MapEntry, ticket: int) -> None:
         try:
             await entry.line.wait_all(ticket)
             if entry.deleted:
                 raise NotFound(f"no map named {entry.name!r}")
-            await self._run(self.storage.delete_map, entry.name)
+            await self._run(self._delete_rows, entry.name)
             entry.deleted = True
             del self._maps[entry.name]
             self._grids.retire(entry.uid)  # its files go now, or when the last plan on them ends
@@ -667,7 +722,21 @@ class MapService:
         In a parsing thread, or on the event loop for a small body (``INLINE_PARSE_BYTES``).
         """
         scans = self._parse(body, content_type, query, entry.spec.ndim)
+        self._check_work(entry, scans)
         return scans, batches.encode(scans)
+
+    def _check_work(self, entry: MapEntry, scans: list[batches.Scan]) -> None:
+        """413 for a batch whose rays would walk more than ``FUZZYRISK_MAX_BATCH_CELLS`` cells of this map.
+
+        Before it is stored: one small request (12 scans of 16,384 beams reaching past a 16 M-cell
+        map's edges) would otherwise hold a fusion thread for a minute, and every restart replays it.
+        """
+        work = cast_work(entry.spec, scans)
+        if work > self.settings.max_batch_cells:
+            raise TooLarge(
+                f"the batch's rays walk about {work:,} cells of this map, more than FUZZYRISK_MAX_BATCH_CELLS "
+                f"({self.settings.max_batch_cells:,}): send fewer scans per batch, or shorter range_max"
+            )
 
     def _apply(self, entry: MapEntry, version: int, scans: list[batches.Scan]) -> BatchResult:
         """Fuse a committed batch (in a fusion thread; the caller holds the apply turn and the apply lock)."""
@@ -709,18 +778,34 @@ class MapService:
         """Refuse (503, ``Retry-After``) a batch for a map that already holds its limit of batches in line.
 
         Called before the body is read (an early, cheap answer) and again by ``add_scans`` as the
-        batch takes its place in line (uploads read side by side all passed the first check), so
-        a client streaming faster than its map fuses is told to slow down instead of piling
-        parsed scans up in memory, and other maps are unaffected.
+        batch takes its place in line, so a client streaming faster than its map fuses is told to
+        slow down instead of piling parsed scans up in memory, and other maps are unaffected.
         """
         self._admit(self._entry(name))
 
+    @contextlib.contextmanager
+    def receiving(self, name: str) -> Iterator[None]:
+        """Admit an upload (``admit_batch``) and count it against its map's line while its body arrives.
+
+        Uploads read side by side would all pass a check that counts only the batches already in
+        line: 40 bodies of 60 MB for one map were all read at once (issue 11). Counted from the
+        first byte, one map's uploads hold at most ``FUZZYRISK_MAX_PENDING_BATCHES`` bodies, the
+        others' share of the bodies-in-flight budget stays theirs.
+        """
+        entry = self._entry(name)
+        self._admit(entry)
+        entry.arriving += 1
+        try:
+            yield
+        finally:
+            entry.arriving -= 1
+
     def _admit(self, entry: MapEntry) -> None:
-        waiting = entry.line.outstanding
+        waiting = entry.line.outstanding + entry.arriving
         if waiting >= self.settings.max_pending_batches:
             self.metrics.batches_rejected.labels("Backlog").inc()
             raise Unavailable(
-                f"map {entry.name!r} already has {waiting} batches in line; slow down and retry "
+                f"map {entry.name!r} already has {waiting} batches in line or arriving; slow down and retry "
                 "(FUZZYRISK_MAX_PENDING_BATCHES)",
                 headers={"Retry-After": "1"},
             )
@@ -750,17 +835,33 @@ class MapService:
         # batch committed but not applied
         return await _shielded(self._write(entry, ticket, scans, payload))
 
-    async def add_parsed_scans(self, name: str, scans: list[batches.Scan]) -> BatchResult:
-        """Fuse one batch of scans validated by the caller for this map (a bag upload's), as ``add_scans`` does."""
+    async def add_parsed_scans(self, name: str, scans: list[batches.Scan], *, uid: int,
+                               admitted: bool = False) -> BatchResult:
+        """Fuse one batch of scans validated by the caller for map ``name`` (a bag upload's), as ``add_scans`` does.
+
+        ``uid`` is the ``map_uid`` the scans were validated for: a map deleted and created again
+        under the same name since (another grid, maybe another dimension) answers ``Conflict`` and
+        stores nothing. ``admitted``: the batch belongs to an import whose first batch was admitted,
+        so it is not refused for the line's length (an import is refused whole, or not at all).
+        """
         entry = self._entry(name)
-        self._admit(entry)
+        if not admitted:
+            self._admit(entry)
         ticket = entry.line.take()
+        if entry.uid != uid:  # no await since the entry was looked up: the map holding the name now
+            entry.line.done(ticket)
+            raise Conflict(f"map {name!r} was deleted and created again while its scans were being read; "
+                           "nothing was stored: import into the new map again")
         try:
-            payload = await self._run_parser(batches.encode, scans)
+            payload = await self._run_parser(self._checked_payload, entry, scans)
         except BaseException:
             entry.line.done(ticket)
             raise
         return await _shielded(self._write(entry, ticket, scans, payload))
+
+    def _checked_payload(self, entry: MapEntry, scans: list[batches.Scan]) -> bytes:
+        self._check_work(entry, scans)
+        return batches.encode(scans)
 
     async def _write(self, entry: MapEntry, ticket: int, scans: list[batches.Scan], payload: bytes) -> BatchResult:
         """Commit, then apply, a parsed batch in its turns; gives both turns up when done, whatever happens."""
@@ -772,6 +873,7 @@ class MapService:
             # StorageUnavailable here leaves the map untouched: nothing is applied before the commit
             await asyncio.wrap_future(self._committer.append(BatchRecord(entry.name, version, payload, updated)))
             entry.committed = version
+            entry.log.append((version, len(payload)))
             entry.line.commit.done(ticket)  # the next batch may commit while this one waits for its fusion
             await entry.line.apply.wait(ticket)
             async with entry.apply_lock:
@@ -790,7 +892,7 @@ class MapService:
                 entry.version, entry.scans_fused, entry.updated = result.version, entry.map.scans_fused, updated
                 entry.last_scan, entry.last_view = scans[-1], None
                 self._grids.retire(entry.uid, below=entry.version)  # no plan will ask for an older one
-                self._notify("batch_applied", entry.name, entry.version, entry.last_scan)
+                self._notify("batch_applied", entry.name, entry.version, entry.last_scan, entry.frame_id)
             if self._snapshot_due(entry):
                 await self._snapshot(entry)
             return result
@@ -805,7 +907,7 @@ class MapService:
             raise NotFound(f"map {name!r} has fused no scan since the service started")
         if view is None:
             # most batches are never drawn; a big cloud's view takes a while, so off the event loop
-            view = await self._run(batches.scan_view, scan)
+            view = await self._run_read(batches.scan_view, scan)
             if entry.last_scan is scan:  # not replaced by a newer batch meanwhile
                 entry.last_view = view
         return LastScan(origin=view.origin, endpoints=view.endpoints, hit=view.hit, version=version)
@@ -826,10 +928,33 @@ class MapService:
 
     async def _read_grid(self, entry: MapEntry) -> GridSnapshot:
         async with entry.apply_lock:
-            risk, observed = await self._run(lambda: (entry.map.risk(), entry.map.observed()))
+            risk, observed = await self._run_read(lambda: (entry.map.risk(), entry.map.observed()))
             # version and updated are assigned together under this lock (``_write``): they match the arrays
             return GridSnapshot(entry.spec, entry.version, risk, observed, entry.frame_id, entry.updated,
                                 entry.etag_seed)
+
+    async def render_log(self, name: str, render: Callable[[GridSnapshot, StoredMap], T]) -> T:
+        """``render(grid, stored)`` in a read thread: the map's grid and its stored batch log at one version.
+
+        The grid is copied and the log read (``Storage.load_map``: the latest snapshot's version and the
+        batches after it) together under the apply lock, so no batch is applied between the two: the log
+        holds every batch up to the grid's version (each was committed before it was applied), and those
+        committed but not applied yet are left out. ``render`` runs once the lock is released
+        (``app.recording``); ``stored.snapshot`` is dropped, the arrays are not needed.
+        """
+        entry = self._entry(name)
+        async with entry.apply_lock:
+            risk, observed, stored = await self._run_read(
+                lambda: (entry.map.risk(), entry.map.observed(), self.storage.load_map(entry.name)))
+            grid = GridSnapshot(entry.spec, entry.version, risk, observed, entry.frame_id, entry.updated,
+                                entry.etag_seed)
+        if stored is None or stored.meta.get("created") != entry.meta["created"]:  # deleted (and made again)
+            raise NotFound(f"no map named {name!r}; GET /maps lists them")
+        if stored.damage:
+            raise Unavailable(f"map {name!r}: its stored log is damaged ({'; '.join(stored.damage)})")
+        stored.snapshot = None
+        stored.batches = [(version, payload) for version, payload in stored.batches if version <= grid.version]
+        return await self._run_read(render, grid, stored)
 
     async def risk_at(self, name: str, points: list[list[float]]) -> RiskValues:
         if len(points) > self.settings.max_query_points:
@@ -844,7 +969,7 @@ class MapService:
             raise Invalid(f"points[{bad}] has {len(points[bad])} coordinates; this map is {dims}-D")
         async with entry.apply_lock:
             try:
-                values = await self._run(entry.map.risk_at, np.asarray(points, dtype=np.float64))
+                values = await self._run_read(entry.map.risk_at, np.asarray(points, dtype=np.float64))
             except ValueError as exc:
                 raise Invalid(str(exc)) from None
             return RiskValues(risk=[float(v) for v in values], version=entry.version)
@@ -865,12 +990,12 @@ class MapService:
                 risk=np.round(grid.risk.astype(np.float64), 6).tolist(), observed=grid.observed.tolist(),
             ).model_dump_json().encode()
 
-        return await self._run(encode), grid
+        return await self._run_read(encode), grid
 
     async def risk_npy(self, name: str, layer: Literal["risk", "observed"] = "risk") -> tuple[bytes, GridSnapshot]:
         """The risk (float32) or the observed mask (bool) as ``.npy``, of one version."""
         grid = await self.read_grid(name)
-        return await self._run(exports.npy_bytes, grid.risk if layer == "risk" else grid.observed), grid
+        return await self._run_read(exports.npy_bytes, grid.risk if layer == "risk" else grid.observed), grid
 
     async def risk_png(self, name: str, *, scale: int, z_min: float | None, z_max: float | None) -> tuple[bytes, GridSnapshot]:
         _check_band(z_min, z_max)
@@ -887,7 +1012,7 @@ class MapService:
             risk, observed = grid.planar(z_min, z_max)
             return exports.risk_png(risk, observed, scale=scale, text=text)
 
-        return await self._run(render), grid
+        return await self._run_read(render), grid
 
     async def nav2_zip(
         self, name: str, *, mode: Literal["trinary", "scale", "raw"], image_format: Literal["pgm", "png"],
@@ -910,7 +1035,7 @@ class MapService:
                 frame_id=grid.frame_id, date_time=rosout.zip_date_time(grid.updated),
             )
 
-        return await self._run(render), grid
+        return await self._run_read(render), grid
 
     async def occupancy_grid(
         self, name: str, *, mode: Literal["trinary", "scale", "probability"], free_thresh: float,
@@ -930,7 +1055,7 @@ class MapService:
             risk, observed = grid.planar(z_min, z_max)
             data = exports.occupancy_data(risk, observed, mode=mode, free_thresh=free_thresh,
                                           occupied_thresh=occupied_thresh)
-            stamp = rosout.ros_time_of_iso(grid.updated)
+            stamp = rostypes.ros_time_of_iso(grid.updated)
             if encoding != "json":
                 message = rosout.occupancy_grid_message(
                     data, width=risk.shape[0], height=risk.shape[1], resolution=grid.spec.resolution,
@@ -939,7 +1064,7 @@ class MapService:
                 cdr = rosout.occupancy_grid_cdr(message)
                 if encoding == "cdr":
                     return cdr
-                return rosout.occupancy_grid_mcap(cdr, log_time_ns=stamp["sec"] * 1_000_000_000 + stamp["nanosec"])
+                return rosout.occupancy_grid_mcap(cdr, log_time_ns=rostypes.ns_of_ros_time(stamp))
             return OccupancyGrid.model_validate({
                 "header": {"stamp": stamp, "frame_id": grid.frame_id},
                 "info": {
@@ -952,7 +1077,7 @@ class MapService:
                 "version": grid.version,
             }).model_dump_json().encode()
 
-        return await self._run(render), grid
+        return await self._run_read(render), grid
 
     # ---------------------------------------------------------------- plans
 
@@ -965,7 +1090,7 @@ class MapService:
         self._check_plan(request)
         started = time.perf_counter()  # the wait for the grid is part of what the client waits for
         # the path's stamp: when the plan was taken up, as Nav2's planners stamp a path when they start it
-        stamp = rosout.ros_time_of_ns(time.time_ns())
+        stamp = rostypes.ros_time_of_ns(time.time_ns())
         entry = self._entry(name)
         # goal_yaw only orients the answer's last pose: the planner never sees it
         params = request.model_dump(exclude_none=True, exclude={"goal_yaw"})
@@ -1001,7 +1126,7 @@ class MapService:
             path_msg = rosout.path_message(result["path"], state_space=result["state_space"], frame_id=entry.frame_id,
                                            stamp=stamp, goal_yaw=request.goal_yaw)
             plan = PlanResult(**result, version=version, **path_msg)
-            self._notify("plan_made", name, plan)
+            self._notify("plan_made", name, plan, entry.frame_id)
             return plan
         finally:
             if lease is not None:

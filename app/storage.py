@@ -61,6 +61,9 @@ class Storage(Protocol):
     def load_all(self) -> list[StoredMap]:
         """Every map with its latest snapshot and the batches after it."""
 
+    def map_names(self) -> list[str]:
+        """The names of the stored maps, sorted (a start loads them one at a time: ``load_map``)."""
+
     def load_map(self, name: str) -> StoredMap | None:
         """One map with its latest snapshot and the batches after it; None when there is none of that name."""
 
@@ -94,7 +97,9 @@ _SCHEMA = """
 CREATE TABLE IF NOT EXISTS maps (
     name TEXT PRIMARY KEY,
     meta TEXT NOT NULL,
-    updated TEXT NOT NULL
+    updated TEXT NOT NULL,
+    version INTEGER,
+    snapshot_version INTEGER
 );
 CREATE TABLE IF NOT EXISTS batches (
     map TEXT NOT NULL REFERENCES maps(name) ON DELETE CASCADE,
@@ -124,6 +129,20 @@ def _take_batch(stored: StoredMap, seq: int, payload: bytes, crc: int | None) ->
     stored.batches.append((seq, payload))
 
 
+def _check_versions(stored: StoredMap, version: int | None, snapshot_version: int | None) -> None:
+    """Rows deleted behind the service's back: the map's own record of its versions disagrees with its rows.
+
+    (A deleted snapshot row left a map without batches 1-10 reporting version 12; a deleted last batch
+    went unnoticed.) NULL: a database from before the record, not checked until the next write.
+    """
+    if snapshot_version and stored.snapshot_version != snapshot_version:
+        stored.damage.append(f"its snapshot (version {snapshot_version}) is missing"
+                             + (f"; version {stored.snapshot_version} is stored" if stored.snapshot else ""))
+    newest = max([stored.snapshot_version, *(seq for seq, _ in stored.batches)])
+    if version is not None and newest < version:
+        stored.damage.append(f"its batches up to version {version} are missing (the newest stored is {newest})")
+
+
 class SqliteStorage:
     """``Storage`` in one SQLite file: WAL journal, ``synchronous=FULL`` (fsync at every commit).
 
@@ -146,6 +165,11 @@ class SqliteStorage:
                 columns = {row[1] for row in self._db.execute(f"PRAGMA table_info({table})")}
                 if "crc" not in columns:
                     self._db.execute(f"ALTER TABLE {table} ADD COLUMN crc INTEGER")
+            # a database from before the maps kept their versions: NULL (not checked) until the next write
+            columns = {row[1] for row in self._db.execute("PRAGMA table_info(maps)")}
+            for column in ("version", "snapshot_version"):
+                if column not in columns:
+                    self._db.execute(f"ALTER TABLE maps ADD COLUMN {column} INTEGER")
 
     def _write(self, statements: list[tuple[str, tuple[Any, ...]]]) -> None:
         """Run statements in one immediate transaction: all of them are on disk when this returns.
@@ -180,18 +204,27 @@ class SqliteStorage:
 
     def load_all(self) -> list[StoredMap]:
         with self._lock:
-            rows = self._db.execute("SELECT name, meta, updated FROM maps ORDER BY name").fetchall()
-            maps = {name: StoredMap(name, json.loads(meta), updated) for name, meta, updated in rows}
+            rows = self._db.execute(
+                "SELECT name, meta, updated, version, snapshot_version FROM maps ORDER BY name").fetchall()
+            maps = {row[0]: StoredMap(row[0], json.loads(row[1]), row[2]) for row in rows}
+            expected = {row[0]: (row[3], row[4]) for row in rows}
             for name, version, payload, crc in self._db.execute("SELECT map, version, payload, crc FROM snapshots"):
                 _take_snapshot(maps[name], version, bytes(payload), crc)
             for name, seq, payload, crc in self._db.execute(
                     "SELECT map, seq, payload, crc FROM batches ORDER BY map, seq"):
                 _take_batch(maps[name], seq, bytes(payload), crc)
+        for name, stored in maps.items():
+            _check_versions(stored, *expected[name])
         return list(maps.values())
+
+    def map_names(self) -> list[str]:
+        with self._lock:
+            return [name for (name,) in self._db.execute("SELECT name FROM maps ORDER BY name")]
 
     def load_map(self, name: str) -> StoredMap | None:
         with self._lock:
-            row = self._db.execute("SELECT meta, updated FROM maps WHERE name = ?", (name,)).fetchone()
+            row = self._db.execute("SELECT meta, updated, version, snapshot_version FROM maps WHERE name = ?",
+                                   (name,)).fetchone()
             if row is None:
                 return None
             stored = StoredMap(name, json.loads(row[0]), row[1])
@@ -202,11 +235,13 @@ class SqliteStorage:
             for seq, payload, crc in self._db.execute(
                     "SELECT seq, payload, crc FROM batches WHERE map = ? ORDER BY seq", (name,)):
                 _take_batch(stored, seq, bytes(payload), crc)
+        _check_versions(stored, row[2], row[3])
         return stored
 
     def create_map(self, name: str, meta: dict[str, Any], updated: str) -> None:
         try:
-            self._write([("INSERT INTO maps (name, meta, updated) VALUES (?, ?, ?)", (name, json.dumps(meta), updated))])
+            self._write([("INSERT INTO maps (name, meta, updated, version, snapshot_version) VALUES (?, ?, ?, 0, 0)",
+                          (name, json.dumps(meta), updated))])
         except sqlite3.IntegrityError:
             raise NameTaken(name) from None
 
@@ -223,11 +258,17 @@ class SqliteStorage:
         for b in batches:
             statements.append(("INSERT INTO batches (map, seq, payload, crc) VALUES (?, ?, ?, ?)",
                                (b.name, b.version, b.payload, _crc(b.payload))))
-            statements.append(("UPDATE maps SET updated = ? WHERE name = ?", (b.updated, b.name)))
+            statements.append(("UPDATE maps SET updated = ?, version = MAX(COALESCE(version, 0), ?) WHERE name = ?",
+                               (b.updated, b.version, b.name)))
         self._write(statements)
 
     def discard_batch(self, name: str, version: int) -> None:
-        self._write([("DELETE FROM batches WHERE map = ? AND seq = ?", (name, version))])
+        self._write([
+            ("DELETE FROM batches WHERE map = ? AND seq = ?", (name, version)),
+            # the newest stored row is the map's version again (it was this batch when no later one committed)
+            ("UPDATE maps SET version = COALESCE((SELECT MAX(seq) FROM batches WHERE map = ?), snapshot_version, 0) "
+             "WHERE name = ? AND version = ?", (name, name, version)),
+        ])
 
     def write_snapshot(self, name: str, version: int, payload: bytes) -> None:
         self._write(
@@ -239,6 +280,7 @@ class SqliteStorage:
                     (name, version, payload, _crc(payload)),
                 ),
                 ("DELETE FROM batches WHERE map = ? AND seq <= ?", (name, version)),
+                ("UPDATE maps SET snapshot_version = ? WHERE name = ?", (version, name)),
             ]
         )
 

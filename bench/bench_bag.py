@@ -22,11 +22,12 @@ from pathlib import Path
 import numpy as np
 from fastapi.testclient import TestClient
 from rosbags.rosbag2 import StoragePlugin, Writer
-from rosbags.typesys import Stores, get_typestore
 
 from app import import_bag
 from app.config import Settings
 from app.main import create_app
+from app.mediatypes import MCAP
+from app.rostypes import typestore
 from fuzzyocc import FuzzyMap
 
 ROOM_HALF_M = 10.0
@@ -48,7 +49,7 @@ def _ranges(x: float, y: float, yaw: float, beams: int, rng: np.random.Generator
 
 def write_bag(path: Path, scans: int, beams: int) -> Path:
     """The benchmark's bag (rosbag2, mcap); returns its .mcap file."""
-    ts = get_typestore(Stores.ROS2_JAZZY)
+    ts = typestore()
     t = ts.types
     rng = np.random.default_rng(0)
 
@@ -140,7 +141,7 @@ def main() -> None:
                                            "size": list(spec.size)})
                 started = time.perf_counter()
                 response = client.post(f"/maps/{name}/bags", content=body,
-                                       headers={"Content-Type": "application/x-mcap"})
+                                       headers={"Content-Type": MCAP})
                 upload_s.append(time.perf_counter() - started)
                 assert response.status_code == 200 and response.json()["scans_fused"] == args.scans, response.text
         best = min(upload_s)

@@ -52,7 +52,7 @@ import numpy as np
 from bench._client import Batch, Fleet, ServerProcess, machine, new_map, npy_array
 
 MAPS = {"fz": "fuzzy", "bz": "bayes"}
-FAULT_ENV = {"FUZZYRISK_SNAPSHOT_EVERY": "5"}
+FAULT_ENV = {"FUZZYRISK_SNAPSHOT_EVERY": "5", "FUZZYRISK_DISK_RESERVE_BYTES": str(256 * 2**10)}  # a 3 MB volume
 
 
 # ---------------------------------------------------------------- the mirror of one map
@@ -286,6 +286,7 @@ class StorageReport:
     disk_full_body: str = ""
     disk_full_json_detail: bool = False
     statuses_while_full: dict[int, int] = field(default_factory=dict)
+    delete_while_full: str = ""  # DELETE of another map while the disk is full: its status (204: space freed)
     refused_but_applied: int = 0  # batches answered with an error that the map applied anyway
     map_intact_while_full: bool = False
     map_note_while_full: str = ""
@@ -307,6 +308,8 @@ class StorageReport:
         if not (500 <= self.disk_full_status < 600 and self.disk_full_json_detail):
             out.append(f"full disk answered {self.disk_full_status} {self.disk_full_body[:80]!r}, "
                        "not a 5xx with a JSON detail")
+        if not self.delete_while_full.startswith("204"):
+            out.append(f"a map could not be deleted while the disk was full: {self.delete_while_full[:160]}")
         if self.refused_but_applied:
             out.append(f"{self.refused_but_applied} batch(es) answered with an error were applied anyway "
                        "(a client that retries applies them twice)")
@@ -427,6 +430,11 @@ def storage_faults(seed: int = 1, *, size_bytes: int = 3 * 2**20, max_batches: i
         server.start()
         poster = _Poster(server.url, mirror, report)
         poster.client.post("/maps", json=fleet.map_request(mirror.name)).raise_for_status()
+        # a second map, to be deleted while the disk is full (space freed through the API)
+        spare = {**fleet.map_request(mirror.name), "name": "spare"}
+        poster.client.post("/maps", json=spare).raise_for_status()
+        for batch in batches[:3]:
+            batch.post(poster.client, "spare").raise_for_status()
         # ---- fill the disk
         refused: httpx.Response | None = None
         for i in range(max_batches):
@@ -447,6 +455,9 @@ def storage_faults(seed: int = 1, *, size_bytes: int = 3 * 2**20, max_batches: i
             status = response.status_code if response is not None else -1
             report.statuses_while_full[status] = report.statuses_while_full.get(status, 0) + 1
         report.map_intact_while_full, report.map_note_while_full = poster.check()
+        deleted = poster.client.delete("/maps/spare")
+        report.delete_while_full = f"{deleted.status_code} {deleted.text[:200]}"
+        log(f"DELETE of another map while the disk is full: {report.delete_while_full[:160]}")
         # ---- space comes back
         volume.grow(64 * 2**20)
         if volume.method != "tmpfs":

@@ -2,7 +2,7 @@
 
 from fuzzyocc.config import GridSpec, SensorModel
 from fuzzyocc.engine import FuzzyEngine
-from fuzzyocc.maps import BayesMap, FuzzyMap, IntegrationStats
+from fuzzyocc.maps import BayesMap, FuzzyMap, IntegrationStats, cast_work
 from fuzzyocc.scans import LaserScan, PointCloud
 
 __all__ = [
@@ -14,4 +14,5 @@ __all__ = [
     "LaserScan",
     "PointCloud",
     "SensorModel",
+    "cast_work",
 ]

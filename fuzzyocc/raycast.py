@@ -316,3 +316,31 @@ def cast_rays(
         nblk,
     )
     return CastResult(cells=cells, distance_sigmas=dist, scan_offsets=scan_offsets, cells_traversed=traversed)
+
+
+def traversal_cells(spec: GridSpec, origin: np.ndarray, ends: np.ndarray) -> int:
+    """About how many cells a cast walks for the segments ``origin`` -> each of ``ends`` ((N, D), metres).
+
+    Each segment is clipped to the map's box (the cast never walks outside it), and walks one
+    cell per cell boundary it crosses: its L1 length in cells, plus its first cell. A bound
+    known before any cell is touched, for refusing work that is too large (the band a cast
+    walks past a hit adds a few cells a ray, not counted).
+    """
+    origin = np.asarray(origin, dtype=np.float64).reshape(1, -1)
+    ends = np.asarray(ends, dtype=np.float64).reshape(-1, origin.shape[1])
+    if ends.size == 0:
+        return 0
+    lower = np.asarray(spec.origin, dtype=np.float64)
+    upper = lower + np.asarray(spec.shape, dtype=np.float64) * spec.resolution
+    d = ends - origin
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t_a, t_b = (lower - origin) / d, (upper - origin) / d
+    parallel = d == 0  # never crosses this axis's slab: all of the segment, or none of it
+    inside = (origin >= lower) & (origin <= upper)
+    t_low = np.where(parallel, np.where(inside, -np.inf, np.inf), np.minimum(t_a, t_b))
+    t_high = np.where(parallel, np.where(inside, np.inf, -np.inf), np.maximum(t_a, t_b))
+    enter = np.maximum(t_low.max(axis=1), 0.0)
+    leave = np.minimum(t_high.min(axis=1), 1.0)
+    span = np.clip(leave - enter, 0.0, None)
+    cells = np.abs(d).sum(axis=1) * span / spec.resolution
+    return int(np.ceil(cells[span > 0]).sum() + np.count_nonzero(span > 0))

@@ -10,7 +10,8 @@ Threads and failure, the whole contract:
 
 * :meth:`Bridge.on_scan` (the subscription callback) converts the message, puts the scan in a
   bounded queue and returns; it never blocks on the network and **never raises**: a bad message,
-  a failed TF lookup or a bug is counted in :class:`BridgeStats` and logged (throttled).
+  a laser tilted beyond the service's level tolerance (:func:`level_heading`), a failed TF lookup
+  or a bug is counted in :class:`BridgeStats` and logged (throttled).
 * The queue holds at most ``queue_size`` scans. When it is full the **oldest** scan is dropped,
   counted (``dropped``) and logged: when the service falls behind, the fresh scans describe the
   world as it is now, which is what a robot reading the map needs.
@@ -20,7 +21,7 @@ Threads and failure, the whole contract:
   502/504 after the backoff: ``backoff_s`` doubling per attempt up to ``max_backoff_s``, which
   also caps a ``Retry-After``. After ``max_attempts`` the batch is dropped (``batches_failed``).
   Any other answer (422 invalid scan, 404 no such map, 401 key) is not retried: the batch is
-  dropped, counted and logged with the service's message.
+  dropped, counted and logged with the ``code`` and ``message`` of the service's error body.
 * Delivery is at least once: a batch whose answer timed out may have been fused, and its retry
   fuses it again (a scan counted twice; the service has no idempotency key).
 """
@@ -86,7 +87,8 @@ class BridgeStats:
     received: int = 0  # on_scan / submit calls
     queued: int = 0  # scans converted and queued
     dropped: int = 0  # queued scans pushed out by newer ones (queue full) or left at close
-    skipped: int = 0  # messages not usable: no transform, malformed, wrong frame
+    skipped: int = 0  # messages not usable: no transform, malformed, wrong frame, tilted
+    tilted: int = 0  # of the skipped: the laser tilted beyond LEVEL_TOLERANCE_RAD (the service would refuse it)
     errors: int = 0  # unexpected failures inside a callback (a bug), caught
     scans_posted: int = 0  # scans in batches the service acknowledged
     batches_posted: int = 0
@@ -135,28 +137,61 @@ def _range(value: float) -> float | str | None:
     return value  # repr of the float64 of a float32 reading: exact, the same bits as a binary upload
 
 
+#: How far a laser's z axis may lean from the map's vertical (up, or down when mounted upside down)
+#: for its scan to go on a 2-D map: ``app.rosmsgs.LEVEL_TOLERANCE_RAD``, the service's own limit for a
+#: LaserScan posted as CDR (copied, not imported: the bridge uses the standard library only).
+LEVEL_TOLERANCE_RAD = math.radians(3.0)
+
+
+class NotLevel(ValueError):
+    """The laser is tilted beyond ``LEVEL_TOLERANCE_RAD``: its scan is not a scan of the map's plane."""
+
+
+def level_heading(qx: float, qy: float, qz: float, qw: float) -> tuple[float, float]:
+    """(theta, turn) of a level laser with orientation ``q`` in the map: its heading, and +1 (z up) or -1 (z down).
+
+    Mirrors ``app.rosmsgs.level_heading`` (the rule a LaserScan body posted as CDR meets on a 2-D
+    map), so that a scan comes to the same pose whichever way it reaches the service: the quaternion
+    normalised first, refused when the z axis leans more than ``LEVEL_TOLERANCE_RAD`` from the
+    vertical (``NotLevel``), and upright when the z axis points up (``up > 0``, as the service
+    compares). ``tests/app/test_bridge.py`` compares the two over a grid of orientations.
+    Raises ``ValueError`` for a quaternion that is not finite or is zero.
+    """
+    norm = math.sqrt(qx * qx + qy * qy + qz * qz + qw * qw)
+    if not (math.isfinite(norm) and norm > 0.0):
+        raise ValueError(f"the rotation is not a quaternion: {[qx, qy, qz, qw]}")
+    qx, qy, qz, qw = qx / norm, qy / norm, qz / norm, qw / norm
+    up = 1.0 - 2.0 * (qx * qx + qy * qy)  # z of the laser's z axis in the map frame
+    if abs(up) < math.cos(LEVEL_TOLERANCE_RAD):
+        tilt = math.degrees(math.acos(min(abs(up), 1.0)))
+        raise NotLevel(f"the laser is tilted {tilt:.1f} degrees from level (its z axis against the map's "
+                       f"vertical); a 2-D map takes a scan only from a laser level within "
+                       f"{math.degrees(LEVEL_TOLERANCE_RAD):g} degrees (z up, or down when mounted upside down)")
+    theta = math.atan2(2.0 * (qx * qy + qw * qz), 1.0 - 2.0 * (qy * qy + qz * qz))
+    return theta, (1.0 if up > 0.0 else -1.0)
+
+
 def scan_to_json(scan: Any, transform: Any) -> dict[str, Any]:
     """One ``sensor_msgs/LaserScan`` with ``T_map_laser`` (a ``TransformStamped``) as a JSON scan.
 
-    The pose is the laser's in the map's plane: yaw from the quaternion; a laser mounted upside
-    down (its z axis pointing down, roll pi) sweeps clockwise seen from above, so its angles are
-    negated. Raises ValueError for a message that cannot be a 2-D scan (non-finite pose or angles).
+    The pose is the laser's in the map's plane (:func:`level_heading`: the service's rule): yaw
+    from the quaternion; a laser mounted upside down (its z axis pointing down, roll pi) sweeps
+    clockwise seen from above, so its angles are negated. Raises ``NotLevel`` for a tilted laser,
+    ValueError for a message that cannot be a 2-D scan (non-finite pose or angles).
     """
     t = transform.transform
     p, q = t.translation, t.rotation
-    qx, qy, qz, qw = float(q.x), float(q.y), float(q.z), float(q.w)
-    yaw = math.atan2(2.0 * (qw * qz + qx * qy), 1.0 - 2.0 * (qy * qy + qz * qz))
-    turn = 1.0 if 1.0 - 2.0 * (qx * qx + qy * qy) >= 0.0 else -1.0  # the laser's z axis, seen from the map's
-    values = [float(p.x), float(p.y), yaw, float(scan.angle_min), float(scan.angle_increment),
-              float(scan.range_min), float(scan.range_max)]
+    values = [float(p.x), float(p.y), float(q.x), float(q.y), float(q.z), float(q.w), float(scan.angle_min),
+              float(scan.angle_increment), float(scan.range_min), float(scan.range_max)]
     if not all(math.isfinite(v) for v in values):
         raise ValueError(f"non-finite pose or scan parameters: {values}")
+    yaw, turn = level_heading(*values[2:6])
     return {
         "pose": {"x": values[0], "y": values[1], "theta": yaw},
-        "angle_min": turn * values[3],
-        "angle_increment": turn * values[4],
-        "range_min": values[5],
-        "range_max": values[6],
+        "angle_min": turn * values[6],
+        "angle_increment": turn * values[7],
+        "range_min": values[8],
+        "range_max": values[9],
         "ranges": [_range(r) for r in scan.ranges],
     }
 
@@ -219,6 +254,12 @@ class Bridge:
                 self.stats.received += 1
             try:
                 item = scan_to_json(scan, transform)
+            except NotLevel as exc:
+                with self._cond:
+                    self.stats.skipped += 1
+                    self.stats.tilted += 1
+                self._throttle.warning("tilted", "scan skipped: %s", exc)
+                return
             except (AttributeError, TypeError, ValueError) as exc:
                 with self._cond:
                     self.stats.skipped += 1
@@ -390,20 +431,25 @@ class Bridge:
 
 
 def _detail(error: urllib.error.HTTPError) -> str:
-    """The service's own message from an error body (``{"code", "message"}``, or the older ``{"detail"}``),
-    else the reason phrase."""
+    """What the service said, for the log: ``CODE: message`` from its error body ``{code, message, details}``.
+
+    Every error answer of the service has that shape (``app.errors.ErrorBody``). Anything else (a
+    proxy's page, a server that is not fuzzyrisk, or a fuzzyrisk older than that shape, which
+    answered FastAPI's ``{"detail": ...}``) is shown as the first 200 characters of its body, or the
+    reason phrase when it has none.
+    """
     try:
-        body = json.loads(error.read(4096))
-    except Exception:  # noqa: BLE001 - any body at all: fall back to the status line
+        raw = error.read(4096)
+    except Exception:  # noqa: BLE001 - the answer broke off: the status line is all there is
         return str(error.reason)
-    if not isinstance(body, dict):
-        return str(body)
-    if "message" in body:
-        return f"{body.get('code', '')}: {body['message']}".lstrip(": ")
-    detail = body.get("detail", body)
-    if isinstance(detail, dict) and "message" in detail:
-        return str(detail["message"])
-    return str(detail)
+    try:
+        body = json.loads(raw)
+    except ValueError:
+        body = None
+    if isinstance(body, dict) and isinstance(body.get("code"), str) and "message" in body:
+        return f"{body['code']}: {body['message']}"
+    text = raw.decode("utf-8", "replace").strip()
+    return text[:200] if text else str(error.reason)
 
 
 def _retry_after_s(value: str | None) -> float | None:

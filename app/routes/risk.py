@@ -11,6 +11,7 @@ from app import conditional, rosout
 from app.deps import MapNamePath, ServiceDep
 from app.errors import Invalid
 from app.exports import NAV2_FREE_THRESH, NAV2_OCCUPIED_THRESH
+from app.mediatypes import MCAP, OCTET_STREAM
 from app.schemas import OccupancyGrid, RiskQuery, RiskValues
 from app.services import GridSnapshot, MapService
 
@@ -58,7 +59,6 @@ def _unchanged(
 
 
 _BINARY = {"schema": {"type": "string", "format": "binary"}}
-OCTET_STREAM = "application/octet-stream"
 Accept = Annotated[str | None, Header(description=f"`{OCTET_STREAM}` alone: the same bytes labelled so (what "
                                                   "generic HTTP clients and client generators handle)")]
 LayerQuery = Annotated[
@@ -208,7 +208,7 @@ _OGRID_DOC = """
     every read of one version is the same bytes.
     """
 GridMode = Literal["trinary", "scale", "probability"]
-_OGRID_MEDIA = {"json": "application/json", "cdr": rosout.CDR_MEDIA_TYPE, "mcap": rosout.MCAP_MEDIA_TYPE}
+_OGRID_MEDIA = {"json": "application/json", "cdr": rosout.CDR_MEDIA_TYPE, "mcap": MCAP}
 
 
 async def _occupancy_grid(name: str, service: MapService, format: str, mode: str, free_thresh: float,
@@ -238,7 +238,7 @@ async def _occupancy_grid(name: str, service: MapService, format: str, mode: str
             "description": "OccupancyGrid (plus the map version); format=cdr and format=mcap: see "
             "occupancy_grid_file",
             "headers": _GRID_HEADERS,
-            "content": {rosout.CDR_MEDIA_TYPE: _BINARY, rosout.MCAP_MEDIA_TYPE: _BINARY},
+            "content": {rosout.CDR_MEDIA_TYPE: _BINARY, MCAP: _BINARY},
         },
     },
 )
@@ -274,7 +274,7 @@ occupancy_grid.__doc__ = (occupancy_grid.__doc__ or "") + _OGRID_DOC
         "description": f"cdr: the nav_msgs/msg/OccupancyGrid CDR serialized (what "
         f"rclpy.serialization.serialize_message writes); mcap: an MCAP file holding it on {rosout.MAP_TOPIC}",
         "headers": _GRID_HEADERS,
-        "content": {rosout.CDR_MEDIA_TYPE: _BINARY, rosout.MCAP_MEDIA_TYPE: _BINARY, OCTET_STREAM: _BINARY}}},
+        "content": {rosout.CDR_MEDIA_TYPE: _BINARY, MCAP: _BINARY, OCTET_STREAM: _BINARY}}},
 )
 async def occupancy_grid_file(
     name: MapNamePath,

@@ -85,8 +85,8 @@ _BODY["parameters"] = [
 )
 async def post_scans(name: MapNamePath, request: Request, service: ServiceDep) -> BatchResult:
     """Fuse a batch of scans into the map."""
-    service.admit_batch(name)
-    body = await request.body()
+    with service.receiving(name):  # counted against the map's line from the first byte
+        body = await request.body()
     return await service.add_scans(
         name, body=body, content_type=request.headers.get("content-type", ""), query=request.query_params
     )

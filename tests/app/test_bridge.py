@@ -26,10 +26,12 @@ import uvicorn
 from rosbags.typesys import Stores, get_typestore
 
 from app.config import Settings
+from app.errors import Invalid
 from app.lifecycle import bind
 from app.main import create_app
+from app.rosmsgs import SensorPose, level_heading
 from fuzzyrisk_bridge import __main__ as bridge_main
-from fuzzyrisk_bridge.core import Bridge, BridgeConfig, scan_to_json
+from fuzzyrisk_bridge.core import Bridge, BridgeConfig, NotLevel, scan_to_json
 
 TYPES = get_typestore(Stores.ROS2_JAZZY).types
 Time = TYPES["builtin_interfaces/msg/Time"]
@@ -122,6 +124,7 @@ class Reply:
     status: int = 200
     headers: dict[str, str] = field(default_factory=dict)
     stall_s: float = 0.0  # wait this long before answering (a service that does not answer in time)
+    body: str | None = None  # the answer's body as it is (default: the service's JSON)
 
 
 class Scripted:
@@ -141,7 +144,9 @@ class Scripted:
                 reply = script.replies[min(index, len(script.replies) - 1)]
                 if reply.stall_s:
                     script.release.wait(reply.stall_s)
-                payload = json.dumps({"version": index + 1} if reply.status == 200 else {"detail": f"no ({reply.status})"})
+                payload = (reply.body if reply.body is not None else json.dumps(
+                    {"version": index + 1} if reply.status == 200  # else the service's ErrorBody
+                    else {"code": "INVALID", "message": f"no ({reply.status})", "details": None}))
                 try:
                     self.send_response(reply.status)
                     for key, value in {"Content-Type": "application/json", **reply.headers}.items():
@@ -227,6 +232,75 @@ def test_scan_to_json_turns_an_upside_down_laser_the_other_way() -> None:
     assert scan["angle_increment"] < 0
 
 
+def quaternion(roll: float = 0.0, pitch: float = 0.0, yaw: float = 0.0) -> tuple[float, float, float, float]:
+    """(x, y, z, w) of yaw about z, then pitch about y, then roll about x (ZYX, as tf2's setRPY)."""
+    cr, sr = math.cos(roll / 2), math.sin(roll / 2)
+    cp, sp = math.cos(pitch / 2), math.sin(pitch / 2)
+    cy, sy = math.cos(yaw / 2), math.sin(yaw / 2)
+    return (sr * cp * cy - cr * sp * sy, cr * sp * cy + sr * cp * sy, cr * cp * sy - sr * sp * cy,
+            cr * cp * cy + sr * sp * sy)
+
+
+def orientations() -> list[tuple[str, tuple[float, float, float, float]]]:
+    """Level, upside down, tilted by 1, 2.9, 3.1 and 10 degrees (about x, y and a diagonal), non-normalised."""
+    cases: list[tuple[str, tuple[float, float, float, float]]] = []
+    for yaw in (0.0, 0.7, -2.5, math.pi):
+        cases.append((f"level yaw {yaw}", quaternion(yaw=yaw)))
+        cases.append((f"upside down yaw {yaw}", quaternion(roll=math.pi, yaw=yaw)))
+        cases.append((f"upside down by pitch yaw {yaw}", quaternion(pitch=math.pi, yaw=yaw)))
+        for degrees in (1.0, 2.9, 3.1, 10.0):
+            tilt = math.radians(degrees)
+            for flip in (0.0, math.pi):
+                cases.append((f"roll {degrees} flip {flip} yaw {yaw}", quaternion(roll=flip + tilt, yaw=yaw)))
+                cases.append((f"pitch {degrees} flip {flip} yaw {yaw}", quaternion(roll=flip, pitch=tilt, yaw=yaw)))
+                diagonal = tilt / math.sqrt(2)
+                cases.append((f"diagonal {degrees} flip {flip} yaw {yaw}",
+                              quaternion(roll=flip + diagonal, pitch=diagonal, yaw=yaw)))
+    scaled = []
+    for label, q in cases[:: 3]:
+        for scale in (0.5, 1.001, 7.0):  # a tf2 quaternion off unit length, or any multiple of one
+            scaled.append((f"{label} x{scale}", tuple(scale * c for c in q)))
+    return cases + scaled
+
+
+def test_the_bridge_places_a_scan_as_the_service_places_a_cdr_body() -> None:
+    """The bridge's copy of the level rule (``core.level_heading``) against the service's (``app.rosmsgs``)."""
+    refused = accepted = 0
+    for label, q in orientations():
+        try:
+            theta, turn = level_heading(SensorPose((0.0, 0.0, 0.0), q), "scan")
+        except Invalid as exc:  # the service refuses it: the bridge must too
+            assert "tilted" in str(exc), label
+            with pytest.raises(NotLevel):
+                scan_to_json(laser_msg(), tf_quaternion(q))
+            refused += 1
+            continue
+        scan = scan_to_json(laser_msg(), tf_quaternion(q))
+        assert scan["pose"]["theta"] == pytest.approx(theta, abs=1e-12), label
+        assert scan["angle_min"] == turn * laser_msg().angle_min, label
+        assert scan["angle_increment"] == turn * laser_msg().angle_increment, label
+        accepted += 1
+    assert refused and accepted  # both sides of the rule were met
+
+
+def test_a_tilted_laser_is_refused_counted_and_said_why(
+    bridges: Callable[..., Bridge], caplog: pytest.LogCaptureFixture,
+) -> None:
+    bridge = bridges("http://127.0.0.1:9")  # never started: nothing is sent
+    caplog.set_level(logging.WARNING, logger="fuzzyrisk_bridge")
+    bridge.submit(laser_msg(), tf_quaternion(quaternion(pitch=math.radians(10.0))))
+    bridge.submit(laser_msg(), tf_quaternion(quaternion(roll=math.radians(2.0))))  # within 3 degrees: taken
+    assert (bridge.stats.received, bridge.stats.skipped, bridge.stats.tilted, bridge.stats.queued) == (2, 1, 1, 1)
+    assert any("scan skipped: the laser is tilted 10.0 degrees from level" in r.getMessage() for r in caplog.records)
+
+
+def tf_quaternion(q: tuple[float, float, float, float]) -> Any:
+    """``T_map_laser`` with the rotation ``q`` (x, y, z, w) as it is, not normalised."""
+    rotation = Quaternion(x=q[0], y=q[1], z=q[2], w=q[3])
+    return TransformStamped(header=Header(stamp=Time(sec=0, nanosec=0), frame_id="map"), child_frame_id="laser",
+                            transform=Transform(translation=Vector3(x=1.0, y=2.0, z=0.3), rotation=rotation))
+
+
 # ---------------------------------------------------------------- against the real service
 
 
@@ -256,7 +330,7 @@ def test_scans_are_posted_in_batches_and_fuse_as_the_same_scans_posted_directly(
         direct = http.get("/maps/direct/risk", params={"format": "npy"}).content
     assert bridged == direct
     assert bridge.stats.as_dict() | {"version": None} == {
-        "received": 25, "queued": 25, "dropped": 0, "skipped": 0, "errors": 0, "scans_posted": 25,
+        "received": 25, "queued": 25, "dropped": 0, "skipped": 0, "tilted": 0, "errors": 0, "scans_posted": 25,
         "batches_posted": 3, "batches_failed": 0, "retries": 0, "throttled": 0, "timeouts": 0, "version": None}
 
 
@@ -347,7 +421,25 @@ def test_an_answer_that_retrying_cannot_change_drops_the_batch(
     bridge.submit(laser_msg(), tf_msg(0, 0, 0))  # the next batch goes on as usual
     wait_for(lambda: bridge.stats.batches_posted == 1)
     assert len(server.requests) == 2 and bridge.stats.retries == 0
-    assert any("422" in r.getMessage() and "no (422)" in r.getMessage() for r in caplog.records)  # the service's words
+    # the service's words: the code and the message of its ErrorBody
+    assert any(r.getMessage().endswith(f"422 from {server.url}/maps/lab/scans: INVALID: no (422)") for r in caplog.records)
+
+
+def test_an_error_body_not_of_the_service_is_logged_as_it_is(
+    scripted: Callable[[list[Reply]], Scripted], bridges: Callable[..., Bridge], caplog: pytest.LogCaptureFixture,
+) -> None:
+    """A proxy's page or a fuzzyrisk older than ``{code, message, details}`` (FastAPI's ``{"detail"}``): its body."""
+    server = scripted([Reply(404, body='{"detail": "Not Found"}'), Reply(502, body="<html>Bad Gateway</html>"), Reply(200)])
+    bridge = bridges(server.url, backoff_s=0.01, max_delay_s=0.0)
+    caplog.set_level(logging.WARNING, logger="fuzzyrisk_bridge")
+    bridge.submit(laser_msg(), tf_msg(0, 0, 0))
+    bridge.start()
+    wait_for(lambda: bridge.stats.batches_failed == 1)
+    bridge.submit(laser_msg(), tf_msg(0, 0, 0))
+    wait_for(lambda: bridge.stats.batches_posted == 1)
+    messages = [r.getMessage() for r in caplog.records]
+    assert any(m.endswith('404 from ' + server.url + '/maps/lab/scans: {"detail": "Not Found"}') for m in messages)
+    assert any(m.startswith("502 from the service (<html>Bad Gateway</html>)") for m in messages)
 
 
 def test_the_queue_keeps_the_newest_scans_and_counts_the_dropped(

@@ -227,3 +227,37 @@ def test_the_service_runs_the_budget_from_its_settings(make_client: Any, kit: An
     assert response.status_code == 503 and response.headers["Retry-After"] == "1"
     assert "FUZZYRISK_MAX_BODIES_IN_FLIGHT_BYTES" in error_message(response)
     assert kit.version(client, "lab") == 0
+
+
+def test_a_batch_that_would_walk_too_many_cells_is_refused_before_it_is_stored(make_client: Any, kit: Any) -> None:
+    # issue 11: a small request of long rays on a fine map held a fusion thread for minutes, and every
+    # restart replayed it; the work is estimated from the rays before the batch is stored
+    client = make_client(max_batch_cells=200_000)
+    assert client.post("/maps", json=kit.MAP_2D).status_code == 201  # 10 m x 10 m at 0.1 m
+    far = kit.laser(beams=2_000, ranges=["inf"] * 2_000)  # no-returns to range_max (20 m): clipped at the edge
+    refused = client.post("/maps/lab/scans", json={"scans": [far] * 3})
+    assert refused.status_code == 413 and "FUZZYRISK_MAX_BATCH_CELLS" in error_message(refused)
+    assert kit.version(client, "lab") == 0
+    taken = client.post("/maps/lab/scans", json={"scans": [far]})  # 147,150 cells: within the budget
+    assert taken.status_code == 200
+    assert kit.version(client, "lab") == 1
+
+
+def test_the_cast_work_estimate_follows_what_the_cast_walks() -> None:
+    import numpy as np
+
+    from fuzzyocc import FuzzyMap, GridSpec, LaserScan, cast_work
+    from fuzzyocc.presets import preset
+
+    # sensors inside and outside the map, rays leaving it: the estimate clips them as the cast does
+    spec = GridSpec(origin=(-5.0, -5.0), size=(10.0, 10.0), resolution=0.05)
+    rng = np.random.default_rng(1)
+    for _ in range(8):
+        scan = LaserScan(pose=tuple(rng.uniform(-7, 7, 2)) + (float(rng.uniform(-3, 3)),), angle_min=-np.pi,
+                         angle_increment=2 * np.pi / 360, ranges=rng.uniform(0.5, 30.0, 360), range_min=0.1,
+                         range_max=12.0)
+        estimate = cast_work(spec, [scan])
+        walked = FuzzyMap(spec, engine=preset("paper")).integrate_batch([scan]).cells_traversed
+        assert 0.95 * walked <= estimate <= 1.1 * walked, (estimate, walked)
+        # the default engine cuts no-returns beside hits short: it walks less than the estimate
+        assert FuzzyMap(spec).integrate_batch([scan]).cells_traversed <= estimate

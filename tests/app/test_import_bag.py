@@ -10,7 +10,9 @@ from __future__ import annotations
 
 import io
 import math
+import os
 import socket
+import tempfile
 import threading
 import time
 from collections.abc import Iterator
@@ -18,6 +20,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import anyio.from_thread
 import httpx
 import numpy as np
 import pytest
@@ -29,10 +32,14 @@ from rosbags.rosbag2 import Writer as Writer2
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from scipy.spatial.transform import Rotation, Slerp
 
-from app import import_bag
+from app import bagsize, import_bag
 from app.config import Settings
+from app.errors import Unavailable
 from app.import_bag import main
 from app.main import create_app
+from app.schemas import MapCreate
+from app.services import MapService
+from app.storage import SqliteStorage, StorageUnavailable
 from tests.app._ros import cloud_msg, laser_msg, wall_ranges
 from tests.conftest import error_message
 
@@ -299,16 +306,20 @@ def upload(client: TestClient, name: str, path: Path, content_type: str | None =
                        headers={"Content-Type": content_type or BAG_CT[path.suffix]})
 
 
-@pytest.mark.parametrize("kind", ["ros1", "mcap-humble", "mcap-jazzy"])
+@pytest.mark.parametrize(("kind", "content_type"), [("ros1", None), ("mcap-humble", None),
+                                                     ("mcap-humble", "application/mcap"),
+                                                     ("mcap-jazzy", "application/octet-stream")])
 def test_an_uploaded_bag_equals_the_scans_posted_with_interpolated_poses(client: TestClient, tmp_path: Path,
-                                                                         kind: str) -> None:
+                                                                         kind: str, content_type: str | None) -> None:
     scenario = laser_scenario()
     bag = write_bag(scenario, tmp_path / "drive", kind)
     assert client.post("/maps", json={**MAP_2D, "name": "bag"}).status_code == 201
-    # as its own type, or as application/octet-stream (what generated clients send): told by its first bytes
-    response = upload(client, "bag", bag, "application/octet-stream" if kind == "mcap-jazzy" else None)
+    # as its own type (MCAP: application/mcap, what the service's downloads are, or application/x-mcap), or as
+    # application/octet-stream (what generated clients send): told by its first bytes
+    response = upload(client, "bag", bag, content_type)
     assert response.status_code == 200, response.text
     summary = response.json()
+    assert summary["complete"] is True and summary["stopped"] is None
     assert summary["messages"] == 41 and summary["scans_fused"] == 39
     assert summary["skipped"] == {"before the first transform map -> odom": 1,
                                   "after the last transform map -> odom": 1}
@@ -377,7 +388,7 @@ def test_upload_refusals_are_4xx_and_change_nothing(make_client: Any, tmp_path: 
         assert client.get("/maps/bag").json()["version"] == 0
         return error_message(response)
 
-    assert "application/x-mcap" in refused(415, data, "text/plain")
+    assert "application/mcap" in refused(415, data, "text/plain")
     assert "neither" in refused(422, b"PK\x03\x04" + data, "application/octet-stream")
     assert "not a .bag file" in refused(422, data, "application/x-rosbag")  # an mcap labelled as ROS 1
     assert "not a readable bag" in refused(422, data[:len(data) // 2], "application/x-mcap")
@@ -413,6 +424,188 @@ def test_messages_a_map_cannot_take_are_skipped_with_the_reason(client: TestClie
     assert summary["scans_fused"] == 13
     (reason, count), = [(k, v) for k, v in summary["skipped"].items() if k.startswith("refused")]
     assert count == 13 and "tilted" in reason and "3-D map" in reason
+
+
+# ---------------------------------------------------------------- an upload is admitted once, and never half-answered
+
+
+BATCH = 8  # scans per batch in these tests: the laser scenario's 39 placed scans take 5 batches
+
+
+def test_an_admitted_import_is_not_refused_part_way_for_the_line(
+        make_client: Any, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Other clients fill the map's line once the import's first batch is in: its later batches still go in.
+    With room for one batch in line, the import's own body, batches or reading never count against it."""
+    client = make_client(max_scans_per_batch=BATCH, max_pending_batches=1)
+    bag = write_bag(laser_scenario(), tmp_path / "drive", "mcap-jazzy")
+    assert client.post("/maps", json={**MAP_2D, "name": "bag"}).status_code == 201
+    line_full = False
+    add, admit = MapService.add_parsed_scans, MapService._admit
+
+    async def add_then_fill(self: MapService, *args: Any, **kwargs: Any) -> Any:
+        nonlocal line_full
+        result = await add(self, *args, **kwargs)
+        line_full = True  # from now on, every new batch of this map would be refused
+        return result
+
+    def full(self: MapService, entry: Any) -> None:
+        if line_full:
+            raise Unavailable("the line is full", headers={"Retry-After": "1"})
+        admit(self, entry)
+
+    monkeypatch.setattr(MapService, "add_parsed_scans", add_then_fill)
+    monkeypatch.setattr(MapService, "_admit", full)
+    response = upload(client, "bag", bag)
+    assert response.status_code == 200, response.text
+    summary = response.json()
+    assert summary["complete"] is True and summary["batches"] == 5 and summary["scans_fused"] == 39
+    assert summary["version"] == 5 == client.get("/maps/bag").json()["version"]
+    # a new import is admitted (or not) as a whole: refused before anything is applied
+    refused = upload(client, "bag", bag)
+    assert refused.status_code == 503 and refused.headers["retry-after"] == "1"
+    assert client.get("/maps/bag").json()["version"] == 5
+
+
+@pytest.mark.parametrize("failing_commit", [1, 3])
+def test_a_failure_part_way_answers_200_with_what_was_applied(
+        make_client: Any, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, failing_commit: int) -> None:
+    """A full disk at the third batch: 200, the two batches before it applied, the error in ``stopped``
+    (a retryable 503 would have the client send the bag again, and fuse its first part twice). At the
+    first batch: the storage answer (503 STORAGE_UNAVAILABLE, Retry-After), nothing applied."""
+    client = make_client(max_scans_per_batch=BATCH)
+    bag = write_bag(laser_scenario(), tmp_path / "drive", "mcap-jazzy")
+    assert client.post("/maps", json={**MAP_2D, "name": "bag"}).status_code == 201
+    commits = 0
+    append = SqliteStorage.append_batches
+
+    def fill_disk(self: SqliteStorage, records: Any) -> None:
+        nonlocal commits
+        commits += 1
+        if commits >= failing_commit:
+            raise StorageUnavailable("database or disk is full")
+        append(self, records)
+
+    monkeypatch.setattr(SqliteStorage, "append_batches", fill_disk)
+    response = upload(client, "bag", bag)
+    if failing_commit == 1:
+        assert response.status_code == 503 and response.json()["code"] == "STORAGE_UNAVAILABLE"
+        assert int(response.headers["retry-after"]) > 0
+        assert client.get("/maps/bag").json()["version"] == 0
+        return
+    assert response.status_code == 200, response.text
+    assert "retry-after" not in response.headers
+    summary = response.json()
+    assert summary["complete"] is False
+    assert summary["batches"] == 2 and summary["scans_fused"] == 2 * BATCH and summary["version"] == 2
+    assert summary["stopped"]["code"] == "STORAGE_UNAVAILABLE"
+    assert "after 2 batches" in summary["stopped"]["message"] and set(summary["stopped"]) == {
+        "code", "message", "details"}
+    assert client.get("/maps/bag").json()["version"] == 2
+    assert client.get("/maps/bag").json()["scans_fused"] == 2 * BATCH
+
+
+def test_scans_read_for_a_map_deleted_and_created_again_are_refused_409(
+        client: TestClient, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The bag is read for the 2-D map; meanwhile the name becomes a 3-D map: 409, nothing stored."""
+    bag = write_bag(laser_scenario(), tmp_path / "drive", "mcap-jazzy")
+    assert client.post("/maps", json={**MAP_2D, "name": "bag"}).status_code == 201
+    service: MapService = client.app.state.service  # type: ignore[attr-defined]
+    declared = bagsize.decompressed_bytes
+
+    def and_replace_the_map(path: Path) -> int:
+        # in the upload's reading thread: the map is replaced on the event loop meanwhile
+        anyio.from_thread.run(service.delete_map, "bag")
+        anyio.from_thread.run(service.create_map, MapCreate(**{**MAP_3D, "name": "bag"}))
+        return declared(path)
+
+    monkeypatch.setattr(bagsize, "decompressed_bytes", and_replace_the_map)
+    response = upload(client, "bag", bag)
+    assert response.status_code == 409, response.text
+    assert "created again" in error_message(response)
+    info = client.get("/maps/bag").json()
+    assert info["dimensions"] == 3 and info["version"] == 0
+    stored = service.storage.load_map("bag")
+    assert stored is not None and stored.batches == []
+
+
+def test_an_upload_is_fused_batch_by_batch_as_it_is_read(
+        make_client: Any, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The first batch is fused before the last message is read: the bag is never held whole in memory."""
+    client = make_client(max_scans_per_batch=BATCH)
+    bag = write_bag(laser_scenario(), tmp_path / "drive", "mcap-jazzy")
+    assert client.post("/maps", json={**MAP_2D, "name": "bag"}).status_code == 201
+    events: list[str] = []
+    place, add = import_bag._place, MapService.add_parsed_scans
+
+    def placing(*args: Any, **kwargs: Any) -> Any:
+        events.append("read")
+        return place(*args, **kwargs)
+
+    async def fusing(self: MapService, *args: Any, **kwargs: Any) -> Any:
+        events.append("fuse")
+        return await add(self, *args, **kwargs)
+
+    monkeypatch.setattr(import_bag, "_place", placing)
+    monkeypatch.setattr(MapService, "add_parsed_scans", fusing)
+    assert upload(client, "bag", bag).json()["batches"] == 5
+    assert events.index("fuse") < len(events) - 1 - events[::-1].index("read")
+    assert events[:BATCH + 2] == ["read"] * (BATCH + 1) + ["fuse"]  # the unplaceable first message, then 8
+
+
+def test_an_upload_is_written_to_the_data_directory_and_a_full_disk_is_the_storage_answer(
+        make_client: Any, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    client = make_client()
+    temp_dir = tmp_path / "data" / "tmp"  # <data dir>/tmp (Settings.temp_dir), not the system's /tmp
+    bag = write_bag(laser_scenario(), tmp_path / "drive", "mcap-jazzy")
+    assert client.post("/maps", json={**MAP_2D, "name": "bag"}).status_code == 201
+    directories: list[Path] = []
+    mkstemp = tempfile.mkstemp
+
+    def full(*args: Any, **kwargs: Any) -> tuple[int, str]:
+        directories.append(Path(kwargs["dir"]) if kwargs.get("dir") else Path(tempfile.gettempdir()))
+        _, name = mkstemp(*args, **kwargs)
+        return os.open("/dev/full", os.O_WRONLY), name  # every write: ENOSPC, as on a full disk
+
+    monkeypatch.setattr(tempfile, "mkstemp", full)
+    response = upload(client, "bag", bag)
+    assert response.status_code == 503, response.text
+    assert response.json()["code"] == "STORAGE_UNAVAILABLE" and int(response.headers["retry-after"]) > 0
+    assert directories == [temp_dir]
+    monkeypatch.undo()
+    assert upload(client, "bag", bag).status_code == 200
+    assert client.get("/maps/bag").json()["version"] == 1
+    assert list(temp_dir.glob("*")) == []  # each upload's file removed, the failed one too
+
+
+def test_the_files_a_killed_run_left_are_removed_at_start(make_client: Any, tmp_path: Path) -> None:
+    left = tmp_path / "data" / "tmp" / "fuzzyrisk-bag-killed.mcap"
+    left.parent.mkdir(parents=True)
+    left.write_bytes(b"\x89MCAP0\r\n")
+    make_client(data_dir=tmp_path / "data")
+    assert not left.exists()
+
+
+# ---------------------------------------------------------------- a map in its own frame
+
+
+def robot1_scenario() -> Scenario:
+    """The laser scenario in a fleet's namespace: its TF tree ends in robot1/map, not map."""
+    scenario = laser_scenario()
+    scenario.tracks[0].parent = "robot1/map"
+    return scenario
+
+
+def test_an_upload_places_the_scans_in_the_maps_own_frame(client: TestClient, tmp_path: Path) -> None:
+    bag = write_bag(robot1_scenario(), tmp_path / "robot1", "mcap-jazzy")
+    assert client.post("/maps", json={**MAP_2D, "name": "bag", "frame_id": "robot1/map"}).status_code == 201
+    response = upload(client, "bag", bag)
+    assert response.status_code == 200, response.text
+    assert response.json()["scans_fused"] == 39
+    assert response.json()["skipped"] == {"before the first transform robot1/map -> odom": 1,
+                                          "after the last transform robot1/map -> odom": 1}
+    # map_frame still names another frame when the bag's tree has no robot1/map
+    other = write_bag(laser_scenario(), tmp_path / "plain", "mcap-jazzy")
+    assert upload(client, "bag", other, map_frame="map").json()["scans_fused"] == 39
 
 
 # ---------------------------------------------------------------- the command
@@ -474,6 +667,21 @@ def test_the_command_in_process_and_through_the_service_gives_the_posted_map(
         assert main([str(bag), *box, "--url", url, "--map", f"bag_{body}", "--body", body]) == 0, capsys.readouterr()
         assert "39 fused" in capsys.readouterr().out
         assert_same(_served_grids(url, f"bag_{body}"), expected)
+
+
+def test_the_command_creates_the_map_in_its_map_frame_and_appends_in_the_maps_own(
+        live_service: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    url = live_service
+    bag = write_bag(robot1_scenario(), tmp_path / "robot1", "mcap-jazzy")
+    box = ["--origin", "-5", "-5", "--size", "10", "10", "--resolution", "0.1"]
+    assert main([str(bag), *box, "--map-frame", "robot1/map", "--url", url, "--map", "r1"]) == 0
+    assert "39 fused" in capsys.readouterr().out
+    info = httpx.get(f"{url}/maps/r1", timeout=60).json()
+    assert info["frame_id"] == "robot1/map" and info["scans_fused"] == 39
+    # --append without --map-frame: the scans are placed in the map's own frame
+    assert main([str(bag), "--url", url, "--map", "r1", "--append", "--body", "json"]) == 0
+    assert "39 fused" in capsys.readouterr().out
+    assert httpx.get(f"{url}/maps/r1", timeout=60).json()["scans_fused"] == 78
 
 
 def test_the_command_reads_a_3d_bag_into_a_3d_map(client: TestClient, tmp_path: Path,

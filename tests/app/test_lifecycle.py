@@ -123,7 +123,7 @@ def test_without_a_writable_temporary_directory_the_data_directory_holds_the_tem
 
     monkeypatch.setattr(tempfile, "gettempdir", nowhere)
     (tmp_path / "data" / "tmp" / "pymp-stale").mkdir(parents=True)  # what a killed run left
-    temp = lifecycle._ensure_temp_dir(tmp_path / "data")
+    temp = lifecycle._ensure_temp_dir(tmp_path / "data" / "tmp")
     assert temp == (tmp_path / "data" / "tmp").resolve() and os.environ["TMPDIR"] == str(temp)
     assert list(temp.iterdir()) == []
 

@@ -272,3 +272,129 @@ def test_a_backup_taken_while_the_service_runs_serves_the_same_maps(make_setting
     with TestClient(create_app(make_settings(data_dir=copy.parent))) as restored:
         assert restored.get("/maps/lab").json()["version"] == 3
         assert restored.get("/maps/lab/risk", params={"format": "npy"}).content == risk
+
+
+def test_a_start_holds_one_map_at_a_time(make_client: Any, make_settings: Any, kit: Any) -> None:
+    # issue 11: a start read every batch of every map at once (377 MB of log peaked at 1.1 GB); now
+    # maps load one at a time, so the peak follows the largest map, not their sum
+    import asyncio
+    import tracemalloc
+
+    from app import batches
+    from app.metrics import Metrics
+    from app.schemas import ScanBatch
+    from app.services import MapService
+    from app.storage import BatchRecord, SqliteStorage
+
+    names = [f"m{k}" for k in range(8)]
+    client = make_client()
+    for name in names:
+        assert client.post("/maps", json={**kit.MAP_2D, "name": name}).status_code == 201
+    client.__exit__(None, None, None)
+    settings = make_settings()
+    limits = batches.Limits(max_scans=256, max_rays=settings.max_rays_per_scan)
+    # many small batches: the log's bytes, not one batch's fusion scratch, make the peak
+    payload = batches.encode(batches.from_json(ScanBatch.model_validate({"scans": [kit.laser(beams=20_000)]}), 2,
+                                               limits))
+    per_map = 50
+    storage = SqliteStorage(settings.database_path)
+    storage.append_batches([BatchRecord(name, version, payload, "2026-12-02T00:00:00+00:00")
+                            for name in names for version in range(1, per_map + 1)])
+    storage.close()
+    total = len(payload) * per_map * len(names)
+
+    async def start() -> tuple[int, int]:
+        service = MapService(settings, SqliteStorage(settings.database_path), Metrics())
+        tracemalloc.start()
+        try:
+            await service.start()
+            _, peak = tracemalloc.get_traced_memory()
+        finally:
+            tracemalloc.stop()
+        versions = sum(service.get_map(name).version for name in names)
+        await service.stop()
+        return peak, versions
+
+    peak, versions = asyncio.run(start())
+    assert versions == per_map * len(names)  # every batch replayed
+    print(f"start peak {peak / 1e6:.1f} MB for {total / 1e6:.1f} MB of log")
+    assert peak < total / 2, (peak, total)
+
+
+def test_a_map_is_snapshotted_once_its_log_holds_the_byte_limit(make_client: Any, make_settings: Any,
+                                                                kit: Any) -> None:
+    # issue 11: the log of one map was bounded by a count of batches only (200 x 64 MiB = 12.5 GiB)
+    client = make_client(snapshot_every=1000, snapshot_log_bytes=20_000)
+    data_dir = make_settings().data_dir
+    client.post("/maps", json=kit.MAP_2D)
+    big = [{"scans": [kit.laser(beams=1_000, wall=2.0 + 0.1 * k)]} for k in range(6)]  # about 8 kB logged each
+    for k, body in enumerate(big, start=1):
+        assert client.post("/maps/lab/scans", json=body).status_code == 200
+        snapshots = _rows(data_dir, "snapshots")
+        if snapshots:
+            break
+    assert snapshots == [("lab", k)] and 2 <= k <= 4  # the batch that crossed 20,000 bytes of log
+    assert _rows(data_dir, "batches") == []  # dropped with the snapshot
+    risk = kit.risk_npy(client, "lab")
+    client.__exit__(None, None, None)
+    assert kit.risk_npy(make_client(), "lab").tobytes() == risk.tobytes()
+
+
+@pytest.mark.parametrize(("delete", "message"), [
+    ("DELETE FROM snapshots WHERE map = 'lab'", "its snapshot (version 2) is missing"),
+    ("DELETE FROM batches WHERE map = 'lab' AND seq = 3", "its batches up to version 3 are missing"),
+])
+def test_rows_deleted_behind_the_services_back_quarantine_the_map(make_settings: Any, kit: Any, delete: str,
+                                                                  message: str,
+                                                                  monkeypatch: pytest.MonkeyPatch) -> None:
+    # issue 11: a deleted snapshot row left a map without batches 1-2 reporting version 3
+    settings = make_settings(snapshot_every=2)
+    _keep_the_log_at_shutdown(monkeypatch)
+    with TestClient(create_app(settings)) as client:
+        client.post("/maps", json=kit.MAP_2D)
+        for body in _scans(kit, 3):  # a snapshot at version 2, batch 3 after it
+            assert client.post("/maps/lab/scans", json=body).status_code == 200
+    monkeypatch.undo()
+    with sqlite3.connect(settings.data_dir / "fuzzyrisk.sqlite3") as db:
+        db.execute(delete)
+    with TestClient(create_app(settings)) as client:
+        damaged = client.get("/maps/lab")
+        assert damaged.status_code == 503 and message in error_message(damaged)
+        assert client.get("/ready").json()["maps_quarantined"] == ["lab"]
+
+
+def test_a_batch_discarded_by_the_service_is_not_damage(tmp_path: Path) -> None:
+    # a batch that failed to apply is removed from the log by the service itself: its version is skipped
+    from app.storage import SqliteStorage
+
+    storage = SqliteStorage(tmp_path / "db.sqlite3")
+    storage.create_map("m", {"model": "fuzzy"}, "t0")
+    for version in (1, 2, 3):
+        storage.append_batch("m", version, b"x", "t1")
+    storage.discard_batch("m", 3)  # the newest: the map's record goes back to 2
+    storage.discard_batch("m", 1)  # an older one (later ones committed meanwhile): a skipped version
+    stored = storage.load_map("m")
+    assert stored is not None and stored.damage == [] and [v for v, _ in stored.batches] == [2]
+    storage.append_batch("m", 4, b"y", "t2")
+    assert storage.load_map("m").damage == []  # type: ignore[union-attr]
+    storage.close()
+
+
+def test_a_database_from_before_the_version_record_loads_unchecked(tmp_path: Path) -> None:
+    from app.storage import SqliteStorage
+
+    path = tmp_path / "old.sqlite3"
+    with sqlite3.connect(path) as db:  # the schema as it was: maps without their versions
+        db.executescript("CREATE TABLE maps (name TEXT PRIMARY KEY, meta TEXT NOT NULL, updated TEXT NOT NULL);"
+                         "CREATE TABLE batches (map TEXT NOT NULL, seq INTEGER NOT NULL, payload BLOB NOT NULL,"
+                         " PRIMARY KEY (map, seq));"
+                         "CREATE TABLE snapshots (map TEXT PRIMARY KEY, version INTEGER NOT NULL, payload BLOB NOT NULL);"
+                         "INSERT INTO maps VALUES ('m', '{}', 't0'); INSERT INTO batches VALUES ('m', 7, x'00');")
+    storage = SqliteStorage(path)
+    stored = storage.load_map("m")
+    assert stored is not None and stored.damage == [] and [v for v, _ in stored.batches] == [7]
+    storage.append_batch("m", 8, b"y", "t1")  # from now on the map's record is kept
+    with sqlite3.connect(path) as db:
+        db.execute("DELETE FROM batches WHERE seq = 8")
+    assert storage.load_map("m").damage == ["its batches up to version 8 are missing (the newest stored is 7)"]  # type: ignore[union-attr]
+    storage.close()

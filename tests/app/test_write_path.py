@@ -516,3 +516,49 @@ def test_a_map_with_a_full_line_refuses_more_batches_with_503_and_other_maps_go_
         assert [f.result().json()["version"] for f in (first, second)] == [1, 2]
         assert client.post("/maps/lab/scans", json=bodies[2]).json()["version"] == 3  # room again
         assert kit.risk_npy(client, "lab").tobytes() == _replay(kit, bodies)
+
+
+def test_a_read_of_one_map_does_not_wait_behind_the_fusion_of_another(make_client: Any, kit: Any,
+                                                                      monkeypatch: pytest.MonkeyPatch) -> None:
+    # every fusion thread busy with map a (held here, as a scan of millions of beams would be): a read
+    # of map b is answered at once (issue 11: a read of a third map waited 297 s behind two fusions)
+    client = make_client(fusion_threads=1)
+    for name in ("a", "b"):
+        assert client.post("/maps", json={**kit.MAP_2D, "name": name}).status_code == 201
+    service = client.app.state.service  # type: ignore[attr-defined]
+    held, release = threading.Event(), threading.Event()
+    apply = service._apply
+
+    def slow_apply(entry: Any, version: int, scans: Any) -> Any:
+        if entry.name == "a":
+            held.set()
+            release.wait(60)
+        return apply(entry, version, scans)
+
+    monkeypatch.setattr(service, "_apply", slow_apply)
+    with ThreadPoolExecutor(1) as pool:
+        fusing = pool.submit(client.post, "/maps/a/scans", json={"scans": [kit.laser()]})
+        assert held.wait(30)
+        started = time.monotonic()
+        for path in ("/maps/b/risk.npy", "/maps/b/risk.png", "/maps/b/occupancy_grid"):
+            assert client.get(path).status_code == 200
+        assert client.post("/maps/b/risk/query", json={"points": [[0.0, 0.0]]}).status_code == 200
+        waited = time.monotonic() - started
+        release.set()
+        assert fusing.result(60).status_code == 200
+    assert waited < 10.0  # before: until the fusion ended (here: never, release came after)
+
+
+def test_uploads_still_arriving_count_against_their_maps_line(make_client: Any, kit: Any) -> None:
+    # issue 11: bodies read side by side all passed a check that counted only batches already in line
+    client = make_client(max_pending_batches=2)
+    for name in ("lab", "other"):
+        assert client.post("/maps", json={**kit.MAP_2D, "name": name}).status_code == 201
+    service = client.app.state.service  # type: ignore[attr-defined]
+    with service.receiving("lab"), service.receiving("lab"):  # two bodies on their way
+        refused = client.post("/maps/lab/scans", json={"scans": [kit.laser()]})
+        assert refused.status_code == 503 and "arriving" in error_message(refused)
+        assert refused.headers["Retry-After"] == "1"
+        assert client.post("/maps/other/scans", json={"scans": [kit.laser()]}).status_code == 200  # its own line
+    assert client.post("/maps/lab/scans", json={"scans": [kit.laser()]}).status_code == 200  # room again
+    assert kit.version(client, "lab") == 1 and service._entry("lab").arriving == 0

@@ -149,10 +149,11 @@ class FoxgloveClient:
         return subscription, timestamp, raw[13:]
 
 
-@pytest.fixture
-def foxglove(start_server: Callable[..., Server]) -> Iterator[tuple[Server, Callable[[], FoxgloveClient]]]:
+@contextlib.contextmanager
+def serve_foxglove(start_server: Callable[..., Server], **env: str) -> Iterator[tuple[Server, Callable[[], FoxgloveClient]]]:
+    """``python -m app`` with the live view on (and ``env``), and a maker of viewers connected to it."""
     port = free_port()
-    server = start_server(FUZZYRISK_FOXGLOVE_PORT=str(port), FUZZYRISK_FOXGLOVE_INTERVAL_S="0.2")
+    server = start_server(FUZZYRISK_FOXGLOVE_PORT=str(port), FUZZYRISK_FOXGLOVE_INTERVAL_S="0.2", **env)
     with contextlib.ExitStack() as connections:
 
         def client() -> FoxgloveClient:
@@ -164,6 +165,12 @@ def foxglove(start_server: Callable[..., Server]) -> Iterator[tuple[Server, Call
     server.terminate()  # SIGTERM: every process it started must end (checked there)
     # the lifespan ran to its end: the view's thread joined and its server stopped, then the maps' shutdown
     assert "Application shutdown complete" in server.log()
+
+
+@pytest.fixture
+def foxglove(start_server: Callable[..., Server]) -> Iterator[tuple[Server, Callable[[], FoxgloveClient]]]:
+    with serve_foxglove(start_server) as served:
+        yield served
 
 
 def risk_and_observed(http: Any, name: str) -> tuple[np.ndarray, np.ndarray]:
@@ -241,6 +248,40 @@ def test_a_foxglove_client_receives_the_maps_grid(
         deadline = time.monotonic() + 30
         while "/fuzzyrisk/hall/grid" in viewer.channels:
             viewer._receive_one(deadline)
+
+
+def test_every_message_of_a_map_is_in_its_frame_and_a_large_grid_goes_in_max_blocks(
+    start_server: Callable[..., Server], world: type[World],
+) -> None:
+    """A map in ``robot1/map``: its scan and plan carry that frame while nobody watches its grid (the grid
+    is never read then), and so does its grid. 24,000 cells over FUZZYRISK_FOXGLOVE_MAX_CELLS=10000: the
+    grid goes in 2 x 2 blocks, each the largest risk of its observed cells, at twice the resolution."""
+    with serve_foxglove(start_server, FUZZYRISK_FOXGLOVE_MAX_CELLS="10000") as (server, new_client):
+        with server.client() as http:
+            made = http.post("/maps", json={**world.MAP, "name": "r1", "frame_id": "robot1/map"})
+            assert made.status_code == 201, made.text
+            scans = [world.laser_json(pose) for pose in world.POSES[:6]]
+            assert http.post("/maps/r1/scans", json={"scans": scans}).status_code == 200
+            plan = http.post("/maps/r1/plan", json={"start": [1.5, 3.0], "goal": [8.5, 3.0], "planner": "grid"})
+            assert plan.status_code == 200, plan.text
+            viewer = new_client()
+
+            viewer.subscribe("/fuzzyrisk/r1/scan")  # foxglove.LaserScan: 2 frame_id
+            assert protobuf_fields(viewer.next_message("/fuzzyrisk/r1/scan")[1])[2][0] == b"robot1/map"
+            viewer.subscribe("/fuzzyrisk/r1/plan")  # foxglove.SceneUpdate: 2 entities; SceneEntity: 2 frame_id
+            update = protobuf_fields(viewer.next_message("/fuzzyrisk/r1/plan")[1])
+            assert protobuf_fields(update[2][0])[2][0] == b"robot1/map"
+
+            viewer.subscribe("/fuzzyrisk/r1/grid")
+            grid = decode_grid(viewer.next_message("/fuzzyrisk/r1/grid")[1])
+            risk, observed = risk_and_observed(http, "r1")
+        assert grid["frame_id"] == "robot1/map" and grid["origin"] == world.MAP["origin"]
+        assert risk.shape == (200, 120) and grid["cell_size"] == 2 * world.MAP["resolution"]
+        received, _ = grid_layers(grid, (100, 60))
+        blocks = np.where(observed, risk, -1.0).reshape(100, 2, 60, 2).max(axis=(1, 3))
+        expected = np.where(blocks >= 0, blocks, 0.5).astype(np.float32)
+        assert np.array_equal(received, expected)
+        assert received.max() == risk[observed].max()  # the walls are all there
 
 
 def service_env() -> dict[str, str]:

@@ -154,6 +154,16 @@ def test_the_generated_client_drives_every_operation(generated: tuple[ModuleType
     assert entry[1].topic == "/map" and entry[2].data == cdr
     nav2 = op("risk", "export_nav2").sync("hall", client=client, mode=m.ExportNav2Mode.TRINARY)
     assert {"map.yaml", "map.pgm"} <= set(zipfile.ZipFile(io.BytesIO(nav2.payload.read())).namelist())
+    # the recording for offline viewing: the same grid on /map, every scan on /scan (no snapshot yet), the
+    # binary scan's float32 ranges as sent
+    recorded = op("recordings", "export_mcap").sync("hall", client=client).payload.read()
+    messages = [(c.topic, msg.data)
+                for _, c, msg in make_reader(io.BytesIO(recorded)).iter_messages(log_time_order=True)]
+    assert [d for t, d in messages if t == "/map"] == [cdr]
+    scans = [d for t, d in messages if t == "/scan"]
+    assert len(scans) == len(POSES) and [t for t, _ in messages].count("/tf") == len(POSES)
+    last_scan = jazzy_typestore().deserialize_cdr(scans[-1], "sensor_msgs/msg/LaserScan")
+    assert last_scan.ranges.astype("<f4").tobytes() == raw
 
     # plans, and a start the planner cannot use: Nav2's code in the one error body
     names = [p.name for p in op("plans", "planners").sync(client=client).planners]

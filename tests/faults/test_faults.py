@@ -51,13 +51,23 @@ def test_no_batch_is_half_applied_and_risk_matches_the_replay(killed: KillCounts
 def test_full_disk_answers_a_5xx_with_a_detail(storage: StorageReport) -> None:
     assert 500 <= storage.disk_full_status < 600, storage.disk_full_body
     assert storage.disk_full_json_detail, storage.disk_full_body
-    assert all(500 <= status < 600 for status in storage.statuses_while_full), storage.statuses_while_full
+    # keep knocking: every answer stays clean. A 200 is one too: a full disk is not monotonic (what a
+    # refused write took is given back, and a smaller batch can fit); it is acknowledged, and the map
+    # is checked with it
+    statuses = storage.statuses_while_full
+    assert all(status == 200 or 500 <= status < 600 for status in statuses), statuses
+    assert sum(n for status, n in statuses.items() if status >= 500) >= 3, statuses
 
 
 def test_full_disk_applies_no_refused_batch_and_corrupts_nothing(storage: StorageReport) -> None:
     assert storage.refused_but_applied == 0
     assert storage.map_intact_while_full, storage.map_note_while_full
     assert storage.restart_after_full_ok, storage.restart_after_full_note
+
+
+def test_a_map_can_be_deleted_while_the_disk_is_full(storage: StorageReport) -> None:
+    # issue 11: DELETE answered 503 on a full disk, so space could not be freed through the API
+    assert storage.delete_while_full.startswith("204"), storage.delete_while_full
 
 
 def test_service_writes_again_once_space_is_back(storage: StorageReport) -> None:
