@@ -61,6 +61,11 @@ class Settings(BaseSettings):
     body_read_timeout_s: float = Field(
         30.0, gt=0.0, le=3600.0, description="Longest wait for the next chunk of a request body, seconds (408 beyond)."
     )
+    body_timeout_s: float = Field(
+        120.0, gt=0.0, le=86400.0,
+        description="Longest time a whole request body may take to arrive, seconds (408 beyond): a body trickled "
+        "a byte at a time passes the per-chunk timeout; 64 MiB in 120 s is 0.5 MiB/s.",
+    )
     header_timeout_s: float = Field(
         10.0, gt=0.0, le=3600.0,
         description="Longest time a request's headers may take to arrive, from the connection or the previous "

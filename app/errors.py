@@ -18,9 +18,10 @@ from typing import Any
 from fastapi import FastAPI, Request
 from fastapi.encoders import jsonable_encoder
 from fastapi.exceptions import RequestValidationError
-from fastapi.responses import JSONResponse
+from fastapi.responses import JSONResponse, Response
 from pydantic import BaseModel, Field
 from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.requests import ClientDisconnect
 
 from app.storage import StorageUnavailable
 
@@ -47,6 +48,8 @@ STATUS_CODES: dict[int, str] = {
     503: "UNAVAILABLE",
     507: "INSUFFICIENT_STORAGE",
 }
+#: The status logged for a request whose client went away before its body was in (nginx's; never received).
+CLIENT_CLOSED_REQUEST = 499
 #: The code of a request that does not match the operation's schema (``details``: one entry per problem).
 VALIDATION_ERROR = "VALIDATION_ERROR"
 STORAGE_UNAVAILABLE = "STORAGE_UNAVAILABLE"
@@ -209,6 +212,12 @@ def install_error_handlers(app: FastAPI) -> None:
         return error_response(503, STORAGE_UNAVAILABLE, STORAGE_UNAVAILABLE_DETAIL,
                               headers={"Retry-After": str(STORAGE_RETRY_AFTER_S)})
 
+    async def handle_disconnect(request: Request, _exc: Exception) -> Response:
+        # the client went away while its body arrived: nobody to answer, and nothing went wrong here (it was
+        # logged as "Exception in ASGI application" once per such client, issue 11); 499 as nginx says it
+        LOG.info("client disconnected before its body was in: %s %s", request.method, request.url.path)
+        return Response(status_code=CLIENT_CLOSED_REQUEST)
+
     async def handle_unexpected(_request: Request, exc: Exception) -> JSONResponse:
         # Starlette re-raises the exception after this answer: the server logs its traceback once
         return error_response(500, status_code_name(500),
@@ -219,4 +228,5 @@ def install_error_handlers(app: FastAPI) -> None:
     app.add_exception_handler(StorageUnavailable, handle_storage)
     app.add_exception_handler(RequestValidationError, handle_validation)
     app.add_exception_handler(StarletteHTTPException, handle_http)
+    app.add_exception_handler(ClientDisconnect, handle_disconnect)
     app.add_exception_handler(Exception, handle_unexpected)

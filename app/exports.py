@@ -312,3 +312,22 @@ def nav2_zip(
             entry.external_attr = (0o100644 & 0xFFFF) << 16
             archive.writestr(entry, content)
     return buffer.getvalue()
+
+
+#: ``int8_json_array``'s text of each value from -1 to 100, right-aligned in 4 bytes with its comma.
+_INT8_TEXT = np.frombuffer(b"".join(f"{v:>3},".encode() for v in range(-1, 101)), dtype=np.uint8).reshape(-1, 4)
+
+
+def int8_json_array(data: np.ndarray) -> bytes:
+    """``data`` (values in -1..100, an OccupancyGrid's) as a JSON array, built by numpy without a Python loop.
+
+    Each value takes 4 bytes (the padding is JSON whitespace): 16 M cells in a fraction of a second
+    with the GIL mostly free, where pydantic held it for 2-3 s and every request waited (issue 11).
+    """
+    flat = np.asarray(data, dtype=np.int16).reshape(-1)
+    if flat.size == 0:
+        return b"[]"
+    if flat.min() < -1 or flat.max() > 100:
+        raise ValueError("OccupancyGrid data must lie in -1..100")
+    text = _INT8_TEXT[flat + 1].reshape(-1).tobytes()
+    return b"[" + text[:-1] + b"]"

@@ -154,7 +154,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.add_middleware(BodyLimitMiddleware, max_bytes=settings.max_body_bytes,
                        small_bytes=settings.max_json_body_bytes)
     app.add_middleware(BodyBudgetMiddleware, max_bytes=settings.max_bodies_in_flight_bytes,
-                       read_timeout_s=settings.body_read_timeout_s)
+                       read_timeout_s=settings.body_read_timeout_s, body_timeout_s=settings.body_timeout_s)
     app.add_middleware(ApiKeyMiddleware, api_key=settings.api_key)  # outside the body limits: the key first
     app.add_middleware(ObserveMiddleware, metrics=metrics)  # added last: outermost, sees every answer
 

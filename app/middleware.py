@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import math
 import re
 import time
 
@@ -109,14 +110,16 @@ class BodyBudgetMiddleware:
     Every request's body bytes count from the moment they arrive until the request is answered
     (the service holds a parsed body that long); a chunk that would take all bodies together past
     ``max_bytes`` answers 503 with ``Retry-After``, so forty slow 60 MB uploads cannot take 2.6 GB
-    (issue 11). A body whose next chunk takes longer than ``read_timeout_s`` answers 408: a
-    trickled body does not hold its connection and its bytes for ever.
+    (issue 11). A body whose next chunk takes longer than ``read_timeout_s``, or which is not all
+    in within ``body_timeout_s`` of its first wait, answers 408: a trickled body (a byte every 10 s
+    passes any per-chunk timeout) does not hold its connection and its share of the budget for ever.
     """
 
-    def __init__(self, app: ASGIApp, max_bytes: int, read_timeout_s: float) -> None:
+    def __init__(self, app: ASGIApp, max_bytes: int, read_timeout_s: float, body_timeout_s: float = math.inf) -> None:
         self.app = app
         self.max_bytes = max_bytes
         self.read_timeout_s = read_timeout_s
+        self.body_timeout_s = body_timeout_s
         self.in_flight = 0  # bytes of bodies received and not yet answered (one event loop: no lock)
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
@@ -125,14 +128,23 @@ class BodyBudgetMiddleware:
             return
         held = 0
         body_done = False
+        deadline: float | None = None  # the whole body's, from the first wait for it
 
         async def budgeted_receive() -> Message:
-            nonlocal held, body_done
+            nonlocal held, body_done, deadline
             if body_done:  # after the body only a disconnect can come: no timeout on that wait
                 return await receive()
+            now = time.monotonic()
+            if deadline is None:
+                deadline = now + self.body_timeout_s
+            wait = min(self.read_timeout_s, deadline - now)
             try:
-                message = await asyncio.wait_for(receive(), self.read_timeout_s)
+                message = await asyncio.wait_for(receive(), max(wait, 0.0))
             except asyncio.TimeoutError:
+                if wait < self.read_timeout_s:
+                    raise HTTPException(status_code=408, detail=(
+                        f"the request body took more than {self.body_timeout_s:g} s "
+                        "(FUZZYRISK_BODY_TIMEOUT_S): send it faster, or smaller")) from None
                 raise HTTPException(status_code=408, detail=(
                     f"the request body stalled: no bytes for {self.read_timeout_s:g} s "
                     "(FUZZYRISK_BODY_READ_TIMEOUT_S)")) from None

@@ -1065,7 +1065,9 @@ class MapService:
                 if encoding == "cdr":
                     return cdr
                 return rosout.occupancy_grid_mcap(cdr, log_time_ns=rostypes.ns_of_ros_time(stamp))
-            return OccupancyGrid.model_validate({
+            # the small fields through the model (validated), the 4-16 M values by numpy: one pydantic pass over
+            # them held the GIL, and so every request, for seconds (issue 11)
+            head = OccupancyGrid.model_validate({
                 "header": {"stamp": stamp, "frame_id": grid.frame_id},
                 "info": {
                     "map_load_time": stamp, "resolution": grid.spec.resolution,
@@ -1073,9 +1075,12 @@ class MapService:
                     "origin": {"position": {"x": grid.spec.origin[0], "y": grid.spec.origin[1], "z": 0.0},
                                "orientation": {"x": 0.0, "y": 0.0, "z": 0.0, "w": 1.0}},
                 },
-                "data": data.tolist(),
+                "data": [],
                 "version": grid.version,
             }).model_dump_json().encode()
+            empty = b'"data":[]'
+            assert head.count(empty) == 1
+            return head.replace(empty, b'"data":' + exports.int8_json_array(data))
 
         return await self._run_read(render), grid
 

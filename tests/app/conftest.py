@@ -55,7 +55,9 @@ def make_settings(tmp_path: Path) -> Callable[..., Settings]:
     """Settings on this test's data directory; no planner processes unless a test plans."""
 
     def make(**overrides: Any) -> Settings:
-        values: dict[str, Any] = {"data_dir": tmp_path / "data", "plan_warmup": False, "plan_workers": 1}
+        # a small disk reserve: the service's 16 MiB, written by every test's service, came to 15 GB of /tmp
+        values: dict[str, Any] = {"data_dir": tmp_path / "data", "plan_warmup": False, "plan_workers": 1,
+                                  "disk_reserve_bytes": 64 * 1024}
         values.update(overrides)
         return Settings(**values)
 

@@ -3,13 +3,16 @@ details}``, and the OpenAPI document declares that body for every status the ope
 
 from __future__ import annotations
 
+import asyncio
 import re
 from collections.abc import Callable
 from typing import Any
 
 import pytest
+from fastapi import FastAPI, Request
 from fastapi.testclient import TestClient
 
+from app.errors import CLIENT_CLOSED_REQUEST, install_error_handlers
 from app.main import create_app
 
 KEY = "key-for-the-error-tests-0123456789"
@@ -111,3 +114,27 @@ def test_range_tokens_are_a_pattern_not_an_enum_with_colliding_names(client: Tes
     accepted = ["inf", "+inf", "-inf", "Infinity", "+Infinity", "-Infinity", "nan", "NaN"]
     assert all(re.fullmatch(token["pattern"], t) for t in accepted)
     assert not any(re.fullmatch(token["pattern"], t) for t in ["INF", "+nan", "infinity", "1.5", ""])
+
+
+def test_a_client_that_goes_away_mid_body_is_not_a_server_error() -> None:
+    # issue 11: every such client was logged as "Exception in ASGI application" (ClientDisconnect)
+    app = FastAPI()
+    install_error_handlers(app)
+
+    @app.post("/upload")
+    async def upload(request: Request) -> dict[str, int]:
+        return {"bytes": len(await request.body())}
+
+    messages = [{"type": "http.request", "body": b"x" * 10, "more_body": True}, {"type": "http.disconnect"}]
+    sent: list[dict[str, Any]] = []
+
+    async def receive() -> dict[str, Any]:
+        return messages.pop(0)
+
+    async def send(message: dict[str, Any]) -> None:
+        sent.append(message)
+
+    scope = {"type": "http", "method": "POST", "path": "/upload", "headers": [], "query_string": b"",
+             "http_version": "1.1", "scheme": "http", "server": ("t", 80), "client": ("c", 1), "root_path": ""}
+    asyncio.run(app(scope, receive, send))  # no exception escapes to the server
+    assert sent[0]["type"] == "http.response.start" and sent[0]["status"] == CLIENT_CLOSED_REQUEST, sent

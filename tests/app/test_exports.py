@@ -485,3 +485,18 @@ def test_a_3d_map_projects_like_octomap_servers_projected_map(hall: TestClient) 
     trinary = hall.get("/maps/hall/occupancy_grid", params={"mode": "trinary"}).json()["data"]
     assert np.array_equal(data, trinary) and (data == 100).any()
     assert hall.get("/maps/hall/occupancy_grid", params={"z_min": 2, "z_max": 1}).status_code == 422
+
+
+def test_the_occupancy_values_are_written_as_json_by_numpy() -> None:
+    import json
+
+    import numpy as np
+    import pytest
+
+    from app.exports import int8_json_array
+
+    values = np.arange(-1, 101, dtype=np.int8).repeat(3)
+    assert json.loads(int8_json_array(values)) == values.tolist()
+    assert int8_json_array(np.array([], np.int8)) == b"[]"
+    with pytest.raises(ValueError, match="-1..100"):
+        int8_json_array(np.array([101], np.int16))

@@ -4,6 +4,7 @@ maps, and answers that do not echo huge inputs."""
 from __future__ import annotations
 
 import asyncio
+import time
 from collections.abc import Iterator
 from typing import Any
 
@@ -261,3 +262,24 @@ def test_the_cast_work_estimate_follows_what_the_cast_walks() -> None:
         assert 0.95 * walked <= estimate <= 1.1 * walked, (estimate, walked)
         # the default engine cuts no-returns beside hits short: it walks less than the estimate
         assert FuzzyMap(spec).integrate_batch([scan]).cells_traversed <= estimate
+
+
+def test_a_trickled_body_answers_408_once_the_whole_body_is_late() -> None:
+    # issue 11 (bench abuse row 4b): a byte every few seconds passed the per-chunk timeout for ever
+    budget = BodyBudgetMiddleware(ExceptionMiddleware(_drain), max_bytes=10_000, read_timeout_s=1.0,
+                                  body_timeout_s=0.3)
+    scope = {"type": "http", "method": "POST", "path": "/maps/a/scans", "headers": []}
+    sent: list[dict] = []
+
+    async def trickle() -> dict:
+        await asyncio.sleep(0.05)  # well within the per-chunk timeout, every time
+        return {"type": "http.request", "body": b"x", "more_body": True}
+
+    async def send(message: dict) -> None:
+        sent.append(message)
+
+    started = time.monotonic()
+    asyncio.run(budget(scope, trickle, send))
+    assert _status(sent) == 408 and 0.3 <= time.monotonic() - started < 1.0
+    assert b"FUZZYRISK_BODY_TIMEOUT_S" in b"".join(m.get("body", b"") for m in sent)
+    assert budget.in_flight == 0

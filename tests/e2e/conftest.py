@@ -97,7 +97,8 @@ class Server:
         """Start and wait until ``/ready`` answers 200 (maps loaded, kernels compiled, planner workers up)."""
         self.port = free_port()
         # one planner process, started at the first plan unless a test asks for the warm-up
-        env = {**os.environ, "FUZZYRISK_PLAN_WORKERS": "1", "FUZZYRISK_PLAN_WARMUP": "false", **self.env}
+        env = {**os.environ, "FUZZYRISK_PLAN_WORKERS": "1", "FUZZYRISK_PLAN_WARMUP": "false",
+               "FUZZYRISK_DISK_RESERVE_BYTES": str(64 * 1024), **self.env}
         self.data_dir.parent.mkdir(parents=True, exist_ok=True)
         self.log_path = self.data_dir.parent / f"server-{self.port}.log"
         log = self.log_path.open("wb")
