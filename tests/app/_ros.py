@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import io
 from typing import Any
 
 import numpy as np
@@ -83,3 +84,13 @@ def cloud_msg(ts: Any, points: np.ndarray, *, extra: tuple[str, ...] = ("intensi
 
 def cdr(ts: Any, msg: Any, *, little_endian: bool = True) -> bytes:
     return bytes(ts.serialize_cdr(msg, msg.__msgtype__, little_endian=little_endian))
+
+
+def grids(client: Any, name: str) -> tuple[np.ndarray, np.ndarray]:
+    """The map's risk and observed mask, as ``GET /maps/{name}/risk.npy`` serves them."""
+    out = []
+    for layer in ("risk", "observed"):
+        response = client.get(f"/maps/{name}/risk.npy", params={"layer": layer})
+        assert response.status_code == 200, response.text
+        out.append(np.load(io.BytesIO(response.content), allow_pickle=False))
+    return out[0], out[1]

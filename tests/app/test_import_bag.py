@@ -40,7 +40,7 @@ from app.main import create_app
 from app.schemas import MapCreate
 from app.services import MapService
 from app.storage import SqliteStorage, StorageUnavailable
-from tests.app._ros import cloud_msg, laser_msg, wall_ranges
+from tests.app._ros import cloud_msg, grids, laser_msg, wall_ranges
 from tests.conftest import error_message
 
 T0 = 10 * 10**9  # the first transform, ns
@@ -270,15 +270,6 @@ def expected_scans(scenario: Scenario, dims: int, poses: list[tuple[np.ndarray, 
     return out
 
 
-def _grids(client: TestClient, name: str) -> tuple[np.ndarray, np.ndarray]:
-    out = []
-    for layer in ("risk", "observed"):
-        response = client.get(f"/maps/{name}/risk", params={"format": "npy", "layer": layer})
-        assert response.status_code == 200, response.text
-        out.append(np.load(io.BytesIO(response.content), allow_pickle=False))
-    return out[0], out[1]
-
-
 def expected_map(client: TestClient, scenario: Scenario, spec: dict[str, Any], bag: Path,
                  **options: Any) -> tuple[np.ndarray, np.ndarray]:
     assert client.post("/maps", json=spec).status_code == 201
@@ -286,7 +277,7 @@ def expected_map(client: TestClient, scenario: Scenario, spec: dict[str, Any], b
     for i in range(0, len(scans), 16):
         response = client.post(f"/maps/{spec['name']}/scans", json={"scans": scans[i:i + 16]})
         assert response.status_code == 200, response.text
-    return _grids(client, spec["name"])
+    return grids(client, spec["name"])
 
 
 def assert_same(a: tuple[np.ndarray, np.ndarray], b: tuple[np.ndarray, np.ndarray]) -> None:
@@ -324,7 +315,7 @@ def test_an_uploaded_bag_equals_the_scans_posted_with_interpolated_poses(client:
     assert summary["skipped"] == {"before the first transform map -> odom": 1,
                                   "after the last transform map -> odom": 1}
     assert summary["topics"] == {"/scan": "sensor_msgs/msg/LaserScan"}
-    assert_same(_grids(client, "bag"), expected_map(client, scenario, MAP_2D, bag))
+    assert_same(grids(client, "bag"), expected_map(client, scenario, MAP_2D, bag))
 
 
 def test_an_uploaded_3d_bag_places_a_tilted_lidar_and_laser(client: TestClient, tmp_path: Path) -> None:
@@ -334,7 +325,7 @@ def test_an_uploaded_3d_bag_places_a_tilted_lidar_and_laser(client: TestClient, 
     response = upload(client, "bag", bag)
     assert response.status_code == 200, response.text
     assert response.json()["scans_fused"] == 26  # 14 stamps x 2 topics, less the first and the last
-    assert_same(_grids(client, "bag"), expected_map(client, scenario, MAP_3D, bag))
+    assert_same(grids(client, "bag"), expected_map(client, scenario, MAP_3D, bag))
 
 
 def test_a_pose_topic_places_its_frame_instead_of_tf(client: TestClient, tmp_path: Path) -> None:
@@ -369,7 +360,7 @@ def test_a_pose_topic_places_its_frame_instead_of_tf(client: TestClient, tmp_pat
     assert response.json()["skipped"] == {"before the first transform map -> base_link": 1,
                                           "after the last transform map -> base_link": 1}
     by_odometry = Scenario(scenario.mounts, scenario.scans, [odometry])
-    assert_same(_grids(client, "bag"), expected_map(client, by_odometry, MAP_2D, bag, pose_topic="/odom"))
+    assert_same(grids(client, "bag"), expected_map(client, by_odometry, MAP_2D, bag, pose_topic="/odom"))
 
 
 def test_upload_refusals_are_4xx_and_change_nothing(make_client: Any, tmp_path: Path) -> None:
@@ -636,7 +627,7 @@ def live_service(tmp_path: Path) -> Iterator[str]:
         thread.join(timeout=30)
 
 
-def _served_grids(url: str, name: str) -> tuple[np.ndarray, np.ndarray]:
+def _servedgrids(url: str, name: str) -> tuple[np.ndarray, np.ndarray]:
     out = []
     for layer in ("risk", "observed"):
         response = httpx.get(f"{url}/maps/{name}/risk", params={"format": "npy", "layer": layer}, timeout=60)
@@ -666,7 +657,7 @@ def test_the_command_in_process_and_through_the_service_gives_the_posted_map(
     for body in ("cdr", "json"):
         assert main([str(bag), *box, "--url", url, "--map", f"bag_{body}", "--body", body]) == 0, capsys.readouterr()
         assert "39 fused" in capsys.readouterr().out
-        assert_same(_served_grids(url, f"bag_{body}"), expected)
+        assert_same(_servedgrids(url, f"bag_{body}"), expected)
 
 
 def test_the_command_creates_the_map_in_its_map_frame_and_appends_in_the_maps_own(

@@ -6,7 +6,6 @@ the expected poses and points are computed here, independently of app.rosmsgs.
 
 from __future__ import annotations
 
-import io
 import math
 from typing import Any
 
@@ -23,6 +22,7 @@ from tests.app._ros import (
     STORES,
     cdr,
     cloud_msg,
+    grids,
     laser_msg,
     store,
     wall_ranges,
@@ -32,18 +32,9 @@ from tests.conftest import error_message
 STORE_NAMES = list(STORES)
 
 
-def _grids(client: TestClient, name: str) -> tuple[np.ndarray, np.ndarray]:
-    out = []
-    for layer in ("risk", "observed"):
-        response = client.get(f"/maps/{name}/risk", params={"format": "npy", "layer": layer})
-        assert response.status_code == 200, response.text
-        out.append(np.load(io.BytesIO(response.content), allow_pickle=False))
-    return out[0], out[1]
-
-
 def _assert_same_map(client: TestClient, a: str, b: str) -> None:
-    risk_a, observed_a = _grids(client, a)
-    risk_b, observed_b = _grids(client, b)
+    risk_a, observed_a = grids(client, a)
+    risk_b, observed_b = grids(client, b)
     assert observed_a.any(), "the scan observed nothing: the comparison would prove nothing"
     assert np.array_equal(observed_a, observed_b)
     assert np.array_equal(risk_a.view(np.uint32), risk_b.view(np.uint32))  # bit for bit
@@ -129,7 +120,7 @@ def test_a_laser_mounted_upside_down_sweeps_the_other_way(client: TestClient, ki
     assert client.post("/maps/lab_json/scans", json={"scans": [flipped]}).status_code == 200
     assert client.post("/maps/lab_naive/scans", json={"scans": [naive]}).status_code == 200
     _assert_same_map(client, "lab", "lab_json")
-    assert not np.array_equal(_grids(client, "lab")[0], _grids(client, "lab_naive")[0])
+    assert not np.array_equal(grids(client, "lab")[0], grids(client, "lab_naive")[0])
 
 
 def test_a_tilted_laser_is_refused_on_a_2d_map_and_changes_nothing(client: TestClient, kit: Any) -> None:
@@ -164,7 +155,7 @@ def test_a_tilted_laser_on_a_3d_map_equals_the_json_cloud_of_its_beams(client: T
     assert client.post("/maps/hall_json/scans", json={"scans": [cloud]}).status_code == 200
     _assert_same_map(client, "hall", "hall_json")
     # the tilt is real: the beams reach cells above and below the sensor's height
-    observed = _grids(client, "hall")[1]
+    observed = grids(client, "hall")[1]
     assert len(np.unique(np.nonzero(observed)[2])) > 3
 
 
