@@ -170,8 +170,8 @@ def _validation_message(errors: list[dict[str, Any]]) -> str:
 
 
 def error_body_of(exc: BaseException) -> dict[str, Any]:
-    """The ``ErrorBody`` the handlers below answer ``exc`` with, as a dict (for an error told inside a 200: a bag
-    import stopped part-way)."""
+    """The ``ErrorBody`` of ``exc``, as a dict: what the handlers below answer with, and what a bag import that
+    stopped part-way tells inside its 200."""
     if isinstance(exc, ServiceError):
         return error_body(exc.code, exc.message, exc.details)
     if isinstance(exc, StorageUnavailable):
@@ -182,11 +182,6 @@ def error_body_of(exc: BaseException) -> dict[str, Any]:
                       "the service's log has the traceback")
 
 
-def error_response(status: int, code: str, message: str, details: Any = None,
-                   headers: dict[str, str] | None = None) -> JSONResponse:
-    return JSONResponse(error_body(code, message, details), status_code=status, headers=headers)
-
-
 def install_error_handlers(app: FastAPI) -> None:
     """Answer every error with an ``ErrorBody``: services' errors, validation (no bodies echoed),
     Starlette's (unknown route, wrong method), storage refusals (503 + ``Retry-After``) and any
@@ -194,23 +189,21 @@ def install_error_handlers(app: FastAPI) -> None:
 
     async def handle(_request: Request, exc: Exception) -> JSONResponse:
         assert isinstance(exc, ServiceError)
-        return error_response(exc.status, exc.code, exc.message, exc.details, exc.headers)
+        return JSONResponse(error_body_of(exc), status_code=exc.status, headers=exc.headers)
 
     async def handle_validation(_request: Request, exc: Exception) -> JSONResponse:
         assert isinstance(exc, RequestValidationError)
         errors = _validation_errors(exc)
-        return error_response(422, VALIDATION_ERROR, _validation_message(errors), errors)
+        return JSONResponse(error_body(VALIDATION_ERROR, _validation_message(errors), errors), status_code=422)
 
     async def handle_http(_request: Request, exc: Exception) -> JSONResponse:
         assert isinstance(exc, StarletteHTTPException)
-        return error_response(exc.status_code, status_code_name(exc.status_code), str(exc.detail),
-                              headers=exc.headers)
+        return JSONResponse(error_body_of(exc), status_code=exc.status_code, headers=exc.headers)
 
     async def handle_storage(request: Request, exc: Exception) -> JSONResponse:
         # the services raise before touching a map in memory, so "nothing was applied" holds
         LOG.error("write refused by storage: %s %s: %s", request.method, request.url.path, exc)
-        return error_response(503, STORAGE_UNAVAILABLE, STORAGE_UNAVAILABLE_DETAIL,
-                              headers={"Retry-After": str(STORAGE_RETRY_AFTER_S)})
+        return JSONResponse(error_body_of(exc), status_code=503, headers={"Retry-After": str(STORAGE_RETRY_AFTER_S)})
 
     async def handle_disconnect(request: Request, _exc: Exception) -> Response:
         # the client went away while its body arrived: nobody to answer, and nothing went wrong here (it was
@@ -220,9 +213,7 @@ def install_error_handlers(app: FastAPI) -> None:
 
     async def handle_unexpected(_request: Request, exc: Exception) -> JSONResponse:
         # Starlette re-raises the exception after this answer: the server logs its traceback once
-        return error_response(500, status_code_name(500),
-                              f"internal error ({type(exc).__name__}); nothing more is told here: the "
-                              "service's log has the traceback")
+        return JSONResponse(error_body_of(exc), status_code=500)
 
     app.add_exception_handler(ServiceError, handle)
     app.add_exception_handler(StorageUnavailable, handle_storage)
