@@ -774,18 +774,10 @@ class MapService:
             LOG.exception("map %s: could not rebuild the map after a failed batch; it may differ from what a "
                           "restart rebuilds until then", entry.name)
 
-    def admit_batch(self, name: str) -> None:
-        """Refuse (503, ``Retry-After``) a batch for a map that already holds its limit of batches in line.
-
-        Called before the body is read (an early, cheap answer) and again by ``add_scans`` as the
-        batch takes its place in line, so a client streaming faster than its map fuses is told to
-        slow down instead of piling parsed scans up in memory, and other maps are unaffected.
-        """
-        self._admit(self._entry(name))
-
     @contextlib.contextmanager
     def receiving(self, name: str) -> Iterator[None]:
-        """Admit an upload (``admit_batch``) and count it against its map's line while its body arrives.
+        """Admit an upload (503, ``Retry-After`` when its map's line is full) and count it against the line while
+        its body arrives; ``add_scans`` checks the line again as the batch joins it.
 
         Uploads read side by side would all pass a check that counts only the batches already in
         line: 40 bodies of 60 MB for one map were all read at once (issue 11). Counted from the

@@ -58,9 +58,6 @@ class BatchRecord(NamedTuple):
 class Storage(Protocol):
     """What the service needs from a store; another backend (a shared database) can replace SQLite."""
 
-    def load_all(self) -> list[StoredMap]:
-        """Every map with its latest snapshot and the batches after it."""
-
     def map_names(self) -> list[str]:
         """The names of the stored maps, sorted (a start loads them one at a time: ``load_map``)."""
 
@@ -201,21 +198,6 @@ class SqliteStorage:
                 self._db.execute("ROLLBACK")
             except sqlite3.Error:
                 pass  # the original error is the one to report
-
-    def load_all(self) -> list[StoredMap]:
-        with self._lock:
-            rows = self._db.execute(
-                "SELECT name, meta, updated, version, snapshot_version FROM maps ORDER BY name").fetchall()
-            maps = {row[0]: StoredMap(row[0], json.loads(row[1]), row[2]) for row in rows}
-            expected = {row[0]: (row[3], row[4]) for row in rows}
-            for name, version, payload, crc in self._db.execute("SELECT map, version, payload, crc FROM snapshots"):
-                _take_snapshot(maps[name], version, bytes(payload), crc)
-            for name, seq, payload, crc in self._db.execute(
-                    "SELECT map, seq, payload, crc FROM batches ORDER BY map, seq"):
-                _take_batch(maps[name], seq, bytes(payload), crc)
-        for name, stored in maps.items():
-            _check_versions(stored, *expected[name])
-        return list(maps.values())
 
     def map_names(self) -> list[str]:
         with self._lock:

@@ -77,5 +77,4 @@ def no_process_outlives_the_suite() -> Iterator[None]:
 
 def error_message(response) -> str:  # type: ignore[no-untyped-def]
     """The human-readable message of an error answer (every error body is ``{code, message, details}``)."""
-    body = response.json()
-    return str(body["message"] if "message" in body else body["detail"])
+    return str(response.json()["message"])

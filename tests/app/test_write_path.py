@@ -147,7 +147,7 @@ def test_a_group_commit_is_one_sqlite_transaction(tmp_path: Path) -> None:
                             BatchRecord("m", 2, b"c", "t2")])
     with pytest.raises(sqlite3.IntegrityError):  # m/2 is taken: the whole group is refused
         storage.append_batches([BatchRecord("n", 2, b"d", "t3"), BatchRecord("m", 2, b"e", "t3")])
-    stored = {m.name: m.batches for m in storage.load_all()}
+    stored = {name: storage.load_map(name).batches for name in storage.map_names()}  # type: ignore[union-attr]
     storage.close()
     assert stored == {"m": [(1, b"a"), (2, b"c")], "n": [(1, b"b")]}
 
@@ -244,9 +244,10 @@ def test_a_request_cancelled_after_parsing_is_still_committed_and_applied(
             await request
         await service.stop()  # waits for the batch in flight, then snapshots it
         storage = SqliteStorage(settings.database_path)
-        stored = storage.load_all()
+        stored = storage.load_map("lab")
         storage.close()
-        return service.get_map("lab").version, stored[0].snapshot_version
+        assert stored is not None
+        return service.get_map("lab").version, stored.snapshot_version
 
     assert asyncio.run(scenario()) == (1, 1)
 
