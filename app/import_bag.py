@@ -46,7 +46,7 @@ from app import exports, rosmsgs
 from app.batches import Limits, Scan
 from app.config import Settings
 from app.errors import ServiceError
-from app.import_log import ImportFailed, ServiceClient, _non_negative, _positive
+from app.import_log import ImportFailed, ServiceClient, _non_negative, _positive, run_command
 from app.rostypes import ns_of_ros_time
 from app.schemas import DEFAULT_FRAME_ID
 from fuzzyocc import BayesMap, FuzzyMap, GridSpec, SensorModel
@@ -589,19 +589,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = _parser()
     args = parser.parse_args(argv)
     _check_options(parser, args)
-    try:
-        summary = _run(args)
-    except FileNotFoundError as exc:
-        print(f"{PROG}: error: {exc.filename or args.bag}: no such file", file=sys.stderr)
-        return 1
-    except (ImportFailed, ValueError, OSError) as exc:
-        print(f"{PROG}: error: {exc}", file=sys.stderr)
-        return 1
-    except KeyboardInterrupt:
-        print(f"{PROG}: interrupted", file=sys.stderr)
-        return 130
-    print(summary, flush=True)
-    return 0
+    return run_command(PROG, lambda: _run(args), args.bag)
 
 
 if __name__ == "__main__":

@@ -23,7 +23,7 @@ import math
 import os
 import sys
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any, TextIO
 from urllib.parse import quote, urlencode, urlsplit
@@ -320,24 +320,30 @@ def _run(args: argparse.Namespace) -> str:
             f"({spec.origin[0]:g}, {spec.origin[1]:g}); {time.perf_counter() - started:.1f} s")
 
 
+def run_command(prog: str, run: Callable[[], str], source: Path) -> int:
+    """Run an import command: its summary on stdout, or one line on stderr; the exit code (0 done, 1 failed,
+    130 interrupted). Shared by the log and the bag importers."""
+    try:
+        summary = run()
+    except FileNotFoundError as exc:
+        print(f"{prog}: error: {exc.filename or source}: no such file", file=sys.stderr)
+        return 1
+    except (ImportFailed, ValueError, OSError) as exc:
+        print(f"{prog}: error: {exc}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print(f"{prog}: interrupted", file=sys.stderr)
+        return 130
+    print(summary, flush=True)
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     """Run the command; the exit code (0 done, 1 failed with a message, 2 bad options)."""
     parser = _parser()
     args = parser.parse_args(argv)
     _check_options(parser, args)
-    try:
-        summary = _run(args)
-    except FileNotFoundError as exc:
-        print(f"{PROG}: error: {exc.filename or args.log}: no such file", file=sys.stderr)
-        return 1
-    except (ImportFailed, ValueError, OSError) as exc:
-        print(f"{PROG}: error: {exc}", file=sys.stderr)
-        return 1
-    except KeyboardInterrupt:
-        print(f"{PROG}: interrupted", file=sys.stderr)
-        return 130
-    print(summary, flush=True)
-    return 0
+    return run_command(PROG, lambda: _run(args), args.log)
 
 
 if __name__ == "__main__":
