@@ -2,7 +2,7 @@
 
 The steps, each before the work it guards:
 
-1. admission (the map's line of batches, as a scan upload's: ``MapService.receiving``, which counts the body
+1. admission (the map's line of batches, as a scan upload's: ``WritePath.receiving``, which counts the body
    against the line while it arrives) and the Content-Type, before the body is read;
 2. the container, told by its first bytes (``CONTAINERS``), before anything is written;
 3. the body written to ``<data dir>/tmp`` (rosbags reads files; the data directory's disk, not a
@@ -10,7 +10,7 @@ The steps, each before the work it guards:
    full store does (``StorageUnavailable``: 503 ``STORAGE_UNAVAILABLE`` with ``Retry-After``);
 4. the size its chunks declare decompressed (``app.bagsize``), against ``FUZZYRISK_MAX_BAG_BYTES``;
 5. the scans read, placed and converted in a thread (``app.import_bag.BagStream``), one batch of
-   ``FUZZYRISK_MAX_SCANS_PER_BATCH`` at a time, each fused through ``MapService.add_parsed_scans``
+   ``FUZZYRISK_MAX_SCANS_PER_BATCH`` at a time, each fused through ``WritePath.add_parsed_scans``
    (ticket, group commit, apply) before the next is read: one batch in memory, never the bag.
 
 All or what was done: the import is admitted once, at its first batch; later batches are not
@@ -71,8 +71,8 @@ async def import_upload(
     """Import the bag ``body`` (of ``content_type``) into map ``name``; ``map_frame`` None: the map's ``frame_id``."""
     # admitted before the body is read (a map with a full line answers at once), and counted against the map's
     # line while it arrives; no longer once it is read: the import's first batch must not wait behind itself
-    with service.receiving(name):
-        info, uid = service.get_map(name), service.map_uid(name)  # no await between: one map
+    with service.writes.receiving(name):
+        info, uid = service.maps.get_map(name), service.maps.map_uid(name)  # no await between: one map
         media = content_type.split(";")[0].strip().lower()
         if media not in MEDIA_TYPES:
             raise UnsupportedMediaType(f"Content-Type {media!r} is not a bag: send a ROS 1 .bag as {ROSBAG} or a "
@@ -87,7 +87,7 @@ async def import_upload(
         if declared > limit:
             raise TooLarge(f"body: the bag's chunks decompress to {declared:,} bytes, more than "
                            f"FUZZYRISK_MAX_BAG_BYTES ({limit:,}): split the bag (ros2 bag convert, rosbags-convert)")
-        stream = BagStream(path, options, dims=info.dimensions, limits=service.limits)
+        stream = BagStream(path, options, dims=info.dimensions, limits=service.writes.limits)
         return await _fuse(service, name, uid, stream, info.version)
     finally:
         await to_thread.run_sync(_remove, path)
@@ -195,7 +195,7 @@ async def _reading(fn: Callable[..., T], *args: Any) -> T:
 async def _fuse(service: MapService, name: str, uid: int, stream: BagStream, version: int) -> BagImportResult:
     """Read, then fuse, one batch at a time; the summary, complete or stopped part-way (``BagImportResult``)."""
     await _reading(stream.__enter__)
-    batches = stream.batches(service.limits.max_scans)
+    batches = stream.batches(service.writes.limits.max_scans)
     done = {"scans_fused": 0, "rays": 0, "cells_updated": 0, "batches": 0, "version": version}
     stopped: ErrorBody | None = None
     try:
@@ -205,7 +205,7 @@ async def _fuse(service: MapService, name: str, uid: int, stream: BagStream, ver
                 if batch is None:
                     break
                 # admitted once, at the first batch: the import's later batches are never refused for the line
-                result = await service.add_parsed_scans(name, [s.scan for s in batch], uid=uid,
+                result = await service.writes.add_parsed_scans(name, [s.scan for s in batch], uid=uid,
                                                         admitted=done["batches"] > 0)
             except Exception as exc:
                 if not done["batches"]:

@@ -25,7 +25,7 @@ take it from their ``MapInfo``.
 What the view costs the service: the service tells this module what changed (``MapObserver``, on
 the event loop, O(1)): each map has a latest-value slot, drained by one publisher thread at most
 once per ``FUZZYRISK_FOXGLOVE_INTERVAL_S`` per map. The thread reads the grid as any reader does
-(``MapService.read_grid``: ``risk()`` and ``observed()`` copied under the map's apply lock, between
+(``MapReads.read_grid``: ``risk()`` and ``observed()`` copied under the map's apply lock, between
 two batches), only when a client is subscribed to the grid, so a batch of that map may wait for
 one such copy per interval (docs/DESIGN.md 8.2 has the figure); everything else (the projection
 of a 3-D map, the downsampling, the colours, the encoding) happens after, in the publisher
@@ -389,9 +389,9 @@ def attach(service: Any, *, host: str, port: int, interval_s: float, max_cells: 
 
     def read_grid(name: str) -> Any:
         # from the publisher thread: the read runs on the event loop (the map's apply lock is an asyncio lock)
-        return asyncio.run_coroutine_threadsafe(service.read_grid(name), loop).result(READ_TIMEOUT_S)
+        return asyncio.run_coroutine_threadsafe(service.reads.read_grid(name), loop).result(READ_TIMEOUT_S)
 
     view = LiveView(host=host, port=port, interval_s=interval_s, read_grid=read_grid, max_cells=max_cells)
-    view.start({info.name: info.frame_id for info in service.list_maps()})
+    view.start({info.name: info.frame_id for info in service.maps.list_maps()})
     service.observer = view
     return view

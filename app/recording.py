@@ -49,7 +49,7 @@ from app import batches, conditional, exports, rosout, rostypes
 from app.errors import TooLarge, Unavailable
 from app.exports import NAV2_FREE_THRESH, NAV2_OCCUPIED_THRESH
 from app.rostypes import typestore
-from app.services import GridSnapshot
+from app.mapstate import GridSnapshot
 from app.storage import StoredMap
 from fuzzyocc import LaserScan
 
@@ -228,7 +228,7 @@ class Recording:
 
 def export(grid: GridSnapshot, stored: StoredMap, *, media_type: str, max_bytes: int,
            if_none_match: str | None) -> Recording:
-    """The recording of a map's grid and stored log (``MapService.render_log`` runs it in a read thread).
+    """The recording of a map's grid and stored log (``MapReads.render_log`` runs it in a read thread).
 
     The ETag covers the snapshot version: a snapshot taken at the map's version empties the log,
     and with it the file changes while the version does not.

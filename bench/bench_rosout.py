@@ -4,7 +4,7 @@ Run: ``python3 dev.py bench rosout`` (or ``.venv/bin/python -m bench.bench_rosou
 
 One service in this process (the app with its lifespan, on a temporary data directory), a map of
 2000 x 2000 cells of 0.05 m with 64 scans of a room fused. Each format is timed twice:
-*server-side* is ``MapService.occupancy_grid`` on the service's event loop (grid copy, projection to
+*server-side* is ``MapReads.occupancy_grid`` on the service's event loop (grid copy, projection to
 int8, message building and encoding: what the route awaits), *HTTP* is ``GET
 /maps/{name}/occupancy_grid`` through the in-process test client (adds routing and the transfer of
 the body through httpx). Medians of ``--runs`` runs (3 for JSON, which takes seconds).
@@ -77,11 +77,11 @@ def main() -> None:
                   f"({SIDE_CELLS * SIDE_CELLS / 1e6:.0f}M cells, {SCANS} scans fused), median of runs")
             print(f"{'format':<6} {'server-side ms':>15} {'HTTP ms':>9} {'bytes':>12}")
             assert client.portal is not None  # set while the client is open
-            read_s, _ = _median_s(functools.partial(client.portal.call, service.read_grid, "big"), args.runs)
+            read_s, _ = _median_s(functools.partial(client.portal.call, service.reads.read_grid, "big"), args.runs)
             print(f"{'(read)':<6} {read_s * 1e3:>15.1f} {'':>9} {'':>12}   the grid read every format starts with")
             for encoding in ("cdr", "mcap", "json"):
                 runs = min(args.runs, 3) if encoding == "json" else args.runs
-                call = functools.partial(service.occupancy_grid, "big", mode="trinary", free_thresh=0.45,
+                call = functools.partial(service.reads.occupancy_grid, "big", mode="trinary", free_thresh=0.45,
                                          occupied_thresh=0.6, z_min=None, z_max=None, encoding=encoding)
                 portal = client.portal
                 assert portal is not None  # set while the client is open

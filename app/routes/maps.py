@@ -17,19 +17,19 @@ _NOT_FOUND = {404: {"description": "no map of that name"}}
                                                507: {"description": "no room: FUZZYRISK_MAX_MAPS or FUZZYRISK_MAX_TOTAL_CELLS"}})
 async def create_map(body: MapCreate, service: ServiceDep) -> MapInfo:
     """Create an empty map (every cell unknown, risk 0.5)."""
-    return await service.create_map(body)
+    return await service.maps.create_map(body)
 
 
 @router.get("")
 async def list_maps(service: ServiceDep) -> list[MapInfo]:
     """Every map, by name."""
-    return service.list_maps()
+    return service.maps.list_maps()
 
 
 @router.get("/{name}", responses=_NOT_FOUND)
 async def get_map(name: MapNamePath, service: ServiceDep, response: Response) -> MapInfo:
     """One map, with ``scans_fused`` and ``version`` (also in the ``X-Map-Version`` header)."""
-    info = service.get_map(name)
+    info = service.maps.get_map(name)
     response.headers[conditional.VERSION_HEADER] = str(info.version)
     return info
 
@@ -37,5 +37,5 @@ async def get_map(name: MapNamePath, service: ServiceDep, response: Response) ->
 @router.delete("/{name}", status_code=204, response_class=Response, responses=_NOT_FOUND)
 async def delete_map(name: MapNamePath, service: ServiceDep) -> Response:
     """Delete a map and everything stored about it (after a batch in flight finishes)."""
-    await service.delete_map(name)
+    await service.maps.delete_map(name)
     return Response(status_code=204)

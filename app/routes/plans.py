@@ -41,6 +41,6 @@ async def plan(name: MapNamePath, body: PlanRequest, service: ServiceDep, respon
     Cost = length + ``risk_weight`` * integral of risk along the path. ``allow_unknown: false``
     forbids never-observed cells whatever ``max_risk`` says. Runs in a worker process.
     """
-    result = await service.plan(name, body)
+    result = await service.plans.plan(name, body)
     response.headers[conditional.VERSION_HEADER] = str(result.version)
     return result

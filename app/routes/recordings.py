@@ -53,7 +53,7 @@ async def export_mcap(name: MapNamePath, service: ServiceDep, if_none_match: IfN
     time, each earlier one 0.1 s before the next, so every read of one version (and snapshot) is
     the same file. 413 beyond ``FUZZYRISK_MAX_RECORDING_BYTES``.
     """
-    made = await service.render_log(name, functools.partial(
+    made = await service.reads.render_log(name, functools.partial(
         recording.export, media_type=_media_type(accept, MCAP), max_bytes=service.settings.max_recording_bytes,
         if_none_match=if_none_match,
     ))

@@ -13,7 +13,8 @@ from app.errors import Invalid
 from app.exports import NAV2_FREE_THRESH, NAV2_OCCUPIED_THRESH
 from app.mediatypes import MCAP, OCTET_STREAM
 from app.schemas import OccupancyGrid, RiskQuery, RiskValues
-from app.services import GridSnapshot, MapService
+from app.mapstate import GridSnapshot
+from app.services import MapService
 
 router = APIRouter(prefix="/maps", tags=["risk"])
 
@@ -54,7 +55,7 @@ def _unchanged(
     """304 when ``If-None-Match`` names the ETag this read would carry now (decided before any grid is read)."""
     if not if_none_match:
         return None
-    etag, version = service.current_etag(name, variant)
+    etag, version = service.reads.current_etag(name, variant)
     return conditional.not_modified(etag, version) if conditional.matches(if_none_match, etag) else None
 
 
@@ -127,7 +128,7 @@ async def get_risk(
                                   "z_max": z_max}
     if (unchanged := _unchanged(service, name, variant, if_none_match)) is not None:
         return unchanged
-    data, grid = await service.risk_json(name)
+    data, grid = await service.reads.risk_json(name)
     return Response(data, media_type="application/json", headers=_grid_headers(name, grid, variant))
 
 
@@ -137,7 +138,7 @@ async def _risk_npy(name: str, service: MapService, layer: str, if_none_match: s
                                   "z_max": None, "media_type": media_type}
     if (unchanged := _unchanged(service, name, variant, if_none_match)) is not None:
         return unchanged
-    data, grid = await service.risk_npy(name, layer)
+    data, grid = await service.reads.risk_npy(name, layer)
     headers = _grid_headers(name, grid, variant)
     headers["Content-Disposition"] = f'attachment; filename="{name}-{layer}-v{grid.version}.npy"'
     return Response(data, media_type=media_type, headers=headers)
@@ -149,7 +150,7 @@ async def _risk_png(name: str, service: MapService, scale: int, z_min: float | N
                                   "z_max": z_max, "media_type": media_type}
     if (unchanged := _unchanged(service, name, variant, if_none_match)) is not None:
         return unchanged
-    data, grid = await service.risk_png(name, scale=scale, z_min=z_min, z_max=z_max)
+    data, grid = await service.reads.risk_png(name, scale=scale, z_min=z_min, z_max=z_max)
     return Response(data, media_type=media_type, headers=_grid_headers(name, grid, variant))
 
 
@@ -190,7 +191,7 @@ async def get_risk_png(name: MapNamePath, service: ServiceDep, scale: ScaleQuery
 @router.post("/{name}/risk/query", responses=_NOT_FOUND)
 async def query_risk(name: MapNamePath, body: RiskQuery, service: ServiceDep, response: Response) -> RiskValues:
     """Risk of the cells holding the given points (each must lie inside the map)."""
-    values = await service.risk_at(name, body.points)
+    values = await service.reads.risk_at(name, body.points)
     response.headers[conditional.VERSION_HEADER] = str(values.version)
     return values
 
@@ -219,7 +220,7 @@ async def _occupancy_grid(name: str, service: MapService, format: str, mode: str
                                   "z_max": z_max, "media_type": media_type}
     if (unchanged := _unchanged(service, name, variant, if_none_match)) is not None:
         return unchanged
-    data, grid = await service.occupancy_grid(name, mode=mode, free_thresh=free_thresh,
+    data, grid = await service.reads.occupancy_grid(name, mode=mode, free_thresh=free_thresh,
                                               occupied_thresh=occupied_thresh, z_min=z_min, z_max=z_max,
                                               encoding=format)
     headers = _grid_headers(name, grid, variant)
@@ -333,7 +334,7 @@ async def export_nav2(
                                   "media_type": media_type}
     if (unchanged := _unchanged(service, name, variant, if_none_match)) is not None:
         return unchanged
-    data, grid = await service.nav2_zip(
+    data, grid = await service.reads.nav2_zip(
         name, mode=mode, image_format=format, free_thresh=free_thresh, occupied_thresh=occupied_thresh,
         z_min=z_min, z_max=z_max,
     )

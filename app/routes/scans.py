@@ -85,9 +85,9 @@ _BODY["parameters"] = [
 )
 async def post_scans(name: MapNamePath, request: Request, service: ServiceDep) -> BatchResult:
     """Fuse a batch of scans into the map."""
-    with service.receiving(name):  # counted against the map's line from the first byte
+    with service.writes.receiving(name):  # counted against the map's line from the first byte
         body = await request.body()
-    return await service.add_scans(
+    return await service.writes.add_scans(
         name, body=body, content_type=request.headers.get("content-type", ""), query=request.query_params
     )
 
@@ -95,6 +95,6 @@ async def post_scans(name: MapNamePath, request: Request, service: ServiceDep) -
 @router.get("/{name}/scans/last", responses={404: {"description": "no such map, or no scan yet"}})
 async def last_scan(name: MapNamePath, service: ServiceDep, response: Response) -> LastScan:
     """Beam ends of the last scan fused (map frame, at most 4096): the web page draws them."""
-    scan = await service.last_scan(name)
+    scan = await service.reads.last_scan(name)
     response.headers[conditional.VERSION_HEADER] = str(scan.version)
     return scan

@@ -343,7 +343,7 @@ def test_a_503_from_a_full_line_is_retried_after_its_retry_after(
     live = serve(max_pending_batches=1)
     service = live.service
     entered, release = threading.Event(), threading.Event()
-    apply = service._apply
+    apply = service.writes._apply
 
     def slow_apply(*args: Any) -> Any:  # the first batch fuses until the test lets it finish
         if not entered.is_set():
@@ -351,7 +351,7 @@ def test_a_503_from_a_full_line_is_retried_after_its_retry_after(
             release.wait(30)
         return apply(*args)
 
-    service._apply = slow_apply
+    service.writes._apply = slow_apply
     caplog.set_level(logging.WARNING, logger="fuzzyrisk_bridge")
     with httpx.Client(base_url=live.url, timeout=60) as http:
         assert http.post("/maps", json=MAP).status_code == 201

@@ -82,7 +82,7 @@ def test_an_unexpected_exception_answers_500_with_the_body(make_settings: Callab
         def broken() -> None:
             raise RuntimeError("a bug")
 
-        monkeypatch.setattr(client.app.state.service, "list_maps", broken)  # type: ignore[attr-defined]
+        monkeypatch.setattr(client.app.state.service.maps, "list_maps", broken)  # type: ignore[attr-defined]
         body = _assert_error(client.get("/maps"), 500, "INTERNAL_ERROR")
         assert "RuntimeError" in body["message"] and "a bug" not in body["message"]  # no internals leak
         _declared(client, "GET", "/maps", 500)

@@ -16,7 +16,7 @@ pytest.importorskip("foxglove", reason="the foxglove extra (foxglove-sdk) is not
 from app import foxglove_live as live
 from app.config import Settings
 from app.lifecycle import StartupError, foxglove_sdk_missing
-from app.services import GridSnapshot
+from app.mapstate import GridSnapshot
 from fuzzyocc.config import GridSpec
 
 

@@ -39,6 +39,7 @@ from app.import_bag import main
 from app.main import create_app
 from app.schemas import MapCreate
 from app.services import MapService
+from app.writepath import WritePath
 from app.storage import SqliteStorage, StorageUnavailable
 from tests.app._ros import cloud_msg, grids, laser_msg, wall_ranges
 from tests.conftest import error_message
@@ -431,21 +432,21 @@ def test_an_admitted_import_is_not_refused_part_way_for_the_line(
     bag = write_bag(laser_scenario(), tmp_path / "drive", "mcap-jazzy")
     assert client.post("/maps", json={**MAP_2D, "name": "bag"}).status_code == 201
     line_full = False
-    add, admit = MapService.add_parsed_scans, MapService._admit
+    add, admit = WritePath.add_parsed_scans, WritePath._admit
 
-    async def add_then_fill(self: MapService, *args: Any, **kwargs: Any) -> Any:
+    async def add_then_fill(self: WritePath, *args: Any, **kwargs: Any) -> Any:
         nonlocal line_full
         result = await add(self, *args, **kwargs)
         line_full = True  # from now on, every new batch of this map would be refused
         return result
 
-    def full(self: MapService, entry: Any) -> None:
+    def full(self: WritePath, entry: Any) -> None:
         if line_full:
             raise Unavailable("the line is full", headers={"Retry-After": "1"})
         admit(self, entry)
 
-    monkeypatch.setattr(MapService, "add_parsed_scans", add_then_fill)
-    monkeypatch.setattr(MapService, "_admit", full)
+    monkeypatch.setattr(WritePath, "add_parsed_scans", add_then_fill)
+    monkeypatch.setattr(WritePath, "_admit", full)
     response = upload(client, "bag", bag)
     assert response.status_code == 200, response.text
     summary = response.json()
@@ -505,8 +506,8 @@ def test_scans_read_for_a_map_deleted_and_created_again_are_refused_409(
 
     def and_replace_the_map(path: Path) -> int:
         # in the upload's reading thread: the map is replaced on the event loop meanwhile
-        anyio.from_thread.run(service.delete_map, "bag")
-        anyio.from_thread.run(service.create_map, MapCreate(**{**MAP_3D, "name": "bag"}))
+        anyio.from_thread.run(service.maps.delete_map, "bag")
+        anyio.from_thread.run(service.maps.create_map, MapCreate(**{**MAP_3D, "name": "bag"}))
         return declared(path)
 
     monkeypatch.setattr(bagsize, "decompressed_bytes", and_replace_the_map)
@@ -526,18 +527,18 @@ def test_an_upload_is_fused_batch_by_batch_as_it_is_read(
     bag = write_bag(laser_scenario(), tmp_path / "drive", "mcap-jazzy")
     assert client.post("/maps", json={**MAP_2D, "name": "bag"}).status_code == 201
     events: list[str] = []
-    place, add = import_bag._place, MapService.add_parsed_scans
+    place, add = import_bag._place, WritePath.add_parsed_scans
 
     def placing(*args: Any, **kwargs: Any) -> Any:
         events.append("read")
         return place(*args, **kwargs)
 
-    async def fusing(self: MapService, *args: Any, **kwargs: Any) -> Any:
+    async def fusing(self: WritePath, *args: Any, **kwargs: Any) -> Any:
         events.append("fuse")
         return await add(self, *args, **kwargs)
 
     monkeypatch.setattr(import_bag, "_place", placing)
-    monkeypatch.setattr(MapService, "add_parsed_scans", fusing)
+    monkeypatch.setattr(WritePath, "add_parsed_scans", fusing)
     assert upload(client, "bag", bag).json()["batches"] == 5
     assert events.index("fuse") < len(events) - 1 - events[::-1].index("read")
     assert events[:BATCH + 2] == ["read"] * (BATCH + 1) + ["fuse"]  # the unplaceable first message, then 8

@@ -311,7 +311,7 @@ def test_a_start_holds_one_map_at_a_time(make_client: Any, make_settings: Any, k
             _, peak = tracemalloc.get_traced_memory()
         finally:
             tracemalloc.stop()
-        versions = sum(service.get_map(name).version for name in names)
+        versions = sum(service.maps.get_map(name).version for name in names)
         await service.stop()
         return peak, versions
 

@@ -23,7 +23,7 @@ import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
-from app import services
+from app import writepath
 from app.committer import GroupCommitter
 from app.config import Settings
 from app.main import create_app
@@ -231,8 +231,8 @@ def test_a_request_cancelled_after_parsing_is_still_committed_and_applied(
         settings = Settings(data_dir=tmp_path / "data", plan_warmup=False, plan_workers=1)
         service = MapService(settings, SqliteStorage(settings.database_path), Metrics())
         await service.start()
-        await service.create_map(MapCreate(**kit.MAP_2D))
-        request = asyncio.ensure_future(service.add_scans(
+        await service.maps.create_map(MapCreate(**kit.MAP_2D))
+        request = asyncio.ensure_future(service.writes.add_scans(
             "lab", body=ScanBatch.model_validate(body).model_dump_json().encode(), content_type="application/json",
             query={},
         ))
@@ -247,7 +247,7 @@ def test_a_request_cancelled_after_parsing_is_still_committed_and_applied(
         stored = storage.load_map("lab")
         storage.close()
         assert stored is not None
-        return service.get_map("lab").version, stored.snapshot_version
+        return service.maps.get_map("lab").version, stored.snapshot_version
 
     assert asyncio.run(scenario()) == (1, 1)
 
@@ -329,10 +329,10 @@ def test_bodies_parsed_on_the_loop_or_in_a_thread_fuse_the_same(make_client: Any
                                                                monkeypatch: pytest.MonkeyPatch) -> None:
     big = {"scans": [kit.laser(beams=4000, wall=2.0 + 0.1 * k) for k in range(4)]}
     small = _bodies(kit, 1)[0]
-    assert len(ScanBatch.model_validate(big).model_dump_json()) > services.INLINE_PARSE_BYTES
+    assert len(ScanBatch.model_validate(big).model_dump_json()) > writepath.INLINE_PARSE_BYTES
     risks = []
-    for inline_bytes in (services.INLINE_PARSE_BYTES, 0):  # default; then every body through a thread
-        monkeypatch.setattr(services, "INLINE_PARSE_BYTES", inline_bytes)
+    for inline_bytes in (writepath.INLINE_PARSE_BYTES, 0):  # default; then every body through a thread
+        monkeypatch.setattr(writepath, "INLINE_PARSE_BYTES", inline_bytes)
         client = make_client()
         name = f"lab{inline_bytes}"
         client.post("/maps", json={**kit.MAP_2D, "name": name})
@@ -528,7 +528,7 @@ def test_a_read_of_one_map_does_not_wait_behind_the_fusion_of_another(make_clien
         assert client.post("/maps", json={**kit.MAP_2D, "name": name}).status_code == 201
     service = client.app.state.service  # type: ignore[attr-defined]
     held, release = threading.Event(), threading.Event()
-    apply = service._apply
+    apply = service.writes._apply
 
     def slow_apply(entry: Any, version: int, scans: Any) -> Any:
         if entry.name == "a":
@@ -536,7 +536,7 @@ def test_a_read_of_one_map_does_not_wait_behind_the_fusion_of_another(make_clien
             release.wait(60)
         return apply(entry, version, scans)
 
-    monkeypatch.setattr(service, "_apply", slow_apply)
+    monkeypatch.setattr(service.writes, "_apply", slow_apply)
     with ThreadPoolExecutor(1) as pool:
         fusing = pool.submit(client.post, "/maps/a/scans", json={"scans": [kit.laser()]})
         assert held.wait(30)
@@ -556,10 +556,10 @@ def test_uploads_still_arriving_count_against_their_maps_line(make_client: Any, 
     for name in ("lab", "other"):
         assert client.post("/maps", json={**kit.MAP_2D, "name": name}).status_code == 201
     service = client.app.state.service  # type: ignore[attr-defined]
-    with service.receiving("lab"), service.receiving("lab"):  # two bodies on their way
+    with service.writes.receiving("lab"), service.writes.receiving("lab"):  # two bodies on their way
         refused = client.post("/maps/lab/scans", json={"scans": [kit.laser()]})
         assert refused.status_code == 503 and "arriving" in error_message(refused)
         assert refused.headers["Retry-After"] == "1"
         assert client.post("/maps/other/scans", json={"scans": [kit.laser()]}).status_code == 200  # its own line
     assert client.post("/maps/lab/scans", json={"scans": [kit.laser()]}).status_code == 200  # room again
-    assert kit.version(client, "lab") == 1 and service._entry("lab").arriving == 0
+    assert kit.version(client, "lab") == 1 and service.maps.entry("lab").arriving == 0

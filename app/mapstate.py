@@ -1,0 +1,321 @@
+"""A map held in memory and what the service keeps beside it: its writers' line, its grid copies, its restore.
+
+Shared by the write path (``app.writepath``), the reads (``app.reads``), the registry of maps
+(``app.registry``) and the plans (``app.plans``); it knows nothing of HTTP.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import collections
+import functools
+import io
+import logging
+from collections.abc import Coroutine, Mapping
+from dataclasses import dataclass, field
+from datetime import UTC, datetime
+from typing import Any, Protocol, TypeVar
+
+import numpy as np
+
+from app import batches, conditional, engines, exports, plangrids
+from app.schemas import DEFAULT_FRAME_ID, EngineInfo, MapInfo, PlanResult, SensorIn
+from app.storage import StoredMap
+from fuzzyocc import BayesMap, FuzzyMap, GridSpec, SensorModel
+
+LOG = logging.getLogger("fuzzyrisk.maps")
+T = TypeVar("T")
+
+OccupancyMap = FuzzyMap | BayesMap
+
+
+class MapObserver(Protocol):
+    """Told of each change right after it happened (a live view: ``app.foxglove_live``).
+
+    Called on the event loop, the batch's apply lock held: a method must return at once (hand the
+    work to a thread of its own) and should not raise (what it raises is logged, never answered).
+    ``frame_id`` is the map's frame (``MapEntry.frame_id``), what its messages carry.
+    """
+
+    def batch_applied(self, name: str, version: int, last_scan: batches.Scan, frame_id: str) -> None: ...
+
+    def plan_made(self, name: str, result: PlanResult, frame_id: str) -> None: ...
+
+    def map_deleted(self, name: str) -> None: ...
+
+
+
+def now() -> str:
+    return datetime.now(UTC).isoformat(timespec="milliseconds")
+
+
+def npz(arrays: Mapping[str, np.ndarray]) -> bytes:
+    out = io.BytesIO()
+    # snapshots are mostly unknown cells: deflate shrinks them many times over
+    np.savez_compressed(out, allow_pickle=False, **arrays)
+    return out.getvalue()
+
+
+def unnpz(payload: bytes) -> dict[str, np.ndarray]:
+    with np.load(io.BytesIO(payload), allow_pickle=False) as archive:
+        return {key: archive[key] for key in archive.files}
+
+
+class Turns:
+    """Tickets handed out in arrival order; holders pass one at a time, in ticket order.
+
+    ``take`` is synchronous, so calling it before the first ``await`` of a request fixes the
+    request's place in line. Every ticket taken must be ``done`` exactly once (``finally``),
+    whether its holder ran, failed or was cancelled, or the line stops.
+    """
+
+    def __init__(self) -> None:
+        self._next = 0
+        self._serving = 0
+        self._finished: set[int] = set()
+        self._waiters: dict[int, asyncio.Future[None]] = {}
+
+    def take(self) -> int:
+        ticket = self._next
+        self._next += 1
+        return ticket
+
+    @property
+    def outstanding(self) -> int:
+        """Tickets taken and not yet done."""
+        return self._next - self._serving - len(self._finished)
+
+    async def wait(self, ticket: int) -> None:
+        """Return once every earlier ticket is done."""
+        if ticket == self._serving:
+            return
+        waiter = asyncio.get_running_loop().create_future()
+        self._waiters[ticket] = waiter
+        try:
+            await waiter
+        finally:
+            del self._waiters[ticket]
+
+    def done(self, ticket: int) -> None:
+        """Give the turn up (a ticket finished early, e.g. a refused batch, is skipped when its turn comes).
+
+        Idempotent: a ticket given up again is ignored.
+        """
+        if ticket < self._serving or ticket in self._finished:
+            return
+        self._finished.add(ticket)
+        while self._serving in self._finished:
+            self._finished.discard(self._serving)
+            self._serving += 1
+        waiter = self._waiters.get(self._serving)
+        if waiter is not None and not waiter.done():
+            waiter.set_result(None)
+
+
+class Line:
+    """A map's writers in arrival order through two stages, each passed in ticket order: commit, then apply.
+
+    A ticket enters a stage once every earlier ticket has left it. A batch leaves the commit
+    stage as soon as it is durable, so the next batch's fsync overlaps this one's fusion.
+    ``done`` leaves both stages (``finally``: whatever happened to the holder).
+    """
+
+    def __init__(self) -> None:
+        self.commit = Turns()
+        self.apply = Turns()
+
+    @property
+    def outstanding(self) -> int:
+        """Holders in line: taken, not yet out of the apply stage."""
+        return self.apply.outstanding
+
+    def take(self) -> int:
+        ticket = self.commit.take()
+        if self.apply.take() != ticket:  # both are only ever taken here, together
+            raise RuntimeError("commit and apply tickets out of step")
+        return ticket
+
+    async def wait_all(self, ticket: int) -> None:
+        """Return once every earlier ticket has left both stages (the map is this holder's alone)."""
+        await self.commit.wait(ticket)
+        await self.apply.wait(ticket)
+
+    def done(self, ticket: int) -> None:
+        self.commit.done(ticket)
+        self.apply.done(ticket)
+
+
+@dataclass
+class MapEntry:
+    """A map held in memory, with what the service knows about it."""
+
+    meta: dict[str, Any]
+    map: OccupancyMap
+    version: int
+    snapshot_version: int
+    scans_fused: int
+    updated: str
+    line: Line = field(default_factory=Line)
+    apply_lock: asyncio.Lock = field(default_factory=asyncio.Lock)
+    #: version of the last batch committed (``version`` is that of the last one applied: readers see that)
+    committed: int = 0
+    #: the last scan fused; its view for the web page is built when first asked for
+    last_scan: batches.Scan | None = None
+    last_view: batches.ScanView | None = None
+    #: version at the last failed snapshot attempt (the next attempt waits snapshot_every batches more)
+    snapshot_failed_version: int = 0
+    deleted: bool = False
+    #: uploads for this map whose bodies are still arriving (they count against its line: ``receiving``)
+    arriving: int = 0
+    #: (version, bytes) of each batch in the log after the latest snapshot: the log is bounded in bytes too
+    log: collections.deque[tuple[int, int]] = field(default_factory=collections.deque)
+    #: names this map among every map the process held (a deleted map's name may come back; its uid does not)
+    uid: int = field(default_factory=plangrids.new_uid)
+
+    @property
+    def name(self) -> str:
+        return str(self.meta["name"])
+
+    @property
+    def spec(self) -> GridSpec:
+        return self.map.spec
+
+    @property
+    def frame_id(self) -> str:
+        """The map's ROS frame (maps stored before frames could be chosen are in ``map``)."""
+        return str(self.meta.get("frame_id", DEFAULT_FRAME_ID))
+
+    @functools.cached_property
+    def etag_seed(self) -> str:
+        """Tells this map apart from another of the same name, across restarts (``conditional.map_seed``)."""
+        return conditional.map_seed(self.meta)
+
+    @functools.cached_property
+    def engine_info(self) -> EngineInfo | None:
+        """The fuzzy engine as ``MapInfo`` shows it (once: a map's engine never changes)."""
+        if not isinstance(self.map, FuzzyMap):
+            return None
+        return EngineInfo(**engines.describe(self.map.engine))
+
+    def info(self) -> MapInfo:
+        spec = self.spec
+        return MapInfo(
+            name=self.name,
+            dimensions=spec.ndim,
+            resolution=spec.resolution,
+            origin=list(spec.origin),
+            size=[float(f"{n * spec.resolution:.12g}") for n in spec.shape],  # as built: whole cells
+            shape=list(spec.shape),
+            model=self.meta["model"],
+            sensor=SensorIn(**self.meta["sensor"]),
+            engine=self.engine_info,
+            frame_id=self.frame_id,
+            scans_fused=self.scans_fused,
+            version=self.version,
+            created=self.meta["created"],
+            updated=self.updated,
+        )
+
+
+@dataclass(frozen=True)
+class GridSnapshot:
+    """Copies of a map's risk and observed arrays at one version, with what its outputs carry."""
+
+    spec: GridSpec
+    version: int
+    risk: np.ndarray
+    observed: np.ndarray
+    frame_id: str = DEFAULT_FRAME_ID
+    #: when the map reached this version (its last batch's ``updated``; its creation at version 0), ISO 8601
+    updated: str = ""
+    #: ``MapEntry.etag_seed``
+    etag_seed: str = ""
+
+    def etag(self, variant: Mapping[str, Any]) -> str:
+        """The strong ETag of one representation of this version (``conditional.entity_tag``)."""
+        return conditional.entity_tag(self.etag_seed, self.version, variant)
+
+    def planar(self, z_min: float | None, z_max: float | None) -> tuple[np.ndarray, np.ndarray]:
+        """2-D risk and observed: the map itself, or a 3-D map projected over ``[z_min, z_max]``."""
+        if self.spec.ndim == 2:
+            return self.risk, self.observed
+        return exports.project_z(
+            self.risk, self.observed, origin_z=self.spec.origin[2], resolution=self.spec.resolution,
+            z_min=z_min, z_max=z_max,
+        )
+
+
+def build_map(meta: Mapping[str, Any], *, max_cells: int) -> OccupancyMap:
+    """An empty map as ``meta`` describes it (a new map is built from its meta too: what is stored is what runs)."""
+    spec = GridSpec(origin=meta["origin"], size=meta["size"], resolution=meta["resolution"], max_cells=max_cells)
+    sensor = SensorModel(**meta["sensor"])
+    if meta["model"] == "fuzzy":
+        return FuzzyMap(spec, sensor, engines.from_meta(meta))
+    return BayesMap(spec, sensor)
+
+
+def restore(stored: StoredMap, up_to: int | None = None) -> MapEntry:
+    """A map from its snapshot and the batches after it (replayed in order: bit-identical risk).
+
+    ``up_to``: replay only the batches up to that version (a live map's rebuild: later batches
+    may be committed and still waiting for their turn to be applied).
+    """
+    if stored.damage:
+        raise RuntimeError(f"map {stored.name!r}: {'; '.join(stored.damage)}")
+    unlimited = 2**62  # a limit lowered since the map was made must not lose the map
+    try:
+        built = build_map(stored.meta, max_cells=unlimited)
+    except ValueError as exc:
+        raise RuntimeError(f"map {stored.name!r}: its stored metadata cannot be used ({exc}); the database "
+                           "needs repair") from exc
+    if stored.snapshot is not None:
+        arrays = unnpz(stored.snapshot)
+        if isinstance(built, FuzzyMap):
+            built = FuzzyMap.from_arrays(built.spec, built.sensor, arrays, built.engine)
+        else:
+            built = BayesMap.from_arrays(built.spec, built.sensor, arrays)
+    entry = MapEntry(
+        dict(stored.meta), built, stored.snapshot_version, stored.snapshot_version, built.scans_fused, stored.updated
+    )
+    for version, payload in stored.batches:
+        if up_to is not None and version > up_to:
+            break
+        try:
+            scans = batches.decode(payload)
+        except batches.CorruptBatch as exc:
+            # an acknowledged batch: never dropped silently; the service refuses to start and says where
+            raise RuntimeError(f"map {entry.name!r}: stored batch {version} is corrupt ({exc}); the database "
+                               f"needs repair (restore a backup, or delete that row to drop the batch)") from exc
+        try:
+            built.integrate_batch(scans)
+        except ValueError:
+            # cannot happen for a batch that was acknowledged (it was applied before the 200)
+            LOG.exception("map %s: batch %d cannot be replayed; skipped", entry.name, version)
+            continue
+        entry.version = version
+        entry.last_scan = scans[-1]
+    entry.log.extend((version, len(payload)) for version, payload in stored.batches
+                     if up_to is None or version <= up_to)
+    entry.scans_fused = built.scans_fused
+    # the next batch takes a version above every stored one, replayed or skipped
+    entry.committed = max([entry.version, *(version for version, _ in stored.batches)])
+    return entry
+
+def is_current(entry: MapEntry, version: int) -> bool:
+    """Is ``version`` still the version of the map that ``entry`` holds?"""
+    return not entry.deleted and entry.version == version
+
+
+async def shielded(work: Coroutine[Any, Any, T]) -> T:
+    """Run ``work`` to its end even if the awaiting request is cancelled (a client gone away)."""
+    task = asyncio.ensure_future(work)
+    task.add_done_callback(_retrieve)
+    return await asyncio.shield(task)
+
+
+def _retrieve(task: asyncio.Future[Any]) -> None:
+    """Mark a shielded task's exception as seen: its request may have been cancelled, and the error
+    reached the client (or nobody) through the shield, not through this task."""
+    if not task.cancelled():
+        task.exception()
+

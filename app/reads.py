@@ -1,0 +1,236 @@
+"""Reads of a map: its grid at one version, and every representation made of it (JSON, .npy, PNG, map_server,
+OccupancyGrid, MCAP); copies under the map's apply lock, encodings in the read threads."""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable, Mapping
+from typing import Any, Literal, TypeVar
+
+import numpy as np
+
+from app import batches, conditional, exports, rosout, rostypes
+from app.config import Settings
+from app.errors import Invalid, NotFound, TooLarge, Unavailable
+from app.mapstate import GridSnapshot, MapEntry
+from app.registry import MapRegistry
+from app.schemas import LastScan, OccupancyGrid, RiskGridJSON, RiskValues
+from app.storage import Storage, StoredMap
+from app.workers import Workers
+
+LOG = logging.getLogger("fuzzyrisk.maps")
+T = TypeVar("T")
+
+#: Above this many cells the JSON risk grid is refused (use format=npy or png).
+MAX_JSON_CELLS = 4_000_000
+#: Most pixels of one PNG.
+MAX_PNG_PIXELS = 64_000_000
+
+
+class MapReads:
+    """A map's outputs, each consistent with one version of the map."""
+
+    def __init__(self, settings: Settings, storage: Storage, workers: Workers, registry: MapRegistry) -> None:
+        self.settings = settings
+        self.storage = storage
+        self._workers = workers
+        self._registry = registry
+
+    async def last_scan(self, name: str) -> LastScan:
+        """Beam ends of the last scan fused; the view is built at the first request, not per batch."""
+        entry = self._registry.entry(name)
+        scan, view, version = entry.last_scan, entry.last_view, entry.version
+        if scan is None:
+            raise NotFound(f"map {name!r} has fused no scan since the service started")
+        if view is None:
+            # most batches are never drawn; a big cloud's view takes a while, so off the event loop
+            view = await self._workers.run_read(batches.scan_view, scan)
+            if entry.last_scan is scan:  # not replaced by a newer batch meanwhile
+                entry.last_view = view
+        return LastScan(origin=view.origin, endpoints=view.endpoints, hit=view.hit, version=version)
+
+    # ---------------------------------------------------------------- risk
+
+    def current_etag(self, name: str, variant: Mapping[str, Any]) -> tuple[str, int]:
+        """The ETag a read of ``variant`` would carry now, and the version (no grid read: for If-None-Match)."""
+        entry = self._registry.entry(name)
+        return conditional.entity_tag(entry.etag_seed, entry.version, variant), entry.version
+
+    async def read_grid(self, name: str) -> GridSnapshot:
+        """The map's risk and observed arrays, consistent with one version.
+
+        ``risk()`` and ``observed()`` already hand out new read-only arrays, so no copy is needed.
+        """
+        return await self.read_grid_of(self._registry.entry(name))
+
+    async def read_grid_of(self, entry: MapEntry) -> GridSnapshot:
+        async with entry.apply_lock:
+            risk, observed = await self._workers.run_read(lambda: (entry.map.risk(), entry.map.observed()))
+            # version and updated are assigned together under this lock (``_write``): they match the arrays
+            return GridSnapshot(entry.spec, entry.version, risk, observed, entry.frame_id, entry.updated,
+                                entry.etag_seed)
+
+    async def render_log(self, name: str, render: Callable[[GridSnapshot, StoredMap], T]) -> T:
+        """``render(grid, stored)`` in a read thread: the map's grid and its stored batch log at one version.
+
+        The grid is copied and the log read (``Storage.load_map``: the latest snapshot's version and the
+        batches after it) together under the apply lock, so no batch is applied between the two: the log
+        holds every batch up to the grid's version (each was committed before it was applied), and those
+        committed but not applied yet are left out. ``render`` runs once the lock is released
+        (``app.recording``); ``stored.snapshot`` is dropped, the arrays are not needed.
+        """
+        entry = self._registry.entry(name)
+        async with entry.apply_lock:
+            risk, observed, stored = await self._workers.run_read(
+                lambda: (entry.map.risk(), entry.map.observed(), self.storage.load_map(entry.name)))
+            grid = GridSnapshot(entry.spec, entry.version, risk, observed, entry.frame_id, entry.updated,
+                                entry.etag_seed)
+        if stored is None or stored.meta.get("created") != entry.meta["created"]:  # deleted (and made again)
+            raise NotFound(f"no map named {name!r}; GET /maps lists them")
+        if stored.damage:
+            raise Unavailable(f"map {name!r}: its stored log is damaged ({'; '.join(stored.damage)})")
+        stored.snapshot = None
+        stored.batches = [(version, payload) for version, payload in stored.batches if version <= grid.version]
+        return await self._workers.run_read(render, grid, stored)
+
+    async def risk_at(self, name: str, points: list[list[float]]) -> RiskValues:
+        if len(points) > self.settings.max_query_points:
+            raise TooLarge(
+                f"{len(points)} points, more than the limit of {self.settings.max_query_points} "
+                "(FUZZYRISK_MAX_QUERY_POINTS): split the query"
+            )
+        entry = self._registry.entry(name)
+        dims = entry.spec.ndim
+        if any(len(p) != dims for p in points):
+            bad = next(i for i, p in enumerate(points) if len(p) != dims)
+            raise Invalid(f"points[{bad}] has {len(points[bad])} coordinates; this map is {dims}-D")
+        async with entry.apply_lock:
+            try:
+                values = await self._workers.run_read(entry.map.risk_at, np.asarray(points, dtype=np.float64))
+            except ValueError as exc:
+                raise Invalid(str(exc)) from None
+            return RiskValues(risk=[float(v) for v in values], version=entry.version)
+
+    async def risk_json(self, name: str) -> tuple[bytes, GridSnapshot]:
+        """The grid as ``RiskGridJSON``, serialised (off the event loop: big maps make big documents)."""
+        grid = await self.read_grid(name)
+        if grid.spec.num_cells > MAX_JSON_CELLS:
+            raise Invalid(
+                f"the map has {grid.spec.num_cells} cells, too many for JSON (at most {MAX_JSON_CELLS}); "
+                "ask for format=npy or format=png"
+            )
+
+        def encode() -> bytes:
+            return RiskGridJSON(
+                name=name, version=grid.version, frame_id=grid.frame_id, resolution=grid.spec.resolution,
+                origin=list(grid.spec.origin), shape=list(grid.spec.shape),
+                risk=np.round(grid.risk.astype(np.float64), 6).tolist(), observed=grid.observed.tolist(),
+            ).model_dump_json().encode()
+
+        return await self._workers.run_read(encode), grid
+
+    async def risk_npy(self, name: str, layer: Literal["risk", "observed"] = "risk") -> tuple[bytes, GridSnapshot]:
+        """The risk (float32) or the observed mask (bool) as ``.npy``, of one version."""
+        grid = await self.read_grid(name)
+        return await self._workers.run_read(exports.npy_bytes, grid.risk if layer == "risk" else grid.observed), grid
+
+    async def risk_png(self, name: str, *, scale: int, z_min: float | None, z_max: float | None) -> tuple[bytes, GridSnapshot]:
+        _check_band(z_min, z_max)
+        grid = await self.read_grid(name)
+        nx, ny = grid.spec.shape[:2]
+        if nx * ny * scale * scale > MAX_PNG_PIXELS:
+            raise Invalid(f"scale {scale} would make a {nx * scale} x {ny * scale} image; use a smaller scale")
+        text = {
+            "map": name, "version": str(grid.version), "frame_id": grid.frame_id,
+            "resolution": repr(grid.spec.resolution), "origin": repr(list(grid.spec.origin)),
+        }
+
+        def render() -> bytes:
+            risk, observed = grid.planar(z_min, z_max)
+            return exports.risk_png(risk, observed, scale=scale, text=text)
+
+        return await self._workers.run_read(render), grid
+
+    async def nav2_zip(
+        self, name: str, *, mode: Literal["trinary", "scale", "raw"], image_format: Literal["pgm", "png"],
+        free_thresh: float, occupied_thresh: float, z_min: float | None, z_max: float | None,
+    ) -> tuple[bytes, GridSnapshot]:
+        """The zip for map_server; its entries are dated by the map's last batch, so one version gives one file."""
+        _check_band(z_min, z_max)
+        _check_thresholds(free_thresh, occupied_thresh)
+        try:
+            exports.check_nav2_format(mode, image_format)
+        except ValueError as exc:
+            raise Invalid(str(exc)) from None
+        grid = await self.read_grid(name)
+
+        def render() -> bytes:
+            risk, observed = grid.planar(z_min, z_max)
+            return exports.nav2_zip(
+                risk, observed, resolution=grid.spec.resolution, origin_xy=grid.spec.origin[:2], mode=mode,
+                image_format=image_format, free_thresh=free_thresh, occupied_thresh=occupied_thresh,
+                frame_id=grid.frame_id, date_time=rosout.zip_date_time(grid.updated),
+            )
+
+        return await self._workers.run_read(render), grid
+
+    async def occupancy_grid(
+        self, name: str, *, mode: Literal["trinary", "scale", "probability"], free_thresh: float,
+        occupied_thresh: float, z_min: float | None, z_max: float | None,
+        encoding: Literal["json", "cdr", "mcap"] = "json",
+    ) -> tuple[bytes, GridSnapshot]:
+        """The map as a ``nav_msgs/OccupancyGrid``: JSON (``OccupancyGrid``), CDR bytes, or an MCAP file.
+
+        The stamp and ``map_load_time`` are when the map reached this version (``GridSnapshot.updated``),
+        so every read of one version gives the same bytes.
+        """
+        _check_band(z_min, z_max)
+        _check_thresholds(free_thresh, occupied_thresh)
+        grid = await self.read_grid(name)
+
+        def render() -> bytes:
+            risk, observed = grid.planar(z_min, z_max)
+            data = exports.occupancy_data(risk, observed, mode=mode, free_thresh=free_thresh,
+                                          occupied_thresh=occupied_thresh)
+            stamp = rostypes.ros_time_of_iso(grid.updated)
+            if encoding != "json":
+                message = rosout.occupancy_grid_message(
+                    data, width=risk.shape[0], height=risk.shape[1], resolution=grid.spec.resolution,
+                    origin_xy=grid.spec.origin[:2], frame_id=grid.frame_id, stamp=stamp,
+                )
+                cdr = rosout.occupancy_grid_cdr(message)
+                if encoding == "cdr":
+                    return cdr
+                return rosout.occupancy_grid_mcap(cdr, log_time_ns=rostypes.ns_of_ros_time(stamp))
+            # the small fields through the model (validated), the 4-16 M values by numpy: one pydantic pass over
+            # them held the GIL, and so every request, for seconds (issue 11)
+            head = OccupancyGrid.model_validate({
+                "header": {"stamp": stamp, "frame_id": grid.frame_id},
+                "info": {
+                    "map_load_time": stamp, "resolution": grid.spec.resolution,
+                    "width": int(risk.shape[0]), "height": int(risk.shape[1]),
+                    "origin": {"position": {"x": grid.spec.origin[0], "y": grid.spec.origin[1], "z": 0.0},
+                               "orientation": {"x": 0.0, "y": 0.0, "z": 0.0, "w": 1.0}},
+                },
+                "data": [],
+                "version": grid.version,
+            }).model_dump_json().encode()
+            empty = b'"data":[]'
+            assert head.count(empty) == 1
+            return head.replace(empty, b'"data":' + exports.int8_json_array(data))
+
+        return await self._workers.run_read(render), grid
+
+
+
+def _check_thresholds(free_thresh: float, occupied_thresh: float) -> None:
+    # an 8-bit map image needs a grey strictly between the thresholds for "unknown"
+    try:
+        exports.check_thresholds(free_thresh, occupied_thresh)
+    except ValueError as exc:
+        raise Invalid(str(exc)) from None
+
+
+def _check_band(z_min: float | None, z_max: float | None) -> None:
+    if z_min is not None and z_max is not None and z_min > z_max:
+        raise Invalid(f"z_min ({z_min}) must not exceed z_max ({z_max})")

@@ -1,0 +1,353 @@
+"""The write path: a map's batches in arrival order, committed, applied, snapshotted.
+
+Concurrency: each map has these orderings.
+
+* ``line`` (writers: batches, delete, the final snapshot): a batch takes a ticket
+  the moment it arrives, is parsed and validated with no lock held (so batch k+1
+  parses while batch k fuses; in a parsing thread, or on the event loop when the
+  body is small: ``INLINE_PARSE_BYTES``), then passes two stages in ticket
+  order: *commit* (made durable) and *apply* (fused into the map). Batch k+1 may
+  commit while batch k is still fusing, so the fsync is off the map's critical
+  path; both stages still go in arrival order, whatever order parsing finishes in.
+  A batch refused by validation gives its turns up. Delete and the final snapshot
+  wait for both stages (every earlier batch committed and applied).
+* ``apply_lock`` (short): held while the map object is used, i.e. while a batch is
+  applied, while a snapshot copies the arrays (compression and the write happen
+  after, holding the apply turn only) and while a reader (risk, query, plan) copies.
+  A reader waits for at most the batch being applied, never behind the queued ones,
+  and never sees a half-applied batch or a version that does not match the arrays.
+
+The CPU work runs off the event loop: parsing and validation of big bodies in
+parsing threads, fusion in the fusion threads (numpy and numba release the GIL), commits in one
+writer thread (``app.committer``: batches queued meanwhile, from any map, share a
+transaction), plans in worker processes. Different maps proceed in parallel.
+
+Durability: a batch is parsed and validated completely, then committed (fsync)
+with the version it brings the map to, then applied, then acknowledged. A store
+that cannot take the commit (full disk, read-only directory) raises
+``StorageUnavailable`` before anything is applied. Once parsed, a batch is
+committed and applied even if its request is cancelled (a client gone away): a
+batch committed but not applied would make the map differ from its replay. A batch
+that cannot be applied after its commit (a bug, memory) is removed from the log and
+answered 500; its version is not reused (a later batch may have committed with
+the next one meanwhile), so the map's version then skips one number. A snapshot is only an optimisation of restarts (the
+batch log already holds every acknowledged batch), so a failed snapshot is logged,
+counted and retried later, never answered as an error.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import time
+from collections.abc import Callable, Iterator, Mapping
+
+from fastapi.exceptions import RequestValidationError
+from pydantic import ValidationError
+
+from app import batches, rosmsgs
+from app.committer import GroupCommitter
+from app.config import Settings
+from app.errors import (
+    Conflict,
+    Invalid,
+    NotFound,
+    TooLarge,
+    Unavailable,
+    UnsupportedMediaType,
+)
+from app.mapstate import MapEntry, now, npz, restore, shielded
+from app.metrics import Metrics
+from app.plangrids import PlanGrids
+from app.registry import MapRegistry
+from app.schemas import BatchResult, ScanBatch, ScanQuery
+from app.storage import BatchRecord, Storage, StorageUnavailable
+from app.workers import Workers
+from fuzzyocc import cast_work
+
+LOG = logging.getLogger("fuzzyrisk.maps")
+
+#: Bodies up to this size are parsed on the event loop rather than in a parsing thread: their parse
+#: (pydantic holds the GIL either way, so the loop waits for it wherever it runs) takes well under a
+#: millisecond, less than the two thread switches of a trip through the parsing pool.
+INLINE_PARSE_BYTES = 128 * 1024
+
+
+class WritePath:
+    """Batches into maps: admitted, parsed, committed (group commit), applied in order; snapshots when due."""
+
+    def __init__(self, settings: Settings, storage: Storage, metrics: Metrics, workers: Workers,
+                 registry: MapRegistry, grids: PlanGrids, notify: Callable[..., None]) -> None:
+        self.settings = settings
+        self.storage = storage
+        self.metrics = metrics
+        self._workers = workers
+        self._registry = registry
+        self._grids = grids
+        self._notify = notify
+        self._committer = GroupCommitter(storage, metrics)
+        self._limits = batches.Limits(max_scans=settings.max_scans_per_batch, max_rays=settings.max_rays_per_scan)
+
+    @property
+    def limits(self) -> batches.Limits:
+        """The scans of one batch and the rays of one scan the service takes (``FUZZYRISK_MAX_SCANS_PER_BATCH``,
+        ``FUZZYRISK_MAX_RAYS_PER_SCAN``)."""
+        return self._limits
+
+    async def stop(self) -> None:
+        """Wait for the batches in flight, snapshot every map with unsnapshotted batches, stop the committer."""
+        for entry in self._registry.held:
+            ticket = entry.line.take()
+            try:
+                await entry.line.wait_all(ticket)
+                if not entry.deleted and entry.version > entry.snapshot_version:
+                    await self.snapshot(entry)
+            finally:
+                entry.line.done(ticket)
+        self._committer.shutdown()
+
+    async def snapshot(self, entry: MapEntry) -> None:
+        """Store the map's arrays and drop the batches they cover; a failure is logged and counted only.
+
+        The caller holds the map's apply turn (no batch can change the map meanwhile). Nothing is lost
+        when this fails: the batches since the last snapshot stay in the log and are replayed at start.
+        """
+        async with entry.apply_lock:  # readers wait for the copy only, not for deflate and fsync
+            version = entry.version
+            arrays = await self._workers.run(entry.map.to_arrays)
+        try:
+            await self._workers.run(lambda: self.storage.write_snapshot(entry.name, version, npz(arrays)))
+        except Exception as exc:
+            # StorageUnavailable (full, read-only) mostly, but whatever it is, the batch that triggered
+            # the snapshot is committed and applied: it must still be acknowledged
+            entry.snapshot_failed_version = version
+            self.metrics.snapshot_failures.inc()
+            LOG.warning(
+                "snapshot failed; the batches stay in the log and the snapshot is retried later",
+                extra={"fields": {"map": entry.name, "version": version, "error": str(exc)}},
+            )
+            return
+        entry.snapshot_version = version
+        while entry.log and entry.log[0][0] <= version:  # dropped from the log with the snapshot
+            entry.log.popleft()
+        self.metrics.snapshots.inc()
+
+    def _snapshot_due(self, entry: MapEntry) -> bool:
+        """Every ``FUZZYRISK_SNAPSHOT_EVERY`` batches, or once the log holds ``FUZZYRISK_SNAPSHOT_LOG_BYTES``.
+
+        The bytes bound the disk a map takes (its snapshot, plus at most that much log and a batch):
+        200 batches of 64 MiB would otherwise be 12.5 GiB of log for one map (issue 11).
+        """
+        every = self.settings.snapshot_every
+        # after a failure, wait another ``every`` batches: a full disk should not cost a snapshot per batch
+        if entry.snapshot_failed_version > entry.snapshot_version and entry.version - entry.snapshot_failed_version < every:
+            return False
+        logged = sum(size for version, size in entry.log if version <= entry.version)
+        return entry.version - entry.snapshot_version >= every or logged >= self.settings.snapshot_log_bytes
+
+
+    def _parse(self, body: bytes, content_type: str, query: Mapping[str, str], dims: int) -> list[batches.Scan]:
+        # the query first, as FastAPI checks query parameters before the route reads a body
+        try:
+            params = ScanQuery.model_validate(dict(query)).model_dump()
+        except ValidationError as exc:
+            errors = [{**e, "loc": ("query", *e["loc"])} for e in exc.errors(include_url=False)]
+            raise RequestValidationError(errors) from None
+        media = content_type.split(";")[0].strip().lower()
+        if media in batches.BINARY_TYPES:
+            return batches.from_binary(body, params, dims, self._limits)
+        if media in rosmsgs.MEDIA_TYPES:  # a CDR-serialized LaserScan or PointCloud2, the pose in the query
+            return rosmsgs.from_cdr(body, media, params, dims, self._limits)
+        if media != "application/json":
+            # none at all is refused too: a web page can send a body without one, and without a
+            # CORS preflight (issue 11: a browser's no-cors fetch injected scans)
+            given = f"Content-Type {media!r} is not accepted" if media else "a scan upload needs a Content-Type"
+            raise UnsupportedMediaType(
+                f"{given}: send application/json, or a binary scan as {' or '.join(batches.BINARY_TYPES)}, "
+                f"or a ROS 2 message as {' or '.join(map(rosmsgs.media_type, rosmsgs.MSGTYPES))}"
+            )
+        try:
+            batch = ScanBatch.model_validate_json(body)
+        except ValidationError as exc:
+            errors = [{**e, "loc": ("body", *e["loc"])} for e in exc.errors(include_url=False)]
+            raise RequestValidationError(errors) from None
+        return batches.from_json(batch, dims, self._limits)
+
+    def _prepare(
+        self, entry: MapEntry, body: bytes, content_type: str, query: Mapping[str, str]
+    ) -> tuple[list[batches.Scan], bytes]:
+        """Parse, validate (query and body) and encode a batch (no lock held: it touches no map state).
+
+        In a parsing thread, or on the event loop for a small body (``INLINE_PARSE_BYTES``).
+        """
+        scans = self._parse(body, content_type, query, entry.spec.ndim)
+        self._check_work(entry, scans)
+        return scans, batches.encode(scans)
+
+    def _check_work(self, entry: MapEntry, scans: list[batches.Scan]) -> None:
+        """413 for a batch whose rays would walk more than ``FUZZYRISK_MAX_BATCH_CELLS`` cells of this map.
+
+        Before it is stored: one small request (12 scans of 16,384 beams reaching past a 16 M-cell
+        map's edges) would otherwise hold a fusion thread for a minute, and every restart replays it.
+        """
+        work = cast_work(entry.spec, scans)
+        if work > self.settings.max_batch_cells:
+            raise TooLarge(
+                f"the batch's rays walk about {work:,} cells of this map, more than FUZZYRISK_MAX_BATCH_CELLS "
+                f"({self.settings.max_batch_cells:,}): send fewer scans per batch, or shorter range_max"
+            )
+
+    def _apply(self, entry: MapEntry, version: int, scans: list[batches.Scan]) -> BatchResult:
+        """Fuse a committed batch (in a fusion thread; the caller holds the apply turn and the apply lock)."""
+        started = time.perf_counter()
+        try:
+            stats = entry.map.integrate_batch(scans)
+        except BaseException:
+            # never acknowledged: it must not come back at the next start
+            try:
+                self.storage.discard_batch(entry.name, version)
+            except StorageUnavailable:
+                LOG.exception("map %s: batch %d failed to apply and could not be removed from the log; "
+                              "a start before the next snapshot will replay it", entry.name, version)
+            self._rebuild(entry)
+            raise
+        model = entry.meta["model"]
+        self.metrics.fusion_seconds.labels(model).observe(time.perf_counter() - started)
+        self.metrics.scans_fused.labels(model).inc(stats.scans)
+        self.metrics.rays.labels(model).inc(stats.rays)
+        self.metrics.cells_updated.labels(model).inc(stats.cells_updated)
+        return BatchResult(scans_fused=stats.scans, rays=stats.rays, cells_updated=stats.cells_updated, version=version)
+
+    def _rebuild(self, entry: MapEntry) -> None:
+        """Put back the map a failed batch may have changed in part: all or nothing (issue 11).
+
+        The map is rebuilt from the store up to its current version, as a restart would rebuild
+        it; should that fail too, the map is left as it is and the failure logged.
+        """
+        try:
+            stored = self.storage.load_map(entry.name)
+            if stored is None:
+                return  # deleted meanwhile
+            entry.map = restore(stored, up_to=entry.version).map
+        except Exception:
+            LOG.exception("map %s: could not rebuild the map after a failed batch; it may differ from what a "
+                          "restart rebuilds until then", entry.name)
+
+    @contextlib.contextmanager
+    def receiving(self, name: str) -> Iterator[None]:
+        """Admit an upload (503, ``Retry-After`` when its map's line is full) and count it against the line while
+        its body arrives; ``add_scans`` checks the line again as the batch joins it.
+
+        Uploads read side by side would all pass a check that counts only the batches already in
+        line: 40 bodies of 60 MB for one map were all read at once (issue 11). Counted from the
+        first byte, one map's uploads hold at most ``FUZZYRISK_MAX_PENDING_BATCHES`` bodies, the
+        others' share of the bodies-in-flight budget stays theirs.
+        """
+        entry = self._registry.entry(name)
+        self._admit(entry)
+        entry.arriving += 1
+        try:
+            yield
+        finally:
+            entry.arriving -= 1
+
+    def _admit(self, entry: MapEntry) -> None:
+        waiting = entry.line.outstanding + entry.arriving
+        if waiting >= self.settings.max_pending_batches:
+            self.metrics.batches_rejected.labels("Backlog").inc()
+            raise Unavailable(
+                f"map {entry.name!r} already has {waiting} batches in line or arriving; slow down and retry "
+                "(FUZZYRISK_MAX_PENDING_BATCHES)",
+                headers={"Retry-After": "1"},
+            )
+
+    async def add_scans(
+        self, name: str, *, body: bytes, content_type: str, query: Mapping[str, str]
+    ) -> BatchResult:
+        """Fuse one batch (JSON ``ScanBatch`` or one binary scan) into a map, durably, all or nothing.
+
+        Batches to one map are committed and applied in the order they arrived here.
+        """
+        entry = self._registry.entry(name)
+        # no await between the check and the take: together they are atomic on the event loop
+        self._admit(entry)
+        ticket = entry.line.take()  # before any await: this fixes the batch's place in line
+        try:
+            if len(body) <= INLINE_PARSE_BYTES:
+                scans, payload = self._prepare(entry, body, content_type, query)
+            else:
+                scans, payload = await self._workers.run_parser(self._prepare, entry, body, content_type, query)
+        except BaseException as exc:
+            entry.line.done(ticket)
+            if isinstance(exc, (Invalid, TooLarge, RequestValidationError, UnsupportedMediaType)):
+                self.metrics.batches_rejected.labels(type(exc).__name__).inc()
+            raise
+        # the task owns the ticket from here; shielded, so that a cancelled request cannot leave its
+        # batch committed but not applied
+        return await shielded(self._write(entry, ticket, scans, payload))
+
+    async def add_parsed_scans(self, name: str, scans: list[batches.Scan], *, uid: int,
+                               admitted: bool = False) -> BatchResult:
+        """Fuse one batch of scans validated by the caller for map ``name`` (a bag upload's), as ``add_scans`` does.
+
+        ``uid`` is the ``map_uid`` the scans were validated for: a map deleted and created again
+        under the same name since (another grid, maybe another dimension) answers ``Conflict`` and
+        stores nothing. ``admitted``: the batch belongs to an import whose first batch was admitted,
+        so it is not refused for the line's length (an import is refused whole, or not at all).
+        """
+        entry = self._registry.entry(name)
+        if not admitted:
+            self._admit(entry)
+        ticket = entry.line.take()
+        if entry.uid != uid:  # no await since the entry was looked up: the map holding the name now
+            entry.line.done(ticket)
+            raise Conflict(f"map {name!r} was deleted and created again while its scans were being read; "
+                           "nothing was stored: import into the new map again")
+        try:
+            payload = await self._workers.run_parser(self._checked_payload, entry, scans)
+        except BaseException:
+            entry.line.done(ticket)
+            raise
+        return await shielded(self._write(entry, ticket, scans, payload))
+
+    def _checked_payload(self, entry: MapEntry, scans: list[batches.Scan]) -> bytes:
+        self._check_work(entry, scans)
+        return batches.encode(scans)
+
+    async def _write(self, entry: MapEntry, ticket: int, scans: list[batches.Scan], payload: bytes) -> BatchResult:
+        """Commit, then apply, a parsed batch in its turns; gives both turns up when done, whatever happens."""
+        try:
+            await entry.line.commit.wait(ticket)
+            if entry.deleted:
+                raise NotFound(f"no map named {entry.name!r}")
+            version, updated = entry.committed + 1, now()
+            # StorageUnavailable here leaves the map untouched: nothing is applied before the commit
+            await asyncio.wrap_future(self._committer.append(BatchRecord(entry.name, version, payload, updated)))
+            entry.committed = version
+            entry.log.append((version, len(payload)))
+            entry.line.commit.done(ticket)  # the next batch may commit while this one waits for its fusion
+            await entry.line.apply.wait(ticket)
+            async with entry.apply_lock:
+                # a batch that fails here keeps its version taken (the map's version skips it): a
+                # later batch may have committed with the next one meanwhile, and should its
+                # removal from the log have failed too, the row is still there under this version
+                try:
+                    result = await self._workers.run(self._apply, entry, version, scans)
+                except BaseException:
+                    # the map may have changed in part (issue 11): a grid published for its
+                    # current version would no longer be that map
+                    self._grids.retire(entry.uid)
+                    raise
+                # assigned here, on the event loop and under the apply lock, so that a reader and
+                # MapInfo never pair the new arrays with the old version (or mix two versions)
+                entry.version, entry.scans_fused, entry.updated = result.version, entry.map.scans_fused, updated
+                entry.last_scan, entry.last_view = scans[-1], None
+                self._grids.retire(entry.uid, below=entry.version)  # no plan will ask for an older one
+                self._notify("batch_applied", entry.name, entry.version, entry.last_scan, entry.frame_id)
+            if self._snapshot_due(entry):
+                await self.snapshot(entry)
+            return result
+        finally:
+            entry.line.done(ticket)
+
