@@ -1,5 +1,5 @@
 # fuzzyrisk: the service in a container, beside a robot's software (README: "Beside a ROS 2 robot").
-#   docker build -t fuzzyrisk .
+#   docker build -t fuzzyrisk .                            (a fleet's replicas: --build-arg EXTRAS=postgres)
 #   docker run -d --name fuzzyrisk --read-only -p 8000:8000 -v fuzzyrisk-data:/data \
 #              -e FUZZYRISK_API_KEY=... fuzzyrisk
 # Python 3.11 on Debian 12, pinned by tag and by the digest of its multi-platform index: change both together.
@@ -18,8 +18,12 @@ RUN python -m venv /opt/fuzzyrisk
 WORKDIR /src
 # 1. the dependencies, at the versions of constraints.txt (the lock CI tests with): this layer is rebuilt
 #    only when one of these two files changes, not at every change of the code
+#    EXTRAS: optional dependencies too, comma-separated: postgres (a fleet on PostgreSQL, README: "Running a fleet")
+ARG EXTRAS=""
 COPY pyproject.toml constraints.txt ./
-RUN python -c "import tomllib; print('\n'.join(tomllib.load(open('pyproject.toml', 'rb'))['project']['dependencies']))" \
+RUN python -c "import os, tomllib; p = tomllib.load(open('pyproject.toml', 'rb'))['project']; \
+extras = [e for e in os.environ.get('EXTRAS', '').split(',') if e]; \
+print('\n'.join(p['dependencies'] + [d for e in extras for d in p['optional-dependencies'][e]]))" \
         > requirements.txt \
     && /opt/fuzzyrisk/bin/pip install --constraint constraints.txt --requirement requirements.txt \
     # what the service never runs: the packages' own test suites, the symbols of LLVM's library (19 MB)

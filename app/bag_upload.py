@@ -71,8 +71,8 @@ async def import_upload(
     """Import the bag ``body`` (of ``content_type``) into map ``name``; ``map_frame`` None: the map's ``frame_id``."""
     # admitted before the body is read (a map with a full line answers at once), and counted against the map's
     # line while it arrives; no longer once it is read: the import's first batch must not wait behind itself
-    with service.writes.receiving(name):
-        info, uid = service.maps.get_map(name), service.maps.map_uid(name)  # no await between: one map
+    async with service.writes.receiving(name) as entry:
+        info, uid = entry.info(), entry.uid
         media = content_type.split(";")[0].strip().lower()
         if media not in MEDIA_TYPES:
             raise UnsupportedMediaType(f"Content-Type {media!r} is not a bag: send a ROS 1 .bag as {ROSBAG} or a "

@@ -23,7 +23,7 @@ from app.storage import BatchRecord, Storage
 @dataclass
 class _Pending:
     record: BatchRecord
-    future: Future[None] = field(default_factory=Future)
+    future: Future[int] = field(default_factory=Future)
     queued: float = field(default_factory=time.perf_counter)
 
 
@@ -44,8 +44,9 @@ class GroupCommitter:
         self._closed = False
         self._writer = ThreadPoolExecutor(1, thread_name_prefix="commit")
 
-    def append(self, record: BatchRecord) -> Future[None]:
-        """Queue a batch; the future resolves once it is on disk, or fails (``StorageUnavailable``: nothing stored)."""
+    def append(self, record: BatchRecord) -> Future[int]:
+        """Queue a batch; the future resolves to the version the store gave it once it is on disk, or fails
+        (``StorageUnavailable``, ``MapGone``: nothing stored)."""
         item = _Pending(record)
         with self._lock:
             if self._closed:
@@ -65,7 +66,7 @@ class GroupCommitter:
             if not group:
                 return
             try:
-                self._storage.append_batches([item.record for item in group])
+                versions = self._storage.append_batches([item.record for item in group])
             except BaseException as exc:
                 if len(group) == 1:
                     group[0].future.set_exception(exc)
@@ -73,7 +74,7 @@ class GroupCommitter:
                 for item in group:
                     self._commit_alone(item)
                 return
-            self._resolve(group)
+            self._resolve(group, versions)
         finally:
             # whatever went wrong above, no writer may wait forever (it holds its map's commit turn)
             for item in group:
@@ -82,16 +83,16 @@ class GroupCommitter:
 
     def _commit_alone(self, item: _Pending) -> None:
         try:
-            self._storage.append_batches([item.record])
+            versions = self._storage.append_batches([item.record])
         except BaseException as exc:
             item.future.set_exception(exc)
         else:
-            self._resolve([item])
+            self._resolve([item], versions)
 
-    def _resolve(self, group: list[_Pending]) -> None:
+    def _resolve(self, group: list[_Pending], versions: list[int]) -> None:
         now = time.perf_counter()
-        for item in group:
-            item.future.set_result(None)
+        for item, version in zip(group, versions, strict=True):
+            item.future.set_result(version)
         self._metrics.commit_groups.observe(len(group))
         for item in group:
             self._metrics.commit_seconds.observe(now - item.queued)

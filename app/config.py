@@ -26,7 +26,21 @@ class Settings(BaseSettings):
 
     host: str = Field("127.0.0.1", description="Interface to listen on (0.0.0.0 in a container).")
     port: int = Field(8000, ge=1, le=65535, description="TCP port.")
-    data_dir: Path = Field(Path("data"), description="Directory of the map database (created if missing).")
+    data_dir: Path = Field(
+        Path("data"),
+        description="Directory of the map database (created if missing); with FUZZYRISK_DATABASE_URL, of the "
+        "replica's own files only (numba cache, plan grids, uploads on their way).",
+    )
+    database_url: SecretStr | None = Field(
+        None,
+        description="postgresql://user[:password]@host:port/dbname: keep the maps in PostgreSQL, where any number of "
+        "replicas of the service share them (a fleet); unset or empty = SQLite in the data directory.",
+    )
+    map_idle_s: float = Field(
+        600.0, gt=0, le=86_400,
+        description="With FUZZYRISK_DATABASE_URL: a map no request used for this long is dropped from the replica's "
+        "memory (loaded again from the database at its next request).",
+    )
     api_key: SecretStr | None = Field(
         None,
         description="Bearer token every API call must carry; unset or empty = no authentication.",
@@ -141,7 +155,7 @@ class Settings(BaseSettings):
         "blocks, each its cells' largest risk.",
     )
 
-    @field_validator("api_key", "foxglove_port", mode="before")
+    @field_validator("api_key", "foxglove_port", "database_url", mode="before")
     @classmethod
     def _empty_key_is_none(cls, value: object) -> object:
         # FUZZYRISK_API_KEY= (empty) in a compose file means "no key", not "the empty key" (and
@@ -159,6 +173,12 @@ class Settings(BaseSettings):
                 "(e.g. python -c 'import secrets; print(secrets.token_urlsafe(32))')"
             )
         return value
+
+    @property
+    def shared_storage(self) -> bool:
+        """Maps in a database other replicas may write too (PostgreSQL): each map is loaded when first asked for and
+        caught up with the database before every read (``app.replica``)."""
+        return self.database_url is not None
 
     @property
     def database_path(self) -> Path:

@@ -392,6 +392,6 @@ def attach(service: Any, *, host: str, port: int, interval_s: float, max_cells: 
         return asyncio.run_coroutine_threadsafe(service.reads.read_grid(name), loop).result(READ_TIMEOUT_S)
 
     view = LiveView(host=host, port=port, interval_s=interval_s, read_grid=read_grid, max_cells=max_cells)
-    view.start({info.name: info.frame_id for info in service.maps.list_maps()})
+    view.start({entry.name: entry.frame_id for entry in service.maps.held_maps})
     service.observer = view
     return view

@@ -21,7 +21,7 @@ from app.middleware import ApiKeyMiddleware, BodyBudgetMiddleware, BodyLimitMidd
 from app.routes import bags, docs, maps, plans, recordings, risk, scans, system, ui
 from app.schemas import RiskGridJSON, ScanBatch
 from app.services import MapService
-from app.storage import SqliteStorage
+from app.storage import SqliteStorage, Storage
 
 LOG = logging.getLogger("fuzzyrisk")
 DESCRIPTION = """\
@@ -120,6 +120,15 @@ async def _start_live_view(settings: Settings, service: MapService) -> Any:
         raise
 
 
+def open_storage(settings: Settings) -> Storage:
+    """PostgreSQL when ``FUZZYRISK_DATABASE_URL`` is set (replicas share it), else SQLite in the data directory."""
+    if settings.database_url is None:
+        return SqliteStorage(settings.database_path)
+    from app.storage_pg import PostgresStorage  # psycopg is needed (and imported) only then
+
+    return PostgresStorage(settings.database_url.get_secret_value())
+
+
 def create_app(settings: Settings | None = None) -> FastAPI:
     """The FastAPI application; storage is opened and maps loaded in its lifespan."""
     settings = settings or get_settings()
@@ -127,7 +136,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
-        service = MapService(settings, SqliteStorage(settings.database_path), metrics)
+        service = MapService(settings, await asyncio.to_thread(open_storage, settings), metrics)
         await asyncio.to_thread(bag_upload.remove_leftovers, settings.temp_dir)  # a killed run's uploads
         await service.start()
         live = await _start_live_view(settings, service)  # None unless FUZZYRISK_FOXGLOVE_PORT is set

@@ -11,6 +11,7 @@ import collections
 import functools
 import io
 import logging
+import time
 from collections.abc import Coroutine, Mapping
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
@@ -20,11 +21,15 @@ import numpy as np
 
 from app import batches, conditional, engines, exports, plangrids
 from app.schemas import DEFAULT_FRAME_ID, EngineInfo, MapInfo, PlanResult, SensorIn
-from app.storage import StoredMap
+from app.storage import MapHead, StoredMap
 from fuzzyocc import BayesMap, FuzzyMap, GridSpec, SensorModel
 
 LOG = logging.getLogger("fuzzyrisk.maps")
 T = TypeVar("T")
+
+#: Cells a stored map may have whatever ``FUZZYRISK_MAX_MAP_CELLS`` says now: a limit lowered since the map
+#: was made must not lose the map
+UNLIMITED_CELLS = 2**62
 
 OccupancyMap = FuzzyMap | BayesMap
 
@@ -157,8 +162,6 @@ class MapEntry:
     updated: str
     line: Line = field(default_factory=Line)
     apply_lock: asyncio.Lock = field(default_factory=asyncio.Lock)
-    #: version of the last batch committed (``version`` is that of the last one applied: readers see that)
-    committed: int = 0
     #: the last scan fused; its view for the web page is built when first asked for
     last_scan: batches.Scan | None = None
     last_view: batches.ScanView | None = None
@@ -171,6 +174,18 @@ class MapEntry:
     log: collections.deque[tuple[int, int]] = field(default_factory=collections.deque)
     #: names this map among every map the process held (a deleted map's name may come back; its uid does not)
     uid: int = field(default_factory=plangrids.new_uid)
+    #: ``time.monotonic()`` of the last request that used the map (a replica drops maps idle for long)
+    last_used: float = field(default_factory=time.monotonic)
+    #: versions this replica committed and has not applied yet (a read need not wait for them: not acknowledged)
+    inflight: set[int] = field(default_factory=set)
+    #: the newest stored version caught up to: versions up to it that were not applied are discarded batches
+    checked: int = 0
+
+    @property
+    def incarnation(self) -> str | None:
+        """Tells this map apart from another stored under its name before or after it (None: a map from before)."""
+        value = self.meta.get("incarnation")
+        return None if value is None else str(value)
 
     @property
     def name(self) -> str:
@@ -198,23 +213,37 @@ class MapEntry:
         return EngineInfo(**engines.describe(self.map.engine))
 
     def info(self) -> MapInfo:
-        spec = self.spec
-        return MapInfo(
-            name=self.name,
-            dimensions=spec.ndim,
-            resolution=spec.resolution,
-            origin=list(spec.origin),
-            size=[float(f"{n * spec.resolution:.12g}") for n in spec.shape],  # as built: whole cells
-            shape=list(spec.shape),
-            model=self.meta["model"],
-            sensor=SensorIn(**self.meta["sensor"]),
-            engine=self.engine_info,
-            frame_id=self.frame_id,
-            scans_fused=self.scans_fused,
-            version=self.version,
-            created=self.meta["created"],
-            updated=self.updated,
-        )
+        return map_info(self.meta, self.spec, self.engine_info, scans_fused=self.scans_fused, version=self.version,
+                        updated=self.updated)
+
+
+def map_info(meta: Mapping[str, Any], spec: GridSpec, engine: EngineInfo | None, *, scans_fused: int, version: int,
+             updated: str) -> MapInfo:
+    """What ``GET /maps/{name}`` shows of a map, held in memory or only stored."""
+    return MapInfo(
+        name=str(meta["name"]),
+        dimensions=spec.ndim,
+        resolution=spec.resolution,
+        origin=list(spec.origin),
+        size=[float(f"{n * spec.resolution:.12g}") for n in spec.shape],  # as built: whole cells
+        shape=list(spec.shape),
+        model=meta["model"],
+        sensor=SensorIn(**meta["sensor"]),
+        engine=engine,
+        frame_id=str(meta.get("frame_id", DEFAULT_FRAME_ID)),
+        scans_fused=scans_fused,
+        version=version,
+        created=meta["created"],
+        updated=updated,
+    )
+
+
+def stored_info(head: MapHead) -> MapInfo:
+    """``map_info`` of a map this replica does not hold, from its stored row (no map built)."""
+    spec = GridSpec(origin=head.meta["origin"], size=head.meta["size"], resolution=head.meta["resolution"],
+                    max_cells=UNLIMITED_CELLS)
+    engine = EngineInfo(**engines.describe(engines.from_meta(head.meta))) if head.meta["model"] == "fuzzy" else None
+    return map_info(head.meta, spec, engine, scans_fused=head.scans, version=head.version, updated=head.updated)
 
 
 @dataclass(frozen=True)
@@ -262,9 +291,8 @@ def restore(stored: StoredMap, up_to: int | None = None) -> MapEntry:
     """
     if stored.damage:
         raise RuntimeError(f"map {stored.name!r}: {'; '.join(stored.damage)}")
-    unlimited = 2**62  # a limit lowered since the map was made must not lose the map
     try:
-        built = build_map(stored.meta, max_cells=unlimited)
+        built = build_map(stored.meta, max_cells=UNLIMITED_CELLS)
     except ValueError as exc:
         raise RuntimeError(f"map {stored.name!r}: its stored metadata cannot be used ({exc}); the database "
                            "needs repair") from exc
@@ -275,31 +303,54 @@ def restore(stored: StoredMap, up_to: int | None = None) -> MapEntry:
         else:
             built = BayesMap.from_arrays(built.spec, built.sensor, arrays)
     entry = MapEntry(
-        dict(stored.meta), built, stored.snapshot_version, stored.snapshot_version, built.scans_fused, stored.updated
+        dict(stored.meta), built, stored.snapshot_version, stored.snapshot_version, built.scans_fused,
+        stored.stamps.get(stored.snapshot_version, stored.updated),
     )
+    progress = replay(entry.map, stored, after=entry.version, up_to=up_to)
+    entry.version, entry.scans_fused, entry.updated = progress.version or entry.version, built.scans_fused, \
+        progress.updated or entry.updated
+    entry.last_scan = progress.last_scan
+    entry.log.extend(progress.log)
+    # versions up to the stored one that were not replayed are discarded batches (tombstones)
+    entry.checked = stored.version if up_to is None else min(stored.version, up_to)
+    return entry
+
+
+@dataclass
+class Replayed:
+    """What ``replay`` brought a map to: its newest version replayed (0: none), that batch's ``updated``, ..."""
+
+    version: int = 0
+    updated: str = ""
+    last_scan: batches.Scan | None = None
+    #: (version, bytes) of the batches replayed, for ``MapEntry.log``
+    log: list[tuple[int, int]] = field(default_factory=list)
+
+
+def replay(built: OccupancyMap, stored: StoredMap, *, after: int, up_to: int | None = None) -> Replayed:
+    """Fuse ``stored``'s batches above version ``after`` (and at most ``up_to``) into ``built``, in order."""
+    progress = Replayed()
     for version, payload in stored.batches:
+        if version <= after:
+            continue
         if up_to is not None and version > up_to:
             break
         try:
             scans = batches.decode(payload)
         except batches.CorruptBatch as exc:
             # an acknowledged batch: never dropped silently; the service refuses to start and says where
-            raise RuntimeError(f"map {entry.name!r}: stored batch {version} is corrupt ({exc}); the database "
+            raise RuntimeError(f"map {stored.name!r}: stored batch {version} is corrupt ({exc}); the database "
                                f"needs repair (restore a backup, or delete that row to drop the batch)") from exc
+        progress.log.append((version, len(payload)))
         try:
             built.integrate_batch(scans)
         except ValueError:
             # cannot happen for a batch that was acknowledged (it was applied before the 200)
-            LOG.exception("map %s: batch %d cannot be replayed; skipped", entry.name, version)
+            LOG.exception("map %s: batch %d cannot be replayed; skipped", stored.name, version)
             continue
-        entry.version = version
-        entry.last_scan = scans[-1]
-    entry.log.extend((version, len(payload)) for version, payload in stored.batches
-                     if up_to is None or version <= up_to)
-    entry.scans_fused = built.scans_fused
-    # the next batch takes a version above every stored one, replayed or skipped
-    entry.committed = max([entry.version, *(version for version, _ in stored.batches)])
-    return entry
+        progress.version, progress.last_scan = version, scans[-1]
+        progress.updated = stored.stamps.get(version, stored.updated)
+    return progress
 
 def is_current(entry: MapEntry, version: int) -> bool:
     """Is ``version`` still the version of the map that ``entry`` holds?"""

@@ -21,6 +21,14 @@ class Metrics:
             buckets=_LATENCY_BUCKETS, registry=r,
         )
         self.scans_fused = Counter("fuzzyrisk_scans_fused", "Scans fused into maps", ["model"], registry=r)
+        self.catch_ups = Counter(
+            "fuzzyrisk_catch_ups", "Times a map was brought up to its stored version (batches of other replicas)",
+            registry=r,
+        )
+        self.evictions = Counter(
+            "fuzzyrisk_map_evictions", "Maps dropped from memory (idle, or deleted through another replica)",
+            ["reason"], registry=r,
+        )
         self.rays = Counter("fuzzyrisk_rays", "Beams (ranges or points) fused", ["model"], registry=r)
         self.cells_updated = Counter("fuzzyrisk_cells_updated", "Cell updates made by fusion", ["model"], registry=r)
         self.batches_rejected = Counter(

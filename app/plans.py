@@ -4,17 +4,16 @@ from __future__ import annotations
 
 import functools
 import time
-from collections.abc import Callable
+from collections.abc import Awaitable, Callable
 
 from app import rosout, rostypes
 from app.config import Settings
 from app.errors import Invalid, PlanRejected
-from app.mapstate import GridSnapshot, is_current
+from app.mapstate import GridSnapshot, MapEntry, is_current
 from app.metrics import Metrics
 from app.plangrids import Lease, PlanGrids
 from app.planworker import PlanPool, run_plan, run_shared_plan
 from app.reads import MapReads
-from app.registry import MapRegistry
 from app.schemas import PlanRequest, PlanResult
 from planning.budget import wall_clock_limit
 from planning.planners import planner_spec
@@ -26,11 +25,11 @@ PLAN_GRACE_S = 20.0
 class MapPlans:
     """``plan`` requests: the map's grid leased to a worker process, the answer shaped as a ROS path."""
 
-    def __init__(self, settings: Settings, metrics: Metrics, registry: MapRegistry, reads: MapReads,
-                 grids: PlanGrids, pool: PlanPool, notify: Callable[..., None]) -> None:
+    def __init__(self, settings: Settings, metrics: Metrics, current: Callable[[str], Awaitable[MapEntry]],
+                 reads: MapReads, grids: PlanGrids, pool: PlanPool, notify: Callable[..., None]) -> None:
         self.settings = settings
         self.metrics = metrics
-        self._registry = registry
+        self._current = current  # ``WritePath.current``: the map with every acknowledged batch applied
         self._reads = reads
         self._grids = grids
         self._plans = pool
@@ -46,7 +45,7 @@ class MapPlans:
         started = time.perf_counter()  # the wait for the grid is part of what the client waits for
         # the path's stamp: when the plan was taken up, as Nav2's planners stamp a path when they start it
         stamp = rostypes.ros_time_of_ns(time.time_ns())
-        entry = self._registry.entry(name)
+        entry = await self._current(name)
         # goal_yaw only orients the answer's last pose: the planner never sees it
         params = request.model_dump(exclude_none=True, exclude={"goal_yaw"})
         timeout = wall_clock_limit(request.time_limit, request.seed is not None) + PLAN_GRACE_S

@@ -4,7 +4,7 @@ OccupancyGrid, MCAP); copies under the map's apply lock, encodings in the read t
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable, Mapping
+from collections.abc import Awaitable, Callable, Mapping
 from typing import Any, Literal, TypeVar
 
 import numpy as np
@@ -13,8 +13,7 @@ from app import batches, conditional, exports, rosout, rostypes
 from app.config import Settings
 from app.errors import Invalid, NotFound, TooLarge, Unavailable
 from app.mapstate import GridSnapshot, MapEntry
-from app.registry import MapRegistry
-from app.schemas import LastScan, OccupancyGrid, RiskGridJSON, RiskValues
+from app.schemas import LastScan, MapInfo, OccupancyGrid, RiskGridJSON, RiskValues
 from app.storage import Storage, StoredMap
 from app.workers import Workers
 
@@ -30,15 +29,20 @@ MAX_PNG_PIXELS = 64_000_000
 class MapReads:
     """A map's outputs, each consistent with one version of the map."""
 
-    def __init__(self, settings: Settings, storage: Storage, workers: Workers, registry: MapRegistry) -> None:
+    def __init__(self, settings: Settings, storage: Storage, workers: Workers,
+                 current: Callable[[str], Awaitable[MapEntry]]) -> None:
         self.settings = settings
         self.storage = storage
         self._workers = workers
-        self._registry = registry
+        self._current = current  # ``WritePath.current``: the map with every acknowledged batch applied
+
+    async def map_info(self, name: str) -> MapInfo:
+        """What ``GET /maps/{name}`` shows."""
+        return (await self._current(name)).info()
 
     async def last_scan(self, name: str) -> LastScan:
         """Beam ends of the last scan fused; the view is built at the first request, not per batch."""
-        entry = self._registry.entry(name)
+        entry = await self._current(name)
         scan, view, version = entry.last_scan, entry.last_view, entry.version
         if scan is None:
             raise NotFound(f"map {name!r} has fused no scan since the service started")
@@ -51,9 +55,9 @@ class MapReads:
 
     # ---------------------------------------------------------------- risk
 
-    def current_etag(self, name: str, variant: Mapping[str, Any]) -> tuple[str, int]:
+    async def current_etag(self, name: str, variant: Mapping[str, Any]) -> tuple[str, int]:
         """The ETag a read of ``variant`` would carry now, and the version (no grid read: for If-None-Match)."""
-        entry = self._registry.entry(name)
+        entry = await self._current(name)
         return conditional.entity_tag(entry.etag_seed, entry.version, variant), entry.version
 
     async def read_grid(self, name: str) -> GridSnapshot:
@@ -61,7 +65,7 @@ class MapReads:
 
         ``risk()`` and ``observed()`` already hand out new read-only arrays, so no copy is needed.
         """
-        return await self.read_grid_of(self._registry.entry(name))
+        return await self.read_grid_of(await self._current(name))
 
     async def read_grid_of(self, entry: MapEntry) -> GridSnapshot:
         async with entry.apply_lock:
@@ -79,7 +83,7 @@ class MapReads:
         committed but not applied yet are left out. ``render`` runs once the lock is released
         (``app.recording``); ``stored.snapshot`` is dropped, the arrays are not needed.
         """
-        entry = self._registry.entry(name)
+        entry = await self._current(name)
         async with entry.apply_lock:
             risk, observed, stored = await self._workers.run_read(
                 lambda: (entry.map.risk(), entry.map.observed(), self.storage.load_map(entry.name)))
@@ -99,7 +103,7 @@ class MapReads:
                 f"{len(points)} points, more than the limit of {self.settings.max_query_points} "
                 "(FUZZYRISK_MAX_QUERY_POINTS): split the query"
             )
-        entry = self._registry.entry(name)
+        entry = await self._current(name)
         dims = entry.spec.ndim
         if any(len(p) != dims for p in points):
             bad = next(i for i, p in enumerate(points) if len(p) != dims)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import asyncio
 import logging
 import time
+import uuid
 from collections.abc import Callable, Mapping
 from typing import Any
 
@@ -12,11 +13,11 @@ from app import engines
 from app.config import Settings
 from app.diskreserve import DiskReserve
 from app.errors import Conflict, InsufficientStorage, Invalid, NotFound, Unavailable
-from app.mapstate import MapEntry, build_map, now, restore, shielded
+from app.mapstate import UNLIMITED_CELLS, MapEntry, build_map, now, restore, shielded, stored_info
 from app.metrics import Metrics
 from app.plangrids import PlanGrids
 from app.schemas import MapCreate, MapInfo
-from app.storage import NameTaken, Storage, StorageUnavailable
+from app.storage import MapHead, NameTaken, Storage, StorageUnavailable
 from app.workers import Workers
 from fuzzyocc import GridSpec
 
@@ -36,11 +37,13 @@ class MapRegistry:
         self._reserve = reserve
         self._notify = notify
         self._maps: dict[str, MapEntry] = {}
-        self._quarantined: dict[str, str] = {}  # map name -> why it was set aside at start
+        self._quarantined: dict[str, str] = {}  # map name -> why it was set aside
+        self._quarantined_as: dict[str, str | None] = {}  # map name -> the incarnation set aside
         self._create_lock = asyncio.Lock()
+        self._loading: dict[str, asyncio.Lock] = {}  # shared database: one load of a map at a time
 
     @property
-    def held(self) -> list[MapEntry]:
+    def held_maps(self) -> list[MapEntry]:
         """The maps in memory."""
         return list(self._maps.values())
 
@@ -50,7 +53,12 @@ class MapRegistry:
 
     async def load_all(self) -> None:
         """Load every stored map (snapshot + replay), one at a time: a start holds one map's snapshot and
-        log, not every map's (issue 11: 377 MB of log read at once peaked at 1.1 GB)."""
+        log, not every map's (issue 11: 377 MB of log read at once peaked at 1.1 GB).
+
+        With a shared database, nothing: a replica loads a map at its first request (``held``).
+        """
+        if self.settings.shared_storage:
+            return
         started = time.perf_counter()
         replayed = 0
         for name in await self._workers.run(self.storage.map_names):
@@ -60,7 +68,7 @@ class MapRegistry:
             try:
                 entry = await self._workers.run(restore, item)
             except Exception as exc:  # noqa: BLE001 - any damage: this map is set aside, the others start
-                self._quarantined[item.name] = str(exc)
+                self._quarantined[item.name], self._quarantined_as[item.name] = str(exc), item.incarnation
                 LOG.error("map %s quarantined: %s", item.name, exc)
                 continue
             replayed += len(item.batches)
@@ -74,33 +82,141 @@ class MapRegistry:
         )
 
     def entry(self, name: str) -> MapEntry:
+        """The map held under ``name`` (with a shared database, maybe behind it: see ``held``)."""
         entry = self._maps.get(name)
         if entry is None or entry.deleted:
-            reason = self._quarantined.get(name)
-            if reason is not None:
-                raise Unavailable(
-                    f"map {name!r} is quarantined: its stored rows are damaged ({reason}); it is not served. "
-                    f"Restore the database from a backup, or drop the map with DELETE /maps/{name}"
-                )
-            raise NotFound(f"no map named {name!r}; GET /maps lists them")
+            raise self._missing(name)
         return entry
 
-    def list_maps(self) -> list[MapInfo]:
-        return [entry.info() for _, entry in sorted(self._maps.items())]
+    def _missing(self, name: str) -> Exception:
+        reason = self._quarantined.get(name)
+        if reason is not None:
+            return Unavailable(
+                f"map {name!r} is quarantined: its stored rows are damaged ({reason}); it is not served. "
+                f"Restore the database from a backup, or drop the map with DELETE /maps/{name}"
+            )
+        return NotFound(f"no map named {name!r}; GET /maps lists them")
 
-    def get_map(self, name: str) -> MapInfo:
-        return self.entry(name).info()
+    async def held(self, name: str, *, fresh: bool = False) -> tuple[MapEntry, int]:
+        """The map named ``name``, loaded if this replica does not hold it, and the newest version stored.
 
-    def map_uid(self, name: str) -> int:
-        """Tells the map now named ``name`` apart from an earlier or later map of that name (``MapEntry.uid``)."""
-        return self.entry(name).uid
+        With SQLite the maps are all held and nobody else writes: the newest version is the map's own. With a
+        shared database (``FUZZYRISK_DATABASE_URL``) a map is loaded at its first request, and ``fresh`` asks the
+        database for its newest version (one indexed row: a read must see what other replicas acknowledged). A
+        map deleted, or deleted and created again, through another replica is dropped here.
+        """
+        entry = self._maps.get(name)
+        if not self.settings.shared_storage:
+            if entry is None or entry.deleted:
+                raise self._missing(name)
+            return entry, entry.version
+        if entry is not None and not entry.deleted and not fresh:
+            entry.last_used = time.monotonic()
+            return entry, entry.version  # a write: its commit checks the map is still the stored one
+        head = await self._workers.run_read(self.storage.map_head, name)
+        if head is None:
+            if entry is not None:
+                self._forget(entry, reason="deleted")
+            self._quarantined.pop(name, None)
+            raise NotFound(f"no map named {name!r}; GET /maps lists them")
+        if entry is not None and entry.incarnation != head.incarnation:
+            self._forget(entry, reason="deleted")
+            entry = None
+        if entry is None or entry.deleted:
+            entry = await self._load(head)
+        entry.last_used = time.monotonic()
+        return entry, head.version
 
-    def _check_room(self, meta: Mapping[str, Any]) -> None:
+    async def gone(self, entry: MapEntry) -> Exception:
+        """The error for a write or catch-up that found its map no longer stored as this replica holds it (deleted,
+        or deleted and created again, through another replica); the stale map is dropped."""
+        self._forget(entry, reason="deleted")
+        head = await self._workers.run_read(self.storage.map_head, entry.name)
+        if head is None:
+            return NotFound(f"no map named {entry.name!r}: it was deleted (through another replica)")
+        return Conflict(f"map {entry.name!r} was deleted and created again (through another replica) while this "
+                        "request was under way; nothing was stored: send it again")
+
+    async def _load(self, head: MapHead) -> MapEntry:
+        """Load a map this replica does not hold (one load per map at a time); a damaged one is quarantined here."""
+        lock = self._loading.setdefault(head.name, asyncio.Lock())
+        async with lock:
+            entry = self._maps.get(head.name)
+            if entry is not None and not entry.deleted and entry.incarnation == head.incarnation:
+                return entry  # loaded by the request that held the lock before
+            if head.name in self._quarantined and self._quarantined_as.get(head.name) == head.incarnation:
+                raise self._missing(head.name)
+            self._make_room(_cells(head.meta))
+            stored = await self._workers.run_read(self.storage.load_map, head.name)
+            if stored is None:
+                raise NotFound(f"no map named {head.name!r}; GET /maps lists them")
+            try:
+                entry = await self._workers.run(restore, stored)
+            except Exception as exc:  # noqa: BLE001 - any damage: this map is set aside, the others are served
+                self._quarantined[head.name], self._quarantined_as[head.name] = str(exc), stored.incarnation
+                LOG.error("map %s quarantined: %s", head.name, exc)
+                raise self._missing(head.name) from None
+            entry.checked = stored.version
+            self._maps[head.name] = entry
+            self.metrics.maps.set(len(self._maps))
+            LOG.info("map loaded", extra={"fields": {"map": head.name, "version": entry.version,
+                                                     "replayed_batches": len(stored.batches)}})
+            return entry
+
+    def _make_room(self, cells: int) -> None:
+        """Drop idle maps, least recently used first, until a map of ``cells`` fits in FUZZYRISK_MAX_TOTAL_CELLS."""
+        used = sum(entry.spec.num_cells for entry in self._maps.values())
+        for entry in sorted(self._maps.values(), key=lambda e: e.last_used):
+            if used + cells <= self.settings.max_total_cells:
+                break
+            if _idle(entry):
+                self._forget(entry, reason="memory")
+                used -= entry.spec.num_cells
+        if used + cells > self.settings.max_total_cells:
+            raise InsufficientStorage(
+                f"this replica cannot load a map of {cells:,} cells: its maps in use hold {used:,} of its "
+                f"{self.settings.max_total_cells:,} (FUZZYRISK_MAX_TOTAL_CELLS); retry later, or spread the maps "
+                "over more replicas"
+            )
+
+    def _forget(self, entry: MapEntry, *, reason: str) -> None:
+        """Drop a map from memory (its rows stay, unless ``reason`` is that they are gone)."""
+        if self._maps.get(entry.name) is entry:
+            del self._maps[entry.name]
+        if reason == "deleted":
+            entry.deleted = True  # its queued writers answer 404 instead of committing to another map's log
+            self._notify("map_deleted", entry.name)
+        self._grids.retire(entry.uid)
+        self.metrics.evictions.labels(reason).inc()
+        self.metrics.maps.set(len(self._maps))
+
+    def evict_idle(self) -> int:
+        """Drop the maps no request used for ``FUZZYRISK_MAP_IDLE_S`` (shared database only); how many."""
+        limit = time.monotonic() - self.settings.map_idle_s
+        idle = [entry for entry in self._maps.values() if entry.last_used < limit and _idle(entry)]
+        for entry in idle:
+            self._forget(entry, reason="idle")
+        return len(idle)
+
+    async def list_maps(self) -> list[MapInfo]:
+        """Every stored map; with a shared database, as stored (a map held here is shown as held when current)."""
+        if not self.settings.shared_storage:
+            return [entry.info() for _, entry in sorted(self._maps.items())]
+        infos = []
+        for head in await self._workers.run_read(self.storage.map_heads):
+            entry = self._maps.get(head.name)
+            current = entry is not None and entry.incarnation == head.incarnation and entry.version == head.version
+            infos.append(entry.info() if current and entry is not None else stored_info(head))
+        return infos
+
+    def _check_room(self, meta: Mapping[str, Any], stored: int | None) -> None:
         """``InsufficientStorage`` when a new map would pass ``FUZZYRISK_MAX_MAPS`` or ``FUZZYRISK_MAX_TOTAL_CELLS``.
 
-        Quarantined maps count: their rows are still stored. The others are unaffected either way.
+        Quarantined maps count: their rows are still stored. The others are unaffected either way. With a
+        shared database, the ``stored`` maps count (every replica's), and the cells are those this replica
+        holds, idle maps dropped first to make room.
         """
-        held = len(self._maps) + len(self._quarantined)
+        held = len(self._maps) + len(self._quarantined) if stored is None else stored
         if held >= self.settings.max_maps:
             raise InsufficientStorage(f"the service holds {held} maps, its limit (FUZZYRISK_MAX_MAPS); DELETE one first")
         try:
@@ -109,6 +225,9 @@ class MapRegistry:
         except ValueError as exc:
             hint = " (FUZZYRISK_MAX_MAP_CELLS)" if "limit" in str(exc) else ""
             raise Invalid(f"{exc}{hint}") from None
+        if stored is not None:
+            self._make_room(cells)
+            return
         used = sum(entry.spec.num_cells for entry in self._maps.values())
         if used + cells > self.settings.max_total_cells:
             raise InsufficientStorage(
@@ -132,10 +251,18 @@ class MapRegistry:
                 "sensor": request.sensor.model_dump(),
                 "frame_id": request.frame_id,
                 "created": created,
+                # tells this map from another of its name made before or after it, on every replica
+                "incarnation": uuid.uuid4().hex,
             }
             if request.model == "fuzzy":
                 meta["engine"] = engines.to_meta(request.engine or engines.default())
-            self._check_room(meta)  # before the map's memory is taken
+            stored = None
+            if self.settings.shared_storage:  # every replica's maps
+                names = await self._workers.run_read(self.storage.map_names)
+                if request.name in names:
+                    raise Conflict(f"a map named {request.name!r} exists; choose another name or DELETE it first")
+                stored = len(names)
+            self._check_room(meta, stored)  # before the map's memory is taken
             try:
                 built = await self._workers.run(lambda: build_map(meta, max_cells=self.settings.max_map_cells))
             except ValueError as exc:  # the grid was checked by _check_room: the sensor or the engine
@@ -154,8 +281,24 @@ class MapRegistry:
 
         A quarantined map (damaged rows, found at start) is dropped with its rows.
         """
+        if self.settings.shared_storage:
+            head = await self._workers.run_read(self.storage.map_head, name)
+            entry = self._maps.get(name)
+            if head is None:
+                if entry is not None:
+                    self._forget(entry, reason="deleted")
+                self._quarantined.pop(name, None)
+                raise NotFound(f"no map named {name!r}; GET /maps lists them")
+            if entry is None or entry.incarnation != head.incarnation:
+                # not held here (or held as it was before another replica made it again): its rows only
+                if entry is not None:
+                    self._forget(entry, reason="deleted")
+                await self._workers.run(self._delete_rows, name, head.incarnation)
+                self._quarantined.pop(name, None)
+                self._notify("map_deleted", name)
+                return
         if name in self._quarantined and name not in self._maps:
-            await self._workers.run(self._delete_rows, name)
+            await self._workers.run(self._delete_rows, name, self._quarantined_as.get(name))
             del self._quarantined[name]
             return
         entry = self.entry(name)
@@ -164,14 +307,14 @@ class MapRegistry:
         # and the map still served
         await shielded(self._delete(entry, ticket))
 
-    def _delete_rows(self, name: str) -> None:
+    def _delete_rows(self, name: str, incarnation: str | None) -> None:
         """``storage.delete_map``; on a full disk, with the disk reserve given up first (then taken back)."""
         try:
-            self.storage.delete_map(name)
+            self.storage.delete_map(name, incarnation)
         except StorageUnavailable:
             if not self._reserve.release():
                 raise
-            self.storage.delete_map(name)
+            self.storage.delete_map(name, incarnation)
         self._reserve.hold()  # once there is room again (a deletion frees pages for SQLite, not always disk)
 
     async def _delete(self, entry: MapEntry, ticket: int) -> None:
@@ -179,7 +322,7 @@ class MapRegistry:
             await entry.line.wait_all(ticket)
             if entry.deleted:
                 raise NotFound(f"no map named {entry.name!r}")
-            await self._workers.run(self._delete_rows, entry.name)
+            await self._workers.run(self._delete_rows, entry.name, entry.incarnation)
             entry.deleted = True
             del self._maps[entry.name]
             self._grids.retire(entry.uid)  # its files go now, or when the last plan on them ends
@@ -189,3 +332,13 @@ class MapRegistry:
         self.metrics.maps.set(len(self._maps))
 
     # ---------------------------------------------------------------- scans
+
+
+def _cells(meta: Mapping[str, Any]) -> int:
+    return GridSpec(origin=meta["origin"], size=meta["size"], resolution=meta["resolution"],
+                    max_cells=UNLIMITED_CELLS).num_cells
+
+
+def _idle(entry: MapEntry) -> bool:
+    """No batch in the map's line or on its way: dropping it loses nothing (its rows hold everything acknowledged)."""
+    return entry.line.outstanding == 0 and entry.arriving == 0

@@ -55,10 +55,12 @@ class MapService:
         self._reserve = DiskReserve(settings.data_dir, settings.disk_reserve_bytes)
         self.maps = MapRegistry(settings, storage, metrics, self._workers, self._grids, self._reserve, self._notify)
         self.writes = WritePath(settings, storage, metrics, self._workers, self.maps, self._grids, self._notify)
-        self.reads = MapReads(settings, storage, self._workers, self.maps)
-        self.plans = MapPlans(settings, metrics, self.maps, self.reads, self._grids, self._pool, self._notify)
+        self.reads = MapReads(settings, storage, self._workers, self.writes.current)
+        self.plans = MapPlans(settings, metrics, self.writes.current, self.reads, self._grids, self._pool,
+                              self._notify)
         self._kernels: asyncio.Task[None] | None = None
         self._kernels_error: str | None = None
+        self._evictor: asyncio.Task[None] | None = None
         #: told of batches applied, plans made and maps deleted (``MapObserver``); None: nobody
         self.observer: MapObserver | None = None
 
@@ -80,6 +82,15 @@ class MapService:
         self._kernels = asyncio.get_running_loop().create_task(self._warm_kernels())
         if self.settings.plan_warmup:
             self._pool.start()
+        if self.settings.shared_storage:
+            self._evictor = asyncio.get_running_loop().create_task(self._evict_idle())
+
+    async def _evict_idle(self) -> None:
+        """A replica's memory holds the maps it serves: every so often, drop those idle for FUZZYRISK_MAP_IDLE_S."""
+        while True:
+            await asyncio.sleep(min(60.0, self.settings.map_idle_s / 2))
+            if dropped := self.maps.evict_idle():
+                LOG.info("idle maps dropped from memory", extra={"fields": {"maps": dropped}})
 
     async def _warm_kernels(self) -> None:
         """Compile the fusion kernels, or load them from numba's cache, in a fusion thread, with progress in the log."""
@@ -110,7 +121,7 @@ class MapService:
         else:
             status = "starting"
         return Readiness(
-            status=status, maps_loaded=len(self.maps.held), maps_quarantined=self.maps.quarantined,
+            status=status, maps_loaded=len(self.maps.held_maps), maps_quarantined=self.maps.quarantined,
             kernels_compiled=kernels,
             planner_workers_ready=len(self._pool.warmed),
             planner_workers_wanted=self.settings.plan_workers if self.settings.plan_warmup else 0,
@@ -119,6 +130,8 @@ class MapService:
 
     async def stop(self) -> None:
         """Wait for batches in flight, snapshot every map with unsnapshotted batches, release everything."""
+        if self._evictor is not None:
+            self._evictor.cancel()
         await self.writes.stop()
         if self._kernels is not None:
             self._kernels.cancel()  # a compilation under way still ends in its thread (below)

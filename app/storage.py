@@ -1,10 +1,15 @@
 """Durable map storage: a small interface, and an embedded SQLite implementation.
 
 A map on disk is its metadata, at most one snapshot (the map's arrays at some
-version) and the scan batches acknowledged since that snapshot, in order. The
+version) and the scan batches committed since that snapshot, in order. The
 service commits a batch before it applies it and answers, so a batch that got a
 200 survives ``kill -9``; a restart loads the snapshot and replays the batches
 after it (fusion is deterministic, so the risk is bit for bit the same).
+
+The store, not the service, gives each batch its version: several replicas of the
+service may write one database (``app.storage_pg``), and the map's row is what
+orders their writes. A batch that could not be applied stays as a tombstone (an
+empty payload), so a version once given out is never given again.
 
 Payloads are opaque bytes here: storage knows nothing of scans or maps.
 """
@@ -15,76 +20,132 @@ import json
 import sqlite3
 import threading
 import zlib
-from collections.abc import Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, NamedTuple, Protocol
+from typing import Any, NamedTuple, Protocol, TypeVar
+
+T = TypeVar("T")
 
 
 class NameTaken(Exception):
     """A map with this name is already stored."""
 
 
+class MapGone(Exception):
+    """The map is no longer stored under that name and incarnation (deleted, or deleted and created again)."""
+
+
 class StorageUnavailable(Exception):
-    """A write could not be made durable (disk full, read-only or failing data directory); nothing was stored."""
+    """A write could not be made durable (disk full, read-only or failing data directory, database unreachable);
+    nothing was stored."""
 
 
-def _crc(payload: bytes) -> int:
+def checksum(payload: bytes) -> int:
+    """The CRC-32 stored with each payload (damage on disk is then found, not replayed)."""
     return zlib.crc32(payload)
+
+
+#: A discarded batch: its row stays (its version is never given again) with no payload.
+TOMBSTONE = b""
 
 
 @dataclass
 class StoredMap:
-    """Everything stored about one map."""
+    """Everything stored about one map, or the part of it a loader was asked for."""
 
     name: str
     meta: dict[str, Any]
     updated: str
     snapshot_version: int = 0
     snapshot: bytes | None = None
-    batches: list[tuple[int, bytes]] = field(default_factory=list)  # (version, payload), ascending
+    batches: list[tuple[int, bytes]] = field(default_factory=list)  # (version, payload), ascending, no tombstones
     damage: list[str] = field(default_factory=list)  # rows that failed their checksum: the map must not be served
+    incarnation: str | None = None
+    version: int = 0  # the newest committed version (tombstones included), whatever the loader returned
+    #: version -> ``updated`` of that batch (or of the snapshot's version), where stored: the map's
+    #: ``updated`` at that version, the same on every replica
+    stamps: dict[int, str] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class MapHead:
+    """A map's row without its payloads: what a replica compares with the version it holds."""
+
+    name: str
+    meta: dict[str, Any]
+    updated: str
+    version: int  # the newest committed, tombstones included
+    snapshot_version: int
+    scans: int  # scans of the stored batches (discarded ones excluded)
+    incarnation: str | None
 
 
 class BatchRecord(NamedTuple):
-    """One batch to append: the map, the version it brings the map to, its payload, the map's new ``updated``."""
+    """One batch to append to the map ``name`` of that ``incarnation``; the store gives it its version."""
 
     name: str
-    version: int
+    incarnation: str | None
     payload: bytes
-    updated: str
+    updated: str  # the map's new ``updated``
+    scans: int
 
 
 class Storage(Protocol):
-    """What the service needs from a store; another backend (a shared database) can replace SQLite."""
+    """What the service needs from a store: SQLite (one process) or PostgreSQL (replicas sharing it).
+
+    Every write method raises ``StorageUnavailable`` when the store cannot take the write;
+    the store is then exactly as it was before the call.
+    """
 
     def map_names(self) -> list[str]:
         """The names of the stored maps, sorted (a start loads them one at a time: ``load_map``)."""
 
+    def map_head(self, name: str) -> MapHead | None:
+        """The map's row (no payloads, one indexed query); None when there is none of that name."""
+
+    def map_heads(self) -> list[MapHead]:
+        """Every map's row, sorted by name."""
+
     def load_map(self, name: str) -> StoredMap | None:
-        """One map with its latest snapshot and the batches after it; None when there is none of that name."""
+        """One map with its snapshot and every batch after it; None when there is none of that name."""
 
-    def create_map(self, name: str, meta: dict[str, Any], updated: str) -> None:
-        """Store a new, empty map; ``NameTaken`` if the name is used."""
+    def load_since(self, name: str, after: int, up_to: int | None = None) -> StoredMap | None:
+        """What a holder of the map at version ``after`` needs to reach ``up_to`` (None: the newest).
 
-    def delete_map(self, name: str) -> None:
-        """Remove a map with its snapshot and batches (no error when absent)."""
-
-    def append_batch(self, name: str, version: int, payload: bytes, updated: str) -> None:
-        """Durably store the batch that brings ``name`` to ``version`` before returning.
-
-        Every write method raises ``StorageUnavailable`` when the store cannot take the write;
-        the store is then exactly as it was before the call.
+        When the stored snapshot is newer than ``after``: the snapshot and the batches after it;
+        else no snapshot (``snapshot_version`` still says the stored one) and the batches after
+        ``after``. Batches up to ``up_to`` only, ascending, without tombstones. The snapshot is
+        carried even when it is newer than ``up_to`` (the batches before it are gone).
         """
 
-    def append_batches(self, batches: Sequence[BatchRecord]) -> None:
-        """Durably store several batches (of any maps) in one transaction: all of them or none."""
+    def create_map(self, name: str, meta: dict[str, Any], updated: str) -> None:
+        """Store a new, empty map of incarnation ``meta.get("incarnation")``; ``NameTaken`` if the name is used."""
 
-    def discard_batch(self, name: str, version: int) -> None:
-        """Forget a batch that could not be applied (it was never acknowledged)."""
+    def delete_map(self, name: str, incarnation: str | None = None) -> None:
+        """Remove a map with its snapshot and batches; with ``incarnation``, only the map of that incarnation.
 
-    def write_snapshot(self, name: str, version: int, payload: bytes) -> None:
-        """Store the map state at ``version`` and drop the batches it covers, atomically."""
+        No error when there is none.
+        """
+
+    def append_batches(self, records: Sequence[BatchRecord]) -> list[int]:
+        """Durably store batches (of any maps) in one transaction, all or none; their versions, in their order.
+
+        Each takes its map's next version. ``MapGone`` (nothing stored) when a record's map is not
+        stored under that name and incarnation.
+        """
+
+    def discard_batch(self, name: str, version: int, incarnation: str | None = None) -> None:
+        """Make a batch that could not be applied a tombstone: its version stays taken, its scans uncounted.
+
+        With ``incarnation``, only in the map of that incarnation (no error otherwise).
+        """
+
+    def write_snapshot(self, name: str, version: int, payload: bytes, incarnation: str | None = None) -> None:
+        """Store the map's state at ``version`` and drop the batches it covers, atomically.
+
+        A no-op when the stored snapshot is as new or newer, or the map (of that incarnation) is gone.
+        """
 
     def close(self) -> None:
         """Flush and release the store."""
@@ -96,46 +157,113 @@ CREATE TABLE IF NOT EXISTS maps (
     meta TEXT NOT NULL,
     updated TEXT NOT NULL,
     version INTEGER,
-    snapshot_version INTEGER
+    snapshot_version INTEGER,
+    incarnation TEXT,
+    scans INTEGER NOT NULL DEFAULT 0
 );
 CREATE TABLE IF NOT EXISTS batches (
     map TEXT NOT NULL REFERENCES maps(name) ON DELETE CASCADE,
     seq INTEGER NOT NULL,
     payload BLOB NOT NULL,
     crc INTEGER,
+    scans INTEGER,
+    updated TEXT,
     PRIMARY KEY (map, seq)
 );
 CREATE TABLE IF NOT EXISTS snapshots (
     map TEXT PRIMARY KEY REFERENCES maps(name) ON DELETE CASCADE,
     version INTEGER NOT NULL,
     payload BLOB NOT NULL,
-    crc INTEGER
+    crc INTEGER,
+    updated TEXT
 );
 """
 
+#: Columns added since the first schema: an old database gets them (NULL, or the default) at open.
+_ADDED_COLUMNS = {
+    "maps": {"version": "INTEGER", "snapshot_version": "INTEGER", "incarnation": "TEXT",
+             "scans": "INTEGER NOT NULL DEFAULT 0"},
+    "batches": {"crc": "INTEGER", "scans": "INTEGER", "updated": "TEXT"},
+    "snapshots": {"crc": "INTEGER", "updated": "TEXT"},
+}
+
+# A database from before the maps kept their versions has NULL there: its newest is read off its rows.
+_SQLITE_NEWEST = ("COALESCE(maps.version, MAX(COALESCE(maps.snapshot_version, 0),"
+                  " COALESCE((SELECT MAX(seq) FROM batches WHERE map = maps.name), 0),"
+                  " COALESCE((SELECT version FROM snapshots WHERE map = maps.name), 0)))")
+_SQLITE_HEAD = ("SELECT name, meta, updated, " + _SQLITE_NEWEST + ", COALESCE(maps.snapshot_version, "
+                "(SELECT version FROM snapshots WHERE map = maps.name), 0), scans, incarnation FROM maps")
+
+_SQLITE_CREATE = ("INSERT INTO maps (name, meta, updated, version, snapshot_version, incarnation, scans) "
+                  "VALUES (?, ?, ?, 0, 0, ?, 0)")
+
+#: What the loaders read first, in one query of either dialect (``?`` placeholders).
+_LOAD_HEAD = ("SELECT meta, updated, version, snapshot_version, incarnation,"
+             " (SELECT version FROM snapshots WHERE map = maps.name),"
+             " (SELECT MAX(seq) FROM batches WHERE map = maps.name)"
+             " FROM maps WHERE name = ?")
+_NO_LIMIT = 2**62
+
+
+def head_of(row: Sequence[Any]) -> MapHead:
+    """A ``MapHead`` from (name, meta, updated, version, snapshot_version, scans, incarnation)."""
+    return MapHead(row[0], json.loads(row[1]), row[2], int(row[3]), int(row[4]), int(row[5]), row[6])
+
+
+def read_map(query: Callable[[str, tuple[Any, ...]], Iterable[Sequence[Any]]], name: str, after: int | None,
+             up_to: int | None) -> StoredMap | None:
+    """``load_map`` (``after`` None) or ``load_since`` on a consistent view of a store: ``query(sql, args)``
+    runs one statement of either dialect (``?`` placeholders) and yields its rows."""
+    row = next(iter(query(_LOAD_HEAD, (name,))), None)
+    if row is None:
+        return None
+    meta, updated, version, snapshot_version, incarnation, snapshot_row, newest_seq = row
+    newest = max(snapshot_version or 0, snapshot_row or 0, newest_seq or 0)
+    stored = StoredMap(name, json.loads(meta), updated, snapshot_version=snapshot_row or 0,
+                       incarnation=incarnation, version=newest if version is None else version)
+    if snapshot_row is not None and (after is None or snapshot_row > after):
+        for snapshot in query("SELECT version, payload, crc, updated FROM snapshots WHERE map = ?", (name,)):
+            _take_snapshot(stored, snapshot[0], bytes(snapshot[1]), snapshot[2])
+            if snapshot[3] is not None:
+                stored.stamps[snapshot[0]] = snapshot[3]
+    lower = -_NO_LIMIT if after is None else max(after, snapshot_row or 0)
+    for seq, payload, crc, stamp in query("SELECT seq, payload, crc, updated FROM batches WHERE map = ? AND seq > ? "
+                                          "AND seq <= ? ORDER BY seq",
+                                          (name, lower, _NO_LIMIT if up_to is None else up_to)):
+        _take_batch(stored, seq, bytes(payload), crc)
+        if stamp is not None:
+            stored.stamps[seq] = stamp
+    _check_versions(stored, version, snapshot_version, snapshot_row or 0, newest_seq or 0)
+    return stored
+
 
 def _take_snapshot(stored: StoredMap, version: int, payload: bytes, crc: int | None) -> None:
-    if crc is not None and crc != _crc(payload):
+    if crc is not None and crc != checksum(payload):
         stored.damage.append(f"its snapshot (version {version}) fails its checksum")
     stored.snapshot_version, stored.snapshot = version, payload
 
 
 def _take_batch(stored: StoredMap, seq: int, payload: bytes, crc: int | None) -> None:
-    if crc is not None and crc != _crc(payload):
+    if crc is not None and crc != checksum(payload):
         stored.damage.append(f"its stored batch {seq} fails its checksum")
+    elif payload == TOMBSTONE:
+        return  # a discarded batch: nothing to replay (a damaged one is reported above, not skipped)
     stored.batches.append((seq, payload))
 
 
-def _check_versions(stored: StoredMap, version: int | None, snapshot_version: int | None) -> None:
+def _check_versions(stored: StoredMap, version: int | None, snapshot_version: int | None, snapshot_row: int,
+                    newest_seq: int) -> None:
     """Rows deleted behind the service's back: the map's own record of its versions disagrees with its rows.
 
     (A deleted snapshot row left a map without batches 1-10 reporting version 12; a deleted last batch
-    went unnoticed.) NULL: a database from before the record, not checked until the next write.
+    went unnoticed.) ``snapshot_row``/``newest_seq``: the stored snapshot's version and the newest
+    batch row, tombstones included (0: none). NULL record: a database from before it, not checked
+    until the next write.
     """
-    if snapshot_version and stored.snapshot_version != snapshot_version:
+    if snapshot_version and snapshot_row != snapshot_version:
         stored.damage.append(f"its snapshot (version {snapshot_version}) is missing"
-                             + (f"; version {stored.snapshot_version} is stored" if stored.snapshot else ""))
-    newest = max([stored.snapshot_version, *(seq for seq, _ in stored.batches)])
+                             + (f"; version {snapshot_row} is stored" if snapshot_row else ""))
+    newest = max(snapshot_row, newest_seq)
     if version is not None and newest < version:
         stored.damage.append(f"its batches up to version {version} are missing (the newest stored is {newest})")
 
@@ -144,7 +272,8 @@ class SqliteStorage:
     """``Storage`` in one SQLite file: WAL journal, ``synchronous=FULL`` (fsync at every commit).
 
     One connection shared by the service's threads behind a lock: SQLite has one
-    writer at a time anyway, and the commits are short next to fusion.
+    writer at a time anyway, and the commits are short next to fusion. One process
+    only: replicas share a ``app.storage_pg.PostgresStorage``.
     """
 
     def __init__(self, path: Path) -> None:
@@ -157,22 +286,20 @@ class SqliteStorage:
             self._db.execute("PRAGMA synchronous=FULL")
             self._db.execute("PRAGMA foreign_keys=ON")
             self._db.executescript(_SCHEMA)
-            for table in ("batches", "snapshots"):
-                # a database from before the checksums: its rows keep a NULL crc (not verifiable), new ones get one
+            # an old database: its rows keep NULL there (a crc: not verifiable; a version: not checked until
+            # the next write; an incarnation: matched by None), new ones get a value
+            for table, added in _ADDED_COLUMNS.items():
                 columns = {row[1] for row in self._db.execute(f"PRAGMA table_info({table})")}
-                if "crc" not in columns:
-                    self._db.execute(f"ALTER TABLE {table} ADD COLUMN crc INTEGER")
-            # a database from before the maps kept their versions: NULL (not checked) until the next write
-            columns = {row[1] for row in self._db.execute("PRAGMA table_info(maps)")}
-            for column in ("version", "snapshot_version"):
-                if column not in columns:
-                    self._db.execute(f"ALTER TABLE maps ADD COLUMN {column} INTEGER")
+                for column, declaration in added.items():
+                    if column not in columns:
+                        self._db.execute(f"ALTER TABLE {table} ADD COLUMN {column} {declaration}")
 
-    def _write(self, statements: list[tuple[str, tuple[Any, ...]]]) -> None:
-        """Run statements in one immediate transaction: all of them are on disk when this returns.
+    def _transaction(self, work: Callable[[sqlite3.Connection], T]) -> T:
+        """Run ``work`` in one immediate transaction: all of it is on disk when this returns.
 
         ``StorageUnavailable`` (nothing written) when SQLite cannot write: a full disk, a
-        read-only directory or an I/O error, at any statement or at the COMMIT itself.
+        read-only directory or an I/O error, at any statement or at the COMMIT itself. Any
+        other exception of ``work`` (``MapGone``) rolls back and goes through as it is.
         """
         with self._lock:
             if self._db.in_transaction:  # left open by a ROLLBACK that failed too
@@ -180,8 +307,7 @@ class SqliteStorage:
             try:
                 self._db.execute("BEGIN IMMEDIATE")
                 try:
-                    for sql, args in statements:
-                        self._db.execute(sql, args)
+                    result = work(self._db)
                     # inside the try: a COMMIT that fails (SQLITE_FULL at the WAL append) leaves
                     # the transaction open, and the next BEGIN would fail on it
                     self._db.execute("COMMIT")
@@ -190,6 +316,14 @@ class SqliteStorage:
                     raise
             except sqlite3.OperationalError as exc:
                 raise StorageUnavailable(f"{exc} (SQLite {getattr(exc, 'sqlite_errorname', '?')})") from exc
+            return result
+
+    def _write(self, statements: list[tuple[str, tuple[Any, ...]]]) -> None:
+        def run(db: sqlite3.Connection) -> None:
+            for sql, args in statements:
+                db.execute(sql, args)
+
+        self._transaction(run)
 
     def _rollback(self) -> None:
         # SQLite may already have rolled back by itself (some SQLITE_FULL and IOERR cases)
@@ -203,68 +337,90 @@ class SqliteStorage:
         with self._lock:
             return [name for (name,) in self._db.execute("SELECT name FROM maps ORDER BY name")]
 
-    def load_map(self, name: str) -> StoredMap | None:
+    def map_head(self, name: str) -> MapHead | None:
         with self._lock:
-            row = self._db.execute("SELECT meta, updated, version, snapshot_version FROM maps WHERE name = ?",
-                                   (name,)).fetchone()
-            if row is None:
-                return None
-            stored = StoredMap(name, json.loads(row[0]), row[1])
-            snapshot = self._db.execute("SELECT version, payload, crc FROM snapshots WHERE map = ?",
-                                        (name,)).fetchone()
-            if snapshot is not None:
-                _take_snapshot(stored, snapshot[0], bytes(snapshot[1]), snapshot[2])
-            for seq, payload, crc in self._db.execute(
-                    "SELECT seq, payload, crc FROM batches WHERE map = ? ORDER BY seq", (name,)):
-                _take_batch(stored, seq, bytes(payload), crc)
-        _check_versions(stored, row[2], row[3])
-        return stored
+            row = self._db.execute(_SQLITE_HEAD + " WHERE name = ?", (name,)).fetchone()
+        return None if row is None else head_of(row)
+
+    def map_heads(self) -> list[MapHead]:
+        with self._lock:
+            rows = self._db.execute(_SQLITE_HEAD + " ORDER BY name").fetchall()
+        return [head_of(row) for row in rows]
+
+    def load_map(self, name: str) -> StoredMap | None:
+        with self._lock:  # one connection, so no write comes between the queries
+            return read_map(self._db.execute, name, None, None)
+
+    def load_since(self, name: str, after: int, up_to: int | None = None) -> StoredMap | None:
+        with self._lock:
+            return read_map(self._db.execute, name, after, up_to)
 
     def create_map(self, name: str, meta: dict[str, Any], updated: str) -> None:
         try:
-            self._write([("INSERT INTO maps (name, meta, updated, version, snapshot_version) VALUES (?, ?, ?, 0, 0)",
-                          (name, json.dumps(meta), updated))])
+            self._write([(_SQLITE_CREATE, (name, json.dumps(meta), updated, meta.get("incarnation")))])
         except sqlite3.IntegrityError:
             raise NameTaken(name) from None
 
-    def delete_map(self, name: str) -> None:
+    def delete_map(self, name: str, incarnation: str | None = None) -> None:
         # the foreign keys cascade to the map's batches and snapshot
-        self._write([("DELETE FROM maps WHERE name = ?", (name,))])
+        if incarnation is None:
+            self._write([("DELETE FROM maps WHERE name = ?", (name,))])
+        else:
+            self._write([("DELETE FROM maps WHERE name = ? AND incarnation = ?", (name, incarnation))])
 
-    def append_batch(self, name: str, version: int, payload: bytes, updated: str) -> None:
-        self.append_batches([BatchRecord(name, version, payload, updated)])
+    def append_batches(self, records: Sequence[BatchRecord]) -> list[int]:
+        if not records:
+            return []
 
-    def append_batches(self, batches: Sequence[BatchRecord]) -> None:
+        def append(db: sqlite3.Connection) -> list[int]:
+            versions = []
+            for r in records:
+                taken = db.execute(f"UPDATE maps SET version = {_SQLITE_NEWEST} + 1, updated = ?, scans = scans + ? "
+                                   "WHERE name = ? AND incarnation IS ? RETURNING version",
+                                   (r.updated, r.scans, r.name, r.incarnation)).fetchall()
+                if not taken:
+                    raise MapGone(r.name)
+                db.execute("INSERT INTO batches (map, seq, payload, crc, scans, updated) VALUES (?, ?, ?, ?, ?, ?)",
+                           (r.name, taken[0][0], r.payload, checksum(r.payload), r.scans, r.updated))
+                versions.append(taken[0][0])
+            return versions
+
         # one transaction, so one fsync of the WAL however many batches (group commit)
-        statements: list[tuple[str, tuple[Any, ...]]] = []
-        for b in batches:
-            statements.append(("INSERT INTO batches (map, seq, payload, crc) VALUES (?, ?, ?, ?)",
-                               (b.name, b.version, b.payload, _crc(b.payload))))
-            statements.append(("UPDATE maps SET updated = ?, version = MAX(COALESCE(version, 0), ?) WHERE name = ?",
-                               (b.updated, b.version, b.name)))
-        self._write(statements)
+        return self._transaction(append)
 
-    def discard_batch(self, name: str, version: int) -> None:
-        self._write([
-            ("DELETE FROM batches WHERE map = ? AND seq = ?", (name, version)),
-            # the newest stored row is the map's version again (it was this batch when no later one committed)
-            ("UPDATE maps SET version = COALESCE((SELECT MAX(seq) FROM batches WHERE map = ?), snapshot_version, 0) "
-             "WHERE name = ? AND version = ?", (name, name, version)),
-        ])
+    def discard_batch(self, name: str, version: int, incarnation: str | None = None) -> None:
+        def discard(db: sqlite3.Connection) -> None:
+            if not db.execute("SELECT 1 FROM maps WHERE name = ? AND (? IS NULL OR incarnation = ?)",
+                              (name, incarnation, incarnation)).fetchall():
+                return
+            row = db.execute("SELECT scans FROM batches WHERE map = ? AND seq = ? AND length(payload) > 0",
+                             (name, version)).fetchone()
+            if row is None:  # already a tombstone, or covered by a snapshot since
+                return
+            db.execute("UPDATE batches SET payload = ?, crc = ?, scans = 0 WHERE map = ? AND seq = ?",
+                       (TOMBSTONE, checksum(TOMBSTONE), name, version))
+            db.execute("UPDATE maps SET scans = scans - ? WHERE name = ?", (row[0] or 0, name))
 
-    def write_snapshot(self, name: str, version: int, payload: bytes) -> None:
-        self._write(
-            [
-                (
-                    "INSERT INTO snapshots (map, version, payload, crc) VALUES (?, ?, ?, ?) "
-                    "ON CONFLICT(map) DO UPDATE SET version = excluded.version, payload = excluded.payload, "
-                    "crc = excluded.crc",
-                    (name, version, payload, _crc(payload)),
-                ),
-                ("DELETE FROM batches WHERE map = ? AND seq <= ?", (name, version)),
-                ("UPDATE maps SET snapshot_version = ? WHERE name = ?", (version, name)),
-            ]
-        )
+        self._transaction(discard)
+
+    def write_snapshot(self, name: str, version: int, payload: bytes, incarnation: str | None = None) -> None:
+        def snapshot(db: sqlite3.Connection) -> None:
+            if not db.execute("SELECT 1 FROM maps WHERE name = ? AND (? IS NULL OR incarnation = ?)",
+                              (name, incarnation, incarnation)).fetchall():
+                return
+            # only forwards: another writer may have stored a newer one meanwhile
+            # the snapshot keeps its version's ``updated`` (its batch row goes)
+            if not db.execute("INSERT INTO snapshots (map, version, payload, crc, updated) VALUES (?, ?, ?, ?, "
+                              "(SELECT updated FROM batches WHERE map = ? AND seq = ?)) "
+                              "ON CONFLICT(map) DO UPDATE SET version = excluded.version, "
+                              "payload = excluded.payload, crc = excluded.crc, updated = excluded.updated "
+                              "WHERE snapshots.version < excluded.version RETURNING version",
+                              (name, version, payload, checksum(payload), name, version)).fetchall():
+                return
+            db.execute("DELETE FROM batches WHERE map = ? AND seq <= ?", (name, version))
+            db.execute("UPDATE maps SET snapshot_version = ? WHERE name = ?", (version, name))
+
+        self._transaction(snapshot)
 
     def close(self) -> None:
         with self._lock:

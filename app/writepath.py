@@ -38,10 +38,12 @@ counted and retried later, never answered as an error.
 from __future__ import annotations
 
 import asyncio
+import collections
 import contextlib
+import functools
 import logging
 import time
-from collections.abc import Callable, Iterator, Mapping
+from collections.abc import AsyncIterator, Callable, Mapping
 
 from fastapi.exceptions import RequestValidationError
 from pydantic import ValidationError
@@ -57,14 +59,14 @@ from app.errors import (
     Unavailable,
     UnsupportedMediaType,
 )
-from app.mapstate import MapEntry, now, npz, restore, shielded
+from app.mapstate import MapEntry, now, npz, replay, restore, shielded
 from app.metrics import Metrics
 from app.plangrids import PlanGrids
 from app.registry import MapRegistry
 from app.schemas import BatchResult, ScanBatch, ScanQuery
-from app.storage import BatchRecord, Storage, StorageUnavailable
+from app.storage import BatchRecord, MapGone, Storage, StorageUnavailable
 from app.workers import Workers
-from fuzzyocc import cast_work
+from fuzzyocc import LaserScan, cast_work
 
 LOG = logging.getLogger("fuzzyrisk.maps")
 
@@ -97,7 +99,7 @@ class WritePath:
 
     async def stop(self) -> None:
         """Wait for the batches in flight, snapshot every map with unsnapshotted batches, stop the committer."""
-        for entry in self._registry.held:
+        for entry in self._registry.held_maps:
             ticket = entry.line.take()
             try:
                 await entry.line.wait_all(ticket)
@@ -117,7 +119,8 @@ class WritePath:
             version = entry.version
             arrays = await self._workers.run(entry.map.to_arrays)
         try:
-            await self._workers.run(lambda: self.storage.write_snapshot(entry.name, version, npz(arrays)))
+            await self._workers.run(
+                lambda: self.storage.write_snapshot(entry.name, version, npz(arrays), entry.incarnation))
         except Exception as exc:
             # StorageUnavailable (full, read-only) mostly, but whatever it is, the batch that triggered
             # the snapshot is committed and applied: it must still be acknowledged
@@ -128,9 +131,9 @@ class WritePath:
                 extra={"fields": {"map": entry.name, "version": version, "error": str(exc)}},
             )
             return
-        entry.snapshot_version = version
-        while entry.log and entry.log[0][0] <= version:  # dropped from the log with the snapshot
-            entry.log.popleft()
+        entry.snapshot_version = max(entry.snapshot_version, version)
+        # dropped from the log with the snapshot (another replica's batches caught up may sit after ours)
+        entry.log = collections.deque(item for item in entry.log if item[0] > version)
         self.metrics.snapshots.inc()
 
     def _snapshot_due(self, entry: MapEntry) -> bool:
@@ -206,7 +209,7 @@ class WritePath:
         except BaseException:
             # never acknowledged: it must not come back at the next start
             try:
-                self.storage.discard_batch(entry.name, version)
+                self.storage.discard_batch(entry.name, version, entry.incarnation)
             except StorageUnavailable:
                 LOG.exception("map %s: batch %d failed to apply and could not be removed from the log; "
                               "a start before the next snapshot will replay it", entry.name, version)
@@ -234,21 +237,21 @@ class WritePath:
             LOG.exception("map %s: could not rebuild the map after a failed batch; it may differ from what a "
                           "restart rebuilds until then", entry.name)
 
-    @contextlib.contextmanager
-    def receiving(self, name: str) -> Iterator[None]:
+    @contextlib.asynccontextmanager
+    async def receiving(self, name: str) -> AsyncIterator[MapEntry]:
         """Admit an upload (503, ``Retry-After`` when its map's line is full) and count it against the line while
         its body arrives; ``add_scans`` checks the line again as the batch joins it.
 
         Uploads read side by side would all pass a check that counts only the batches already in
         line: 40 bodies of 60 MB for one map were all read at once (issue 11). Counted from the
         first byte, one map's uploads hold at most ``FUZZYRISK_MAX_PENDING_BATCHES`` bodies, the
-        others' share of the bodies-in-flight budget stays theirs.
+        others' share of the bodies-in-flight budget stays theirs. Yields the map as it is held now.
         """
-        entry = self._registry.entry(name)
+        entry, _ = await self._registry.held(name)
         self._admit(entry)
         entry.arriving += 1
         try:
-            yield
+            yield entry
         finally:
             entry.arriving -= 1
 
@@ -269,7 +272,7 @@ class WritePath:
 
         Batches to one map are committed and applied in the order they arrived here.
         """
-        entry = self._registry.entry(name)
+        entry, _ = await self._registry.held(name)
         # no await between the check and the take: together they are atomic on the event loop
         self._admit(entry)
         ticket = entry.line.take()  # before any await: this fixes the batch's place in line
@@ -296,7 +299,7 @@ class WritePath:
         stores nothing. ``admitted``: the batch belongs to an import whose first batch was admitted,
         so it is not refused for the line's length (an import is refused whole, or not at all).
         """
-        entry = self._registry.entry(name)
+        entry, _ = await self._registry.held(name)
         if not admitted:
             self._admit(entry)
         ticket = entry.line.take()
@@ -317,18 +320,32 @@ class WritePath:
 
     async def _write(self, entry: MapEntry, ticket: int, scans: list[batches.Scan], payload: bytes) -> BatchResult:
         """Commit, then apply, a parsed batch in its turns; gives both turns up when done, whatever happens."""
+        version = 0
         try:
             await entry.line.commit.wait(ticket)
             if entry.deleted:
                 raise NotFound(f"no map named {entry.name!r}")
-            version, updated = entry.committed + 1, now()
-            # StorageUnavailable here leaves the map untouched: nothing is applied before the commit
-            await asyncio.wrap_future(self._committer.append(BatchRecord(entry.name, version, payload, updated)))
-            entry.committed = version
+            updated = now()
+            record = BatchRecord(entry.name, entry.incarnation, payload, updated, len(scans))
+            try:
+                # the store decides the version (with replicas, theirs and ours come in one order);
+                # StorageUnavailable here leaves the map untouched: nothing is applied before the commit
+                version = await asyncio.wrap_future(self._committer.append(record))
+            except MapGone:
+                raise await self._registry.gone(entry) from None
+            entry.inflight.add(version)
             entry.log.append((version, len(payload)))
             entry.line.commit.done(ticket)  # the next batch may commit while this one waits for its fusion
             await entry.line.apply.wait(ticket)
             async with entry.apply_lock:
+                if version > max(entry.version, entry.checked) + 1:
+                    # other replicas' batches (or a discarded one) came between: theirs first, in the store's order
+                    await self._catch_up_locked(entry, version - 1)
+                if version <= entry.version:
+                    # caught up to another replica's snapshot that already holds this batch (it was committed,
+                    # so they fused it): fusing it again would count it twice
+                    return BatchResult(scans_fused=len(scans), rays=sum(_rays(scan) for scan in scans),
+                                       cells_updated=0, version=version)
                 # a batch that fails here keeps its version taken (the map's version skips it): a
                 # later batch may have committed with the next one meanwhile, and should its
                 # removal from the log have failed too, the row is still there under this version
@@ -338,6 +355,8 @@ class WritePath:
                     # the map may have changed in part (issue 11): a grid published for its
                     # current version would no longer be that map
                     self._grids.retire(entry.uid)
+                    # and a later catch-up must not apply it (its row stays if its removal failed)
+                    entry.checked = max(entry.checked, version)
                     raise
                 # assigned here, on the event loop and under the apply lock, so that a reader and
                 # MapInfo never pair the new arrays with the old version (or mix two versions)
@@ -349,5 +368,69 @@ class WritePath:
                 await self.snapshot(entry)
             return result
         finally:
+            # applied, or not (a failed catch-up leaves it in the log for the next one to apply)
+            entry.inflight.discard(version)
             entry.line.done(ticket)
 
+    async def current(self, name: str) -> MapEntry:
+        """The map for a read: with every batch acknowledged (by this replica or another) before the call applied.
+
+        With SQLite this is the map held. With a shared database, the map's newest version is read from it
+        first; batches of other replicas up to it are applied in the map's line, after this replica's own
+        batches committed before them. Only this replica's batches still being fused lie ahead of a read
+        that waits for nothing else: they are not acknowledged yet.
+        """
+        entry, newest = await self._registry.held(name, fresh=True)
+        known = max(entry.version, entry.checked)
+        ours = sum(1 for version in entry.inflight if known < version <= newest)
+        if newest - known > ours:
+            await self._catch_up(entry, newest)
+        return entry
+
+    async def _catch_up(self, entry: MapEntry, target: int) -> None:
+        """Apply the stored batches up to ``target`` in the map's line, as a writer would."""
+        ticket = entry.line.take()
+        entry.line.commit.done(ticket)  # it commits nothing; a later batch commits after the version read
+        try:
+            await entry.line.apply.wait(ticket)
+            if entry.deleted:
+                raise NotFound(f"no map named {entry.name!r}")
+            if target > max(entry.version, entry.checked):
+                async with entry.apply_lock:
+                    await self._catch_up_locked(entry, target)
+        finally:
+            entry.line.done(ticket)
+
+    async def _catch_up_locked(self, entry: MapEntry, target: int) -> None:
+        """Bring the map to ``target`` from the store: the batches after its version, or a newer snapshot and the
+        batches after that (another replica snapshotted and dropped the ones in between).
+
+        The caller holds the map's apply turn and its apply lock.
+        """
+        stored = await self._workers.run(self.storage.load_since, entry.name, entry.version, target)
+        if stored is None or stored.incarnation != entry.incarnation:
+            raise await self._registry.gone(entry)
+        if stored.damage:
+            raise Unavailable(f"map {entry.name!r}: its stored log is damaged ({'; '.join(stored.damage)})")
+        if stored.snapshot is not None:
+            fresh = await self._workers.run(restore, stored, target)
+            entry.map, entry.snapshot_version = fresh.map, fresh.snapshot_version
+            entry.version, entry.updated, entry.last_scan = fresh.version, fresh.updated, fresh.last_scan
+            entry.log = collections.deque([*fresh.log, *(item for item in entry.log if item[0] > fresh.version)])
+        else:
+            progress = await self._workers.run(
+                functools.partial(replay, entry.map, stored, after=entry.version, up_to=target))
+            entry.log.extend(progress.log)
+            if progress.version:
+                entry.version, entry.updated, entry.last_scan = progress.version, progress.updated, progress.last_scan
+        entry.checked = max(entry.checked, target)
+        entry.scans_fused, entry.last_view = entry.map.scans_fused, None
+        self.metrics.catch_ups.inc()
+        self._grids.retire(entry.uid, below=entry.version)
+        if entry.last_scan is not None:
+            self._notify("batch_applied", entry.name, entry.version, entry.last_scan, entry.frame_id)
+
+
+
+def _rays(scan: batches.Scan) -> int:
+    return len(scan.ranges) if isinstance(scan, LaserScan) else len(scan.points)

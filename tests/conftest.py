@@ -21,6 +21,8 @@ from pathlib import Path
 import psutil
 import pytest
 
+from tests.pgserver import postgres_server  # noqa: F401 - a real PostgreSQL, for the tests that ask
+
 ROOT = Path(__file__).resolve().parents[1]
 SESSION_MARK = "FUZZYRISK_TEST_SESSION"
 #: How long processes of the session may take to end once the tests are done (as after a kill -9 of a server).

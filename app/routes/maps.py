@@ -23,13 +23,13 @@ async def create_map(body: MapCreate, service: ServiceDep) -> MapInfo:
 @router.get("")
 async def list_maps(service: ServiceDep) -> list[MapInfo]:
     """Every map, by name."""
-    return service.maps.list_maps()
+    return await service.maps.list_maps()
 
 
 @router.get("/{name}", responses=_NOT_FOUND)
 async def get_map(name: MapNamePath, service: ServiceDep, response: Response) -> MapInfo:
     """One map, with ``scans_fused`` and ``version`` (also in the ``X-Map-Version`` header)."""
-    info = service.maps.get_map(name)
+    info = await service.reads.map_info(name)
     response.headers[conditional.VERSION_HEADER] = str(info.version)
     return info
 

@@ -49,13 +49,13 @@ def _grid_headers(name: str, grid: GridSnapshot, variant: dict[str, object]) -> 
     }
 
 
-def _unchanged(
+async def _unchanged(
     service: MapService, name: str, variant: dict[str, object], if_none_match: str | None
 ) -> Response | None:
     """304 when ``If-None-Match`` names the ETag this read would carry now (decided before any grid is read)."""
     if not if_none_match:
         return None
-    etag, version = service.reads.current_etag(name, variant)
+    etag, version = await service.reads.current_etag(name, variant)
     return conditional.not_modified(etag, version) if conditional.matches(if_none_match, etag) else None
 
 
@@ -126,7 +126,7 @@ async def get_risk(
         return await _risk_png(name, service, scale, z_min, z_max, if_none_match, "image/png")
     variant: dict[str, object] = {"read": "risk", "format": format, "layer": layer, "scale": scale, "z_min": z_min,
                                   "z_max": z_max}
-    if (unchanged := _unchanged(service, name, variant, if_none_match)) is not None:
+    if (unchanged := await _unchanged(service, name, variant, if_none_match)) is not None:
         return unchanged
     data, grid = await service.reads.risk_json(name)
     return Response(data, media_type="application/json", headers=_grid_headers(name, grid, variant))
@@ -136,7 +136,7 @@ async def _risk_npy(name: str, service: MapService, layer: str, if_none_match: s
                     media_type: str) -> Response:
     variant: dict[str, object] = {"read": "risk", "format": "npy", "layer": layer, "scale": 1, "z_min": None,
                                   "z_max": None, "media_type": media_type}
-    if (unchanged := _unchanged(service, name, variant, if_none_match)) is not None:
+    if (unchanged := await _unchanged(service, name, variant, if_none_match)) is not None:
         return unchanged
     data, grid = await service.reads.risk_npy(name, layer)
     headers = _grid_headers(name, grid, variant)
@@ -148,7 +148,7 @@ async def _risk_png(name: str, service: MapService, scale: int, z_min: float | N
                     if_none_match: str | None, media_type: str) -> Response:
     variant: dict[str, object] = {"read": "risk", "format": "png", "layer": "risk", "scale": scale, "z_min": z_min,
                                   "z_max": z_max, "media_type": media_type}
-    if (unchanged := _unchanged(service, name, variant, if_none_match)) is not None:
+    if (unchanged := await _unchanged(service, name, variant, if_none_match)) is not None:
         return unchanged
     data, grid = await service.reads.risk_png(name, scale=scale, z_min=z_min, z_max=z_max)
     return Response(data, media_type=media_type, headers=_grid_headers(name, grid, variant))
@@ -218,7 +218,7 @@ async def _occupancy_grid(name: str, service: MapService, format: str, mode: str
     variant: dict[str, object] = {"read": "occupancy_grid", "format": format, "mode": mode,
                                   "free_thresh": free_thresh, "occupied_thresh": occupied_thresh, "z_min": z_min,
                                   "z_max": z_max, "media_type": media_type}
-    if (unchanged := _unchanged(service, name, variant, if_none_match)) is not None:
+    if (unchanged := await _unchanged(service, name, variant, if_none_match)) is not None:
         return unchanged
     data, grid = await service.reads.occupancy_grid(name, mode=mode, free_thresh=free_thresh,
                                               occupied_thresh=occupied_thresh, z_min=z_min, z_max=z_max,
@@ -332,7 +332,7 @@ async def export_nav2(
     variant: dict[str, object] = {"read": "export/nav2", "format": format, "mode": mode, "free_thresh": free_thresh,
                                   "occupied_thresh": occupied_thresh, "z_min": z_min, "z_max": z_max,
                                   "media_type": media_type}
-    if (unchanged := _unchanged(service, name, variant, if_none_match)) is not None:
+    if (unchanged := await _unchanged(service, name, variant, if_none_match)) is not None:
         return unchanged
     data, grid = await service.reads.nav2_zip(
         name, mode=mode, image_format=format, free_thresh=free_thresh, occupied_thresh=occupied_thresh,

@@ -85,7 +85,7 @@ _BODY["parameters"] = [
 )
 async def post_scans(name: MapNamePath, request: Request, service: ServiceDep) -> BatchResult:
     """Fuse a batch of scans into the map."""
-    with service.writes.receiving(name):  # counted against the map's line from the first byte
+    async with service.writes.receiving(name):  # counted against the map's line from the first byte
         body = await request.body()
     return await service.writes.add_scans(
         name, body=body, content_type=request.headers.get("content-type", ""), query=request.query_params

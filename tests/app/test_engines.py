@@ -14,7 +14,7 @@ import pytest
 from fastapi.testclient import TestClient
 
 from app import batches
-from app.storage import SqliteStorage
+from app.storage import BatchRecord, SqliteStorage
 from fuzzyocc import FuzzyEngine, FuzzyMap, GridSpec, LaserScan, SensorModel, presets
 from fuzzyocc.engine import even_output_mfs
 from fuzzyocc.engine_spec import engine_to_dict
@@ -241,7 +241,7 @@ def test_a_map_stored_before_engines_keeps_the_papers_engine(make_settings: Any,
     now = datetime.now(UTC).isoformat(timespec="milliseconds")
     storage.create_map("lab", {**old_meta, "created": now}, now)
     body = scans(kit, 1)[0]
-    storage.append_batch("lab", 1, batches.encode([as_scan(body)]), now)
+    storage.append_batches([BatchRecord("lab", None, batches.encode([as_scan(body)]), now, 1)])
     storage.close()
 
     client = make_client()

@@ -470,12 +470,12 @@ def test_a_failure_part_way_answers_200_with_what_was_applied(
     commits = 0
     append = SqliteStorage.append_batches
 
-    def fill_disk(self: SqliteStorage, records: Any) -> None:
+    def fill_disk(self: SqliteStorage, records: Any) -> list[int]:
         nonlocal commits
         commits += 1
         if commits >= failing_commit:
             raise StorageUnavailable("database or disk is full")
-        append(self, records)
+        return append(self, records)
 
     monkeypatch.setattr(SqliteStorage, "append_batches", fill_disk)
     response = upload(client, "bag", bag)

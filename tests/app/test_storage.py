@@ -4,24 +4,55 @@ from __future__ import annotations
 
 import shutil
 import sqlite3
+import statistics
+import threading
+import time
+from collections.abc import Iterator
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+import psycopg
 import pytest
 from fastapi.testclient import TestClient
 
 from app.config import Settings
 from app.main import create_app
-from app.storage import SqliteStorage, StorageUnavailable
+from app.storage import (
+    BatchRecord,
+    MapGone,
+    MapHead,
+    NameTaken,
+    SqliteStorage,
+    Storage,
+    StorageUnavailable,
+    StoredMap,
+)
+from app.storage_pg import PostgresStorage
 from fuzzyocc import FuzzyMap
 from tests.conftest import error_message
 
 
-def _rows(data_dir: Path, table: str) -> list[tuple[Any, ...]]:
+def _rows(where: Path | Settings, table: str) -> list[tuple[Any, ...]]:
+    """(map, version) of the rows of ``table`` in a data directory's SQLite, or in the settings' store."""
+    column = "seq" if table == "batches" else "version"
+    # a discarded batch stays as an empty tombstone (its version stays taken): not a batch
+    sql = f"SELECT map, {column} FROM {table} WHERE length(payload) > 0 ORDER BY map, {column}"
+    if isinstance(where, Settings) and where.database_url is not None:
+        with psycopg.connect(where.database_url.get_secret_value()) as db:
+            return [tuple(row) for row in db.execute(sql).fetchall()]
+    data_dir = where.data_dir if isinstance(where, Settings) else where
     with sqlite3.connect(data_dir / "fuzzyrisk.sqlite3") as db:
-        column = "seq" if table == "batches" else "version"
-        return db.execute(f"SELECT map, {column} FROM {table} ORDER BY map, {column}").fetchall()
+        return db.execute(sql).fetchall()
+
+
+@pytest.fixture(params=["sqlite", "postgres"])
+def on(request: pytest.FixtureRequest) -> dict[str, Any]:
+    """Settings of a service on each store: SQLite in its data directory, then a new PostgreSQL database."""
+    if request.param == "sqlite":
+        return {}
+    return {"database_url": request.getfixturevalue("postgres_server").create_database()}
 
 
 def _scans(kit: Any, n: int) -> list[dict[str, Any]]:
@@ -29,15 +60,16 @@ def _scans(kit: Any, n: int) -> list[dict[str, Any]]:
 
 
 @pytest.mark.parametrize("model", ["fuzzy", "bayes"])
-def test_a_restart_serves_the_same_maps_bit_for_bit(make_client: Any, kit: Any, model: str) -> None:
-    first = make_client()
+def test_a_restart_serves_the_same_maps_bit_for_bit(make_client: Any, kit: Any, model: str,
+                                                    on: dict[str, Any]) -> None:
+    first = make_client(**on)
     first.post("/maps", json={**kit.MAP_2D, "model": model})
     for body in _scans(kit, 5):
         assert first.post("/maps/lab/scans", json=body).status_code == 200
     info, risk = first.get("/maps/lab").json(), kit.risk_npy(first, "lab")
     first.__exit__(None, None, None)
 
-    second = make_client()
+    second = make_client(**on)
     assert second.get("/maps/lab").json() == info
     assert kit.risk_npy(second, "lab").tobytes() == risk.tobytes()
 
@@ -77,19 +109,21 @@ def test_a_crash_image_without_snapshot_replays_every_batch(make_client: Any, ma
         assert replayed.get("/maps/lab/scans/last").json()["version"] == 4
 
 
-def test_a_graceful_stop_snapshots_every_map(make_client: Any, make_settings: Any, kit: Any) -> None:
-    client = make_client()
-    data_dir = make_settings().data_dir
+def test_a_graceful_stop_snapshots_every_map(make_client: Any, make_settings: Any, kit: Any,
+                                            on: dict[str, Any]) -> None:
+    client = make_client(**on)
+    settings = make_settings(**on)
     client.post("/maps", json=kit.MAP_2D)
     for body in _scans(kit, 2):
         client.post("/maps/lab/scans", json=body)
     client.__exit__(None, None, None)
-    assert _rows(data_dir, "snapshots") == [("lab", 2)] and _rows(data_dir, "batches") == []
+    assert _rows(settings, "snapshots") == [("lab", 2)] and _rows(settings, "batches") == []
 
 
-def test_deleting_a_map_removes_its_rows_for_good(make_client: Any, make_settings: Any, kit: Any) -> None:
-    client = make_client(snapshot_every=2)
-    data_dir = make_settings().data_dir
+def test_deleting_a_map_removes_its_rows_for_good(make_client: Any, make_settings: Any, kit: Any,
+                                                  on: dict[str, Any]) -> None:
+    client = make_client(snapshot_every=2, **on)
+    data_dir = make_settings(**on)
     client.post("/maps", json=kit.MAP_2D)
     client.post("/maps", json={**kit.MAP_2D, "name": "kept"})
     for body in _scans(kit, 3):
@@ -97,19 +131,23 @@ def test_deleting_a_map_removes_its_rows_for_good(make_client: Any, make_setting
     assert client.delete("/maps/lab").status_code == 204
     assert _rows(data_dir, "batches") == [] and _rows(data_dir, "snapshots") == []
     client.__exit__(None, None, None)
-    again = make_client()
+    again = make_client(**on)
     assert [m["name"] for m in again.get("/maps").json()] == ["kept"]
     assert again.post("/maps", json=kit.MAP_2D).json()["version"] == 0  # the name is free, the map new
 
 
-def test_a_refused_batch_leaves_nothing_on_disk(lab: TestClient, make_settings: Any, kit: Any) -> None:
-    lab.post("/maps/lab/scans", json={"scans": [kit.laser(), {**kit.laser(), "angle_increment": 0}]})
-    assert _rows(make_settings().data_dir, "batches") == []
+def test_a_refused_batch_leaves_nothing_on_disk(make_client: Any, make_settings: Any, kit: Any,
+                                               on: dict[str, Any]) -> None:
+    lab = make_client(**on)
+    assert lab.post("/maps", json=kit.MAP_2D).status_code == 201
+    assert lab.post("/maps/lab/scans", json={"scans": [kit.laser(), {**kit.laser(), "angle_increment": 0}]}
+                    ).status_code == 422
+    assert _rows(make_settings(**on), "batches") == []
 
 
 def test_a_batch_that_fails_while_applied_is_not_kept(make_settings: Any, kit: Any,
-                                                      monkeypatch: pytest.MonkeyPatch) -> None:
-    settings = make_settings()
+                                                      monkeypatch: pytest.MonkeyPatch, on: dict[str, Any]) -> None:
+    settings = make_settings(**on)
     with TestClient(create_app(settings), raise_server_exceptions=False) as client:
         client.post("/maps", json=kit.MAP_2D)
         assert client.post("/maps/lab/scans", json=_scans(kit, 1)[0]).status_code == 200
@@ -119,7 +157,7 @@ def test_a_batch_that_fails_while_applied_is_not_kept(make_settings: Any, kit: A
 
         monkeypatch.setattr(FuzzyMap, "integrate_batch", broken)
         assert client.post("/maps/lab/scans", json=_scans(kit, 1)[0]).status_code == 500
-        assert _rows(settings.data_dir, "batches") == [("lab", 1)]
+        assert _rows(settings, "batches") == [("lab", 1)]
         assert client.get("/maps/lab").json()["version"] == 1
         monkeypatch.undo()
         # version 2 stays taken (services.py: a failed batch's version is never reused), so the map skips it
@@ -160,10 +198,11 @@ def _keep_the_log_at_shutdown(monkeypatch: pytest.MonkeyPatch) -> None:
     """Snapshots fail only at shutdown (a full disk then, say): the batches after the last snapshot stay in the log."""
     original = SqliteStorage.write_snapshot
 
-    def write_snapshot(self: SqliteStorage, name: str, version: int, payload: bytes) -> None:
+    def write_snapshot(self: SqliteStorage, name: str, version: int, payload: bytes,
+                       incarnation: str | None = None) -> None:
         if version % 2:  # the service's own every-2 snapshots (snapshot_every=2) pass
             raise StorageUnavailable("database or disk is full")
-        original(self, name, version, payload)
+        original(self, name, version, payload, incarnation)
 
     monkeypatch.setattr(SqliteStorage, "write_snapshot", write_snapshot)
 
@@ -224,13 +263,13 @@ def test_a_database_from_before_the_checksums_still_loads(make_settings: Any, ki
             assert [crc is None for (crc,) in db.execute("SELECT crc FROM batches ORDER BY seq")] == [True, False]
 
 
-def test_map_metadata_survives_a_restart(make_client: Any, kit: Any) -> None:
-    first = make_client()
+def test_map_metadata_survives_a_restart(make_client: Any, kit: Any, on: dict[str, Any]) -> None:
+    first = make_client(**on)
     created = first.post("/maps", json={**kit.MAP_3D, "model": "bayes",
                                          "sensor": {"range_sigma": 0.07, "registration_sigma": 0.02,
                                                     "range_sigma_per_m": 0.01}}).json()
     first.__exit__(None, None, None)
-    assert make_client().get("/maps/hall").json() == created
+    assert make_client(**on).get("/maps/hall").json() == created
 
 
 def test_replayed_risk_equals_a_fresh_in_process_fusion(make_client: Any, kit: Any) -> None:
@@ -298,8 +337,9 @@ def test_a_start_holds_one_map_at_a_time(make_client: Any, make_settings: Any, k
                                                limits))
     per_map = 50
     storage = SqliteStorage(settings.database_path)
-    storage.append_batches([BatchRecord(name, version, payload, "2026-12-02T00:00:00+00:00")
-                            for name in names for version in range(1, per_map + 1)])
+    heads = {head.name: head for head in storage.map_heads()}
+    storage.append_batches([BatchRecord(name, heads[name].incarnation, payload, "2026-12-02T00:00:00+00:00", 1)
+                            for name in names for _ in range(per_map)])
     storage.close()
     total = len(payload) * per_map * len(names)
 
@@ -311,7 +351,7 @@ def test_a_start_holds_one_map_at_a_time(make_client: Any, make_settings: Any, k
             _, peak = tracemalloc.get_traced_memory()
         finally:
             tracemalloc.stop()
-        versions = sum(service.maps.get_map(name).version for name in names)
+        versions = sum([(await service.reads.map_info(name)).version for name in names])
         await service.stop()
         return peak, versions
 
@@ -363,37 +403,354 @@ def test_rows_deleted_behind_the_services_back_quarantine_the_map(make_settings:
         assert client.get("/ready").json()["maps_quarantined"] == ["lab"]
 
 
-def test_a_batch_discarded_by_the_service_is_not_damage(tmp_path: Path) -> None:
-    # a batch that failed to apply is removed from the log by the service itself: its version is skipped
-    from app.storage import SqliteStorage
 
-    storage = SqliteStorage(tmp_path / "db.sqlite3")
-    storage.create_map("m", {"model": "fuzzy"}, "t0")
-    for version in (1, 2, 3):
-        storage.append_batch("m", version, b"x", "t1")
-    storage.discard_batch("m", 3)  # the newest: the map's record goes back to 2
-    storage.discard_batch("m", 1)  # an older one (later ones committed meanwhile): a skipped version
-    stored = storage.load_map("m")
-    assert stored is not None and stored.damage == [] and [v for v, _ in stored.batches] == [2]
-    storage.append_batch("m", 4, b"y", "t2")
-    assert storage.load_map("m").damage == []  # type: ignore[union-attr]
-    storage.close()
+# --- the store itself, SQLite and PostgreSQL alike (issue 14: replicas of the service on one PostgreSQL) ---
 
 
-def test_a_database_from_before_the_version_record_loads_unchecked(tmp_path: Path) -> None:
-    from app.storage import SqliteStorage
+class Backend:
+    """One fresh database of a kind: ``open()`` a store on it (closed at the end), ``sql()`` behind its back."""
 
+    def __init__(self, kind: str, tmp_path: Path, request: pytest.FixtureRequest) -> None:
+        self.kind = kind
+        self.stores: list[Storage] = []
+        if kind == "postgres":
+            self.url = request.getfixturevalue("postgres_server").create_database()
+        else:
+            self.path = tmp_path / "db.sqlite3"
+
+    def open(self) -> Storage:
+        store: Storage = PostgresStorage(self.url) if self.kind == "postgres" else SqliteStorage(self.path)
+        self.stores.append(store)
+        return store
+
+    def sql(self, statement: str, args: tuple[Any, ...] = ()) -> list[tuple[Any, ...]]:
+        """Run one statement on the database directly (``?`` placeholders), as an operator would."""
+        if self.kind == "postgres":
+            with psycopg.connect(self.url, autocommit=True) as conn:
+                cursor = conn.execute(statement.replace("?", "%s"), args)
+                return [tuple(row) for row in cursor.fetchall()] if cursor.description else []
+        with sqlite3.connect(self.path) as db:
+            return db.execute(statement, args).fetchall()
+
+
+@pytest.fixture(params=["sqlite", "postgres"])
+def backend(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[Backend]:
+    made = Backend(request.param, tmp_path, request)
+    yield made
+    for store in made.stores:
+        store.close()
+
+
+@pytest.fixture
+def postgres(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[Backend]:
+    """A fresh PostgreSQL database, for what only PostgreSQL has (connections, replicas opening it at once)."""
+    made = Backend("postgres", tmp_path, request)
+    yield made
+    for store in made.stores:
+        store.close()
+
+
+@pytest.fixture
+def store(backend: Backend) -> Storage:
+    """A fresh store: SQLite in a new file, or PostgreSQL on a new database."""
+    return backend.open()
+
+
+def _make(store: Storage, name: str = "m", incarnation: str | None = "i1") -> None:
+    store.create_map(name, {"name": name, "incarnation": incarnation}, "t0")
+
+
+def _append(store: Storage, payload: bytes, name: str = "m", incarnation: str | None = "i1", scans: int = 1) -> int:
+    (version,) = store.append_batches([BatchRecord(name, incarnation, payload, "t1", scans)])
+    return version
+
+
+def _versions(stored: StoredMap | None) -> list[int]:
+    assert stored is not None
+    return [version for version, _ in stored.batches]
+
+
+def test_the_store_gives_each_batch_its_maps_next_version_in_the_callers_order(store: Storage) -> None:
+    _make(store, "m")
+    _make(store, "a", incarnation=None)
+    records = [BatchRecord("m", "i1", b"m1", "t1", 2), BatchRecord("a", None, b"a1", "t2", 1),
+               BatchRecord("m", "i1", b"m2", "t3", 3), BatchRecord("a", None, b"a2", "t4", 4)]
+    assert store.append_batches(records) == [1, 1, 2, 2]
+    assert store.append_batches([BatchRecord("a", None, b"a3", "t5", 1)]) == [3]
+    m, a = store.load_map("m"), store.load_map("a")
+    assert m is not None and m.batches == [(1, b"m1"), (2, b"m2")] and m.version == 2 and m.incarnation == "i1"
+    assert a is not None and a.batches == [(1, b"a1"), (2, b"a2"), (3, b"a3")] and a.updated == "t5"
+    assert store.map_head("m") == MapHead("m", {"name": "m", "incarnation": "i1"}, "t3", 2, 0, 5, "i1")
+    assert store.append_batches([]) == []
+
+
+def test_appends_from_many_threads_and_two_stores_get_gapless_versions(backend: Backend) -> None:
+    # two replicas (PostgreSQL) x 4 threads x 50 batches to one map: the map's row orders them
+    stores = [backend.open() for _ in range(2 if backend.kind == "postgres" else 1)]
+    _make(stores[0])
+    per_thread, threads = 50, 4
+    got: dict[bytes, int] = {}
+    lock = threading.Lock()
+
+    def writer(store: Storage, tag: str) -> None:
+        mine = []
+        for k in range(per_thread):
+            payload = f"{tag}-{k}".encode()
+            version = _append(store, payload)
+            mine.append(version)
+            with lock:
+                got[payload] = version
+        assert mine == sorted(mine)  # one writer's batches keep their order
+
+    with ThreadPoolExecutor(threads * len(stores)) as pool:
+        futures = [pool.submit(writer, store, f"{s}/{t}") for s, store in enumerate(stores) for t in range(threads)]
+        for future in futures:
+            future.result(timeout=120)
+    total = per_thread * threads * len(stores)
+    assert sorted(got.values()) == list(range(1, total + 1))  # each version exactly once
+    stored = stores[-1].load_map("m")
+    assert stored is not None and stored.damage == [] and stored.version == total
+    assert {payload: version for version, payload in stored.batches} == got  # the rows are the answers
+    head = stores[0].map_head("m")
+    assert head is not None and head.version == total and head.scans == total
+
+
+def test_groups_of_the_same_maps_in_opposite_orders_do_not_deadlock(backend: Backend) -> None:
+    # two replicas committing [a, b] and [b, a] at once: the rows are locked in name order, never crosswise
+    stores = [backend.open() for _ in range(2 if backend.kind == "postgres" else 1)]
+    for name in ("a", "b"):
+        _make(stores[0], name)
+    rounds = 60
+
+    def writer(store: Storage, names: list[str]) -> list[list[int]]:
+        return [store.append_batches([BatchRecord(n, "i1", n.encode(), "t1", 1) for n in names])
+                for _ in range(rounds)]
+
+    with ThreadPoolExecutor(2) as pool:
+        forward = pool.submit(writer, stores[0], ["a", "b", "a"])
+        backward = pool.submit(writer, stores[-1], ["b", "a", "b"])
+        results = forward.result(timeout=120) + backward.result(timeout=120)
+    for versions in results:  # each map's own records in their order: a map's later record, a later version
+        assert versions[2] > versions[0]
+    assert [stores[0].map_head(n).version for n in ("a", "b")] == [3 * rounds, 3 * rounds]  # type: ignore[union-attr]
+
+
+@pytest.mark.parametrize("gone", ["deleted", "created again"])
+def test_a_batch_for_a_map_that_is_gone_fails_its_whole_group(store: Storage, gone: str) -> None:
+    _make(store, "m")
+    _make(store, "other")
+    assert _append(store, b"m1") == 1
+    store.delete_map("m")
+    if gone == "created again":
+        _make(store, "m", incarnation="i2")
+    with pytest.raises(MapGone, match="m"):
+        store.append_batches([BatchRecord("other", "i1", b"o1", "t2", 1), BatchRecord("m", "i1", b"m2", "t2", 1)])
+    other = store.load_map("other")
+    assert other is not None and other.batches == [] and other.version == 0  # nothing of the group stored
+    assert store.map_head("other").updated == "t0"  # type: ignore[union-attr]
+    if gone == "created again":
+        assert store.load_map("m").batches == []  # type: ignore[union-attr]
+        assert _append(store, b"new", incarnation="i2") == 1
+    else:
+        assert store.load_map("m") is None
+    assert _append(store, b"o1", name="other") == 1  # the refused group took no version
+
+
+def test_a_map_of_no_incarnation_takes_batches_for_none(store: Storage) -> None:
+    store.create_map("old", {"name": "old"}, "t0")  # a map made before incarnations
+    assert store.map_head("old").incarnation is None  # type: ignore[union-attr]
+    assert _append(store, b"x", name="old", incarnation=None) == 1
+    with pytest.raises(MapGone):
+        _append(store, b"y", name="old", incarnation="i1")
+
+
+def test_a_discarded_batch_is_a_tombstone_whose_version_stays_taken(store: Storage) -> None:
+    _make(store)
+    for payload, scans in ((b"1", 2), (b"2", 3), (b"3", 4)):
+        _append(store, payload, scans=scans)
+    store.discard_batch("m", 3)  # the newest: its version is not given again (a replica may have read it)
+    store.discard_batch("m", 1)  # an older one
+    store.discard_batch("m", 1)  # twice: nothing more to subtract
+    head = store.map_head("m")
+    assert head is not None and head.version == 3 and head.scans == 3
+    stored = store.load_map("m")
+    assert stored is not None and stored.damage == [] and stored.batches == [(2, b"2")] and stored.version == 3
+    since = store.load_since("m", 0)
+    assert since is not None and since.batches == [(2, b"2")] and since.damage == []
+    assert _append(store, b"4") == 4
+    assert _versions(store.load_map("m")) == [2, 4]
+    store.discard_batch("m", 99)  # no such batch: nothing happens
+    store.discard_batch("nothing", 1)
+
+
+def test_a_snapshot_never_replaces_a_newer_one(store: Storage) -> None:
+    _make(store)
+    for k in range(1, 6):
+        _append(store, str(k).encode())
+    store.write_snapshot("m", 4, b"four")
+    store.write_snapshot("m", 2, b"two")  # another replica's older snapshot, written late: a no-op
+    store.write_snapshot("m", 4, b"four again")  # as new: a no-op as well
+    stored = store.load_map("m")
+    assert stored is not None and stored.damage == []
+    assert (stored.snapshot_version, stored.snapshot, stored.batches) == (4, b"four", [(5, b"5")])
+    assert store.map_head("m").snapshot_version == 4  # type: ignore[union-attr]
+    store.write_snapshot("m", 5, b"five")
+    stored = store.load_map("m")
+    assert stored is not None and (stored.snapshot_version, stored.snapshot, stored.batches) == (5, b"five", [])
+    assert stored.version == 5 and stored.damage == []
+    store.write_snapshot("gone", 1, b"x")  # a map deleted meanwhile: nothing to do
+
+
+def test_a_stale_incarnation_neither_deletes_nor_snapshots_nor_discards(store: Storage) -> None:
+    _make(store, incarnation="i2")  # the map was deleted and created again by another replica
+    _append(store, b"1", incarnation="i2")
+    store.delete_map("m", incarnation="i1")
+    store.write_snapshot("m", 1, b"stale", incarnation="i1")
+    store.discard_batch("m", 1, incarnation="i1")
+    stored = store.load_map("m")
+    assert stored is not None and stored.snapshot is None and stored.batches == [(1, b"1")]
+    store.write_snapshot("m", 1, b"own", incarnation="i2")
+    assert store.load_map("m").snapshot == b"own"  # type: ignore[union-attr]
+    store.delete_map("m", incarnation="i2")
+    assert store.map_head("m") is None and store.map_names() == []
+    store.delete_map("m")  # absent: no error
+
+
+def test_load_since_gives_what_a_holder_of_an_older_version_lacks(store: Storage) -> None:
+    _make(store)
+    for k in range(1, 8):
+        _append(store, str(k).encode())
+    store.discard_batch("m", 6)
+    store.write_snapshot("m", 3, b"three")
+    # no newer snapshot than the holder's version: the batches after it only
+    since = store.load_since("m", 4)
+    assert since is not None and since.snapshot is None and since.snapshot_version == 3
+    assert since.batches == [(5, b"5"), (7, b"7")] and since.version == 7 and since.damage == []
+    assert since.meta == {"name": "m", "incarnation": "i1"} and since.incarnation == "i1"
+    assert _versions(store.load_since("m", 3)) == [4, 5, 7]
+    assert _versions(store.load_since("m", 4, up_to=5)) == [5]
+    assert _versions(store.load_since("m", 7)) == []
+    # a newer snapshot than the holder's version: the snapshot, then the batches after it
+    since = store.load_since("m", 1)
+    assert since is not None and (since.snapshot_version, since.snapshot) == (3, b"three")
+    assert _versions(since) == [4, 5, 7]
+    since = store.load_since("m", 0, up_to=4)
+    assert since is not None and since.snapshot == b"three" and _versions(since) == [4]
+    assert store.load_since("nothing", 0) is None
+
+
+def test_map_heads_are_the_rows_without_payloads(store: Storage) -> None:
+    assert store.map_heads() == [] and store.map_head("b") is None
+    _make(store, "b", incarnation="ib")
+    _make(store, "a", incarnation=None)
+    _make(store, "B", incarnation="iB")
+    store.append_batches([BatchRecord("b", "ib", b"x", "t5", 7), BatchRecord("b", "ib", b"y", "t6", 1)])
+    store.write_snapshot("b", 1, b"s")
+    assert store.map_heads() == [
+        MapHead("B", {"name": "B", "incarnation": "iB"}, "t0", 0, 0, 0, "iB"),
+        MapHead("a", {"name": "a", "incarnation": None}, "t0", 0, 0, 0, None),
+        MapHead("b", {"name": "b", "incarnation": "ib"}, "t6", 2, 1, 8, "ib"),
+    ]
+    assert store.map_names() == ["B", "a", "b"]  # code point order, whatever the database's locale
+    assert store.map_head("b") == store.map_heads()[2]
+
+
+def test_map_head_is_fast(store: Storage) -> None:
+    # called before every read on every replica
+    _make(store)
+    _append(store, b"x" * 100_000)
+    store.write_snapshot("m", 1, b"y" * 1_000_000)  # payloads are not read
+    times = []
+    for _ in range(1000):
+        started = time.perf_counter()
+        store.map_head("m")
+        times.append(time.perf_counter() - started)
+    median = statistics.median(times)
+    print(f"map_head median {median * 1e6:.0f} us")
+    assert median < 0.002
+
+
+def test_a_name_in_use_is_refused(store: Storage) -> None:
+    _make(store)
+    with pytest.raises(NameTaken):
+        _make(store, incarnation="i2")
+    assert store.map_head("m").incarnation == "i1"  # type: ignore[union-attr]
+
+
+@pytest.mark.parametrize(("table", "key"), [("batches", "seq"), ("snapshots", "version")])
+def test_a_changed_payload_is_damage_for_both_loaders(backend: Backend, table: str, key: str) -> None:
+    store = backend.open()
+    _make(store)
+    for k in range(1, 4):
+        _append(store, f"batch {k}".encode())
+    store.write_snapshot("m", 1, b"snapshot 1")
+    backend.sql(f"UPDATE {table} SET payload = ? WHERE map = 'm' AND {key} = (SELECT MIN({key}) FROM {table})",
+                (b"flipped",))
+    for stored in (store.load_map("m"), store.load_since("m", 0)):
+        assert stored is not None and len(stored.damage) == 1 and "fails its checksum" in stored.damage[0]
+
+
+@pytest.mark.parametrize(("delete", "message"), [
+    ("DELETE FROM snapshots WHERE map = 'm'", "its snapshot (version 2) is missing"),
+    ("DELETE FROM batches WHERE map = 'm' AND seq = 4", "its batches up to version 4 are missing"),
+])
+def test_rows_deleted_behind_the_stores_back_are_damage_but_tombstones_are_not(backend: Backend, delete: str,
+                                                                                message: str) -> None:
+    store = backend.open()
+    _make(store)
+    for k in range(1, 5):
+        _append(store, str(k).encode())
+    store.write_snapshot("m", 2, b"two")
+    store.discard_batch("m", 4)  # the newest is a tombstone: it still counts as stored
+    assert store.load_map("m").damage == []  # type: ignore[union-attr]
+    backend.sql(delete)
+    for stored in (store.load_map("m"), store.load_since("m", 3)):
+        assert stored is not None and any(message in damage for damage in stored.damage), stored.damage
+
+
+def test_postgres_connection_loss_is_storage_unavailable_and_the_next_call_reconnects(postgres: Backend) -> None:
+    # (SQLite's failures to write: tests/app/test_storage_faults.py)
+    store = postgres.open()
+    _make(store)
+    dbname = postgres.url.rsplit("/", 1)[1]
+
+    def server_restart() -> None:  # as a restart or a failover does: every connection of the store is closed
+        postgres.sql("SELECT pg_terminate_backend(pid) FROM pg_stat_activity WHERE datname = ? AND pid <> "
+                     "pg_backend_pid()", (dbname,))
+
+    server_restart()
+    assert store.map_head("m") is not None  # a read runs again on a new connection
+    server_restart()
+    with pytest.raises(StorageUnavailable):  # a write does not (it may have committed)
+        _append(store, b"1")
+    assert _append(store, b"1") == 1  # on a new connection; the failed call stored nothing
+    with pytest.raises(StorageUnavailable):
+        PostgresStorage("postgresql://postgres@127.0.0.1:1/none", timeout=1.0)
+
+
+def test_postgres_replicas_creating_the_schema_at_once_all_start(postgres: Backend) -> None:
+    with ThreadPoolExecutor(6) as pool:
+        stores = list(pool.map(lambda _: postgres.open(), range(6)))
+    _make(stores[0])
+    assert all(store.map_names() == ["m"] for store in stores)
+
+
+def test_an_old_sqlite_database_gets_the_new_columns_and_carries_on_its_versions(tmp_path: Path) -> None:
     path = tmp_path / "old.sqlite3"
-    with sqlite3.connect(path) as db:  # the schema as it was: maps without their versions
+    with sqlite3.connect(path) as db:  # the schema as it was: maps without versions, incarnations or scans
         db.executescript("CREATE TABLE maps (name TEXT PRIMARY KEY, meta TEXT NOT NULL, updated TEXT NOT NULL);"
                          "CREATE TABLE batches (map TEXT NOT NULL, seq INTEGER NOT NULL, payload BLOB NOT NULL,"
                          " PRIMARY KEY (map, seq));"
                          "CREATE TABLE snapshots (map TEXT PRIMARY KEY, version INTEGER NOT NULL, payload BLOB NOT NULL);"
-                         "INSERT INTO maps VALUES ('m', '{}', 't0'); INSERT INTO batches VALUES ('m', 7, x'00');")
+                         "INSERT INTO maps VALUES ('m', '{}', 't0'); INSERT INTO batches VALUES ('m', 7, x'00');"
+                         "INSERT INTO maps VALUES ('s', '{}', 't0'); INSERT INTO snapshots VALUES ('s', 5, x'00');")
     storage = SqliteStorage(path)
     stored = storage.load_map("m")
-    assert stored is not None and stored.damage == [] and [v for v, _ in stored.batches] == [7]
-    storage.append_batch("m", 8, b"y", "t1")  # from now on the map's record is kept
+    assert stored is not None and stored.damage == [] and _versions(stored) == [7] and stored.version == 7
+    assert storage.map_head("m") == MapHead("m", {}, "t0", 7, 0, 0, None)
+    assert storage.map_head("s") == MapHead("s", {}, "t0", 5, 5, 0, None)
+    assert _append(storage, b"y", incarnation=None) == 8  # after its newest row
+    assert _append(storage, b"z", name="s", incarnation=None) == 6  # after its snapshot
     with sqlite3.connect(path) as db:
         db.execute("DELETE FROM batches WHERE seq = 8")
     assert storage.load_map("m").damage == ["its batches up to version 8 are missing (the newest stored is 7)"]  # type: ignore[union-attr]

@@ -13,7 +13,7 @@ from fastapi.testclient import TestClient
 
 from app.errors import STORAGE_UNAVAILABLE_DETAIL
 from app.mapstate import Turns
-from app.storage import SqliteStorage, StorageUnavailable
+from app.storage import BatchRecord, SqliteStorage, StorageUnavailable
 
 
 def _batch(kit: Any, k: int) -> dict[str, Any]:
@@ -37,10 +37,10 @@ def test_a_full_store_raises_storage_unavailable_and_stays_usable(tmp_path: Path
     pages = storage._db.execute("PRAGMA page_count").fetchone()[0]
     storage._db.execute(f"PRAGMA max_page_count = {pages}")
     with pytest.raises(StorageUnavailable, match="full"):
-        storage.append_batch("m", 1, b"\0" * 200_000, "t1")
+        storage.append_batches([BatchRecord("m", None, b"\0" * 200_000, "t1", 1)])
     assert not storage._db.in_transaction  # rolled back: the next write can begin
     storage._db.execute("PRAGMA max_page_count = 1073741823")
-    storage.append_batch("m", 1, b"\1" * 10, "t1")
+    assert storage.append_batches([BatchRecord("m", None, b"\1" * 10, "t1", 1)]) == [1]
     assert storage.load_map("m").batches == [(1, b"\1" * 10)]  # type: ignore[union-attr]
     storage.close()
 

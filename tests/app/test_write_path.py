@@ -30,14 +30,15 @@ from app.main import create_app
 from app.metrics import Metrics
 from app.schemas import MapCreate, ScanBatch
 from app.services import MapService
-from app.storage import BatchRecord, SqliteStorage, StorageUnavailable
+from app.storage import BatchRecord, MapGone, SqliteStorage, StorageUnavailable
 from fuzzyocc import FuzzyMap, GridSpec, LaserScan, SensorModel
 from tests.conftest import error_message
 
 
 def _rows(data_dir: Path) -> list[tuple[str, int]]:
+    """The batch rows that hold a batch (a discarded one stays as an empty tombstone: its version stays taken)."""
     with sqlite3.connect(data_dir / "fuzzyrisk.sqlite3") as db:
-        return db.execute("SELECT map, seq FROM batches ORDER BY map, seq").fetchall()
+        return db.execute("SELECT map, seq FROM batches WHERE length(payload) > 0 ORDER BY map, seq").fetchall()
 
 
 def _bodies(kit: Any, n: int) -> list[dict[str, Any]]:
@@ -102,23 +103,24 @@ class _RecordingStorage:
         self.gate = threading.Event()
         self.bad = bad
 
-    def append_batches(self, batches: Sequence[BatchRecord]) -> None:
+    def append_batches(self, batches: Sequence[BatchRecord]) -> list[int]:
         if not self.transactions:
             assert self.gate.wait(10)
         if any(b.name in self.bad for b in batches):
             raise StorageUnavailable("database or disk is full")
         self.transactions.append(list(batches))
+        return [len(self.transactions)] * len(batches)
 
 
 def test_batches_waiting_for_the_writer_share_one_transaction() -> None:
     storage = _RecordingStorage()
     committer = GroupCommitter(storage, Metrics())  # type: ignore[arg-type]
-    first = committer.append(BatchRecord("a", 1, b"1", "t"))
+    first = committer.append(BatchRecord("a", None, b"1", "t", 1))
     time.sleep(0.05)  # the writer is now inside the first transaction, held at the gate
-    waiting = [committer.append(BatchRecord(name, 1, name.encode(), "t")) for name in "bcd"]
+    waiting = [committer.append(BatchRecord(name, None, name.encode(), "t", 1)) for name in "bcd"]
     storage.gate.set()
-    for future in [first, *waiting]:
-        future.result(timeout=10)
+    # each resolves to the version its store gave it (here: the number of its transaction)
+    assert [future.result(timeout=10) for future in [first, *waiting]] == [1, 2, 2, 2]
     committer.shutdown()
     assert [[b.name for b in t] for t in storage.transactions] == [["a"], ["b", "c", "d"]]
 
@@ -126,9 +128,9 @@ def test_batches_waiting_for_the_writer_share_one_transaction() -> None:
 def test_a_failed_group_is_retried_batch_by_batch_so_one_bad_batch_fails_alone() -> None:
     storage = _RecordingStorage(bad={"c"})
     committer = GroupCommitter(storage, Metrics())  # type: ignore[arg-type]
-    first = committer.append(BatchRecord("a", 1, b"1", "t"))
+    first = committer.append(BatchRecord("a", None, b"1", "t", 1))
     time.sleep(0.05)
-    waiting = {name: committer.append(BatchRecord(name, 1, b"x", "t")) for name in "bcd"}
+    waiting = {name: committer.append(BatchRecord(name, None, b"x", "t", 1)) for name in "bcd"}
     storage.gate.set()
     first.result(timeout=10)
     waiting["b"].result(timeout=10)
@@ -143,10 +145,10 @@ def test_a_group_commit_is_one_sqlite_transaction(tmp_path: Path) -> None:
     storage = SqliteStorage(tmp_path / "db.sqlite3")
     for name in ("m", "n"):
         storage.create_map(name, {"name": name}, "t0")
-    storage.append_batches([BatchRecord("m", 1, b"a", "t1"), BatchRecord("n", 1, b"b", "t1"),
-                            BatchRecord("m", 2, b"c", "t2")])
-    with pytest.raises(sqlite3.IntegrityError):  # m/2 is taken: the whole group is refused
-        storage.append_batches([BatchRecord("n", 2, b"d", "t3"), BatchRecord("m", 2, b"e", "t3")])
+    assert storage.append_batches([BatchRecord("m", None, b"a", "t1", 1), BatchRecord("n", None, b"b", "t1", 1),
+                                   BatchRecord("m", None, b"c", "t2", 1)]) == [1, 1, 2]
+    with pytest.raises(MapGone):  # no map o: the whole group is refused
+        storage.append_batches([BatchRecord("n", None, b"d", "t3", 1), BatchRecord("o", None, b"e", "t3", 1)])
     stored = {name: storage.load_map(name).batches for name in storage.map_names()}  # type: ignore[union-attr]
     storage.close()
     assert stored == {"m": [(1, b"a"), (2, b"c")], "n": [(1, b"b")]}
@@ -247,7 +249,7 @@ def test_a_request_cancelled_after_parsing_is_still_committed_and_applied(
         stored = storage.load_map("lab")
         storage.close()
         assert stored is not None
-        return service.maps.get_map("lab").version, stored.snapshot_version
+        return (await service.reads.map_info("lab")).version, stored.snapshot_version
 
     assert asyncio.run(scenario()) == (1, 1)
 
@@ -425,11 +427,14 @@ def test_batches_stored_as_npz_by_earlier_versions_still_decode_and_replay(make_
         client.post("/maps", json=kit.MAP_2D)
     # the map's batches as an earlier version stored them: .npz payloads
     storage = SqliteStorage(settings.database_path)
-    for version, body in enumerate(bodies, start=1):
+    head = storage.map_head("lab")
+    assert head is not None
+    for body in bodies:
         old = [LaserScan(pose=(s["pose"]["x"], s["pose"]["y"], s["pose"]["theta"]), angle_min=s["angle_min"],
                          angle_increment=s["angle_increment"], ranges=np.array(s["ranges"], dtype=np.float64),
                          range_min=s["range_min"], range_max=s["range_max"]) for s in body["scans"]]
-        storage.append_batch("lab", version, _legacy_npz(old), "2026-01-01T00:00:00.000+00:00")
+        storage.append_batches([BatchRecord("lab", head.incarnation, _legacy_npz(old), "2026-01-01T00:00:00.000+00:00",
+                                            len(old))])
     storage.close()
     with TestClient(create_app(settings)) as again:
         assert kit.version(again, "lab") == 3
@@ -477,7 +482,7 @@ def test_a_batch_whose_removal_from_the_log_fails_after_its_fusion_failed_does_n
         slow = _SlowFusion(monkeypatch, fail_first=True)
         slow.release.set()
 
-        def refuse(self: SqliteStorage, name: str, version: int) -> None:
+        def refuse(self: SqliteStorage, name: str, version: int, incarnation: str | None = None) -> None:
             raise StorageUnavailable("disk I/O error")
 
         monkeypatch.setattr(SqliteStorage, "discard_batch", refuse)
@@ -556,7 +561,8 @@ def test_uploads_still_arriving_count_against_their_maps_line(make_client: Any, 
     for name in ("lab", "other"):
         assert client.post("/maps", json={**kit.MAP_2D, "name": name}).status_code == 201
     service = client.app.state.service  # type: ignore[attr-defined]
-    with service.writes.receiving("lab"), service.writes.receiving("lab"):  # two bodies on their way
+    receiving = client.portal.wrap_async_context_manager  # type: ignore[union-attr]
+    with receiving(service.writes.receiving("lab")), receiving(service.writes.receiving("lab")):  # two on their way
         refused = client.post("/maps/lab/scans", json={"scans": [kit.laser()]})
         assert refused.status_code == 503 and "arriving" in error_message(refused)
         assert refused.headers["Retry-After"] == "1"

@@ -1,7 +1,7 @@
 """One live server with an API key and small limits, shared by the hostile-input tests.
 
 The server runs ``python -m app`` on loopback (``bench._client.ServerProcess``) with limits
-small enough to be crossed cheaply. Every hostile request must get a 4xx and leave every map
+small enough to be crossed cheaply, once with SQLite and once on PostgreSQL. Every hostile request must get a 4xx and leave every map
 as it was: :func:`map_states` reads the version and scan count of every map before and after.
 A session summary line reports how many hostile requests were sent.
 """
@@ -66,9 +66,13 @@ def cloud(**overrides: Any) -> dict[str, Any]:
     return scan
 
 
-@pytest.fixture(scope="session")
-def hostile_server() -> Iterator[ServerProcess]:
-    server = ServerProcess(env={"FUZZYRISK_API_KEY": API_KEY, **LIMITS})
+@pytest.fixture(scope="session", params=["sqlite", "postgres"])
+def hostile_server(request: pytest.FixtureRequest) -> Iterator[ServerProcess]:
+    """The server, once on each store: SQLite in its data directory, then PostgreSQL (a fleet's replica)."""
+    env = {"FUZZYRISK_API_KEY": API_KEY, **LIMITS}
+    if request.param == "postgres":
+        env["FUZZYRISK_DATABASE_URL"] = request.getfixturevalue("postgres_server").create_database()
+    server = ServerProcess(env=env)
     server.start()
     try:
         with httpx.Client(base_url=server.url, headers=auth(), timeout=60.0) as client:

@@ -1,0 +1,242 @@
+"""``Storage`` in PostgreSQL: several replicas of the service share one database.
+
+The tables are SQLite's (``app.storage``): meta as JSON text, payloads as ``bytea``,
+CRC-32 checksums. What makes sharing safe is the ``maps`` row: every write to a
+map (append, discard, snapshot, delete) locks that row first, so two replicas'
+writes to one map are serialized there, and ``maps.version + 1`` gives each batch
+its version without gaps. A group commit locks its maps in name order, so two
+replicas committing the same maps never deadlock.
+
+Only this module imports psycopg (the ``postgres`` extra): the SQLite default does not need it.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable, Iterable, Iterator, Sequence
+from contextlib import contextmanager
+from typing import Any, TypeVar
+
+import psycopg
+import psycopg.errors
+from psycopg_pool import ConnectionPool
+
+from app.storage import (
+    TOMBSTONE,
+    BatchRecord,
+    MapGone,
+    MapHead,
+    NameTaken,
+    StorageUnavailable,
+    StoredMap,
+    checksum,
+    head_of,
+    read_map,
+)
+
+#: ``pg_advisory_xact_lock`` key held while the schema is created: replicas starting at once would
+#: otherwise race in ``CREATE TABLE IF NOT EXISTS`` (a unique violation in the catalog).
+SCHEMA_LOCK = 0x66757A7A79  # "fuzzy"
+
+T = TypeVar("T")
+
+_SCHEMA = (
+    """CREATE TABLE IF NOT EXISTS maps (
+        name TEXT PRIMARY KEY,
+        meta TEXT NOT NULL,
+        updated TEXT NOT NULL,
+        version BIGINT NOT NULL DEFAULT 0,
+        snapshot_version BIGINT NOT NULL DEFAULT 0,
+        incarnation TEXT,
+        scans BIGINT NOT NULL DEFAULT 0
+    )""",
+    """CREATE TABLE IF NOT EXISTS batches (
+        map TEXT NOT NULL REFERENCES maps(name) ON DELETE CASCADE,
+        seq BIGINT NOT NULL,
+        payload BYTEA NOT NULL,
+        crc BIGINT,
+        scans INTEGER,
+        updated TEXT,
+        PRIMARY KEY (map, seq)
+    )""",
+    """CREATE TABLE IF NOT EXISTS snapshots (
+        map TEXT PRIMARY KEY REFERENCES maps(name) ON DELETE CASCADE,
+        version BIGINT NOT NULL,
+        payload BYTEA NOT NULL,
+        crc BIGINT,
+        updated TEXT
+    )""",
+)
+
+_HEAD = "SELECT name, meta, updated, version, snapshot_version, scans, incarnation FROM maps"
+# one round trip per batch: the UPDATE takes the map's row lock and its next version, the INSERT uses it;
+# no row when the map is not stored under that name and incarnation
+_APPEND = """WITH taken AS (
+    UPDATE maps SET version = version + 1, updated = %(updated)s, scans = scans + %(scans)s
+    WHERE name = %(name)s AND incarnation IS NOT DISTINCT FROM %(incarnation)s::text
+    RETURNING name, version)
+INSERT INTO batches (map, seq, payload, crc, scans, updated)
+SELECT name, version, %(payload)b, %(crc)s, %(scans)s, %(updated)s FROM taken RETURNING seq"""
+_LOCK_MAP = "SELECT 1 FROM maps WHERE name = %s AND (%s::text IS NULL OR incarnation = %s) FOR UPDATE"
+
+
+class PostgresStorage:
+    """``Storage`` on a PostgreSQL database shared by the service's replicas (psycopg 3, a small pool).
+
+    ``StorageUnavailable`` for any failure to reach the database or to write durably (reads
+    too: a replica without its database cannot answer). A connection lost during COMMIT is
+    ambiguous: the transaction may have committed although the call raised.
+    """
+
+    def __init__(self, url: str, *, min_connections: int = 1, max_connections: int = 4,
+                 timeout: float = 10.0) -> None:
+        # autocommit: a lone read (map_head, before every read) is one round trip, no BEGIN/COMMIT;
+        # writes open their transaction explicitly
+        self._pool = ConnectionPool(url, min_size=min_connections, max_size=max_connections, timeout=timeout,
+                                    kwargs={"autocommit": True}, open=False, name="fuzzyrisk")
+        try:
+            try:
+                self._pool.open(wait=True, timeout=timeout)
+            except psycopg.OperationalError as exc:  # PoolTimeout: the database cannot be reached
+                raise StorageUnavailable(f"{exc} (PostgreSQL connection)") from exc
+            with self._connection() as conn, conn.transaction():
+                conn.execute("SELECT pg_advisory_xact_lock(%s)", (SCHEMA_LOCK,))
+                for statement in _SCHEMA:
+                    conn.execute(statement)
+        except BaseException:
+            self._pool.close()
+            raise
+
+    @contextmanager
+    def _connection(self) -> Iterator[psycopg.Connection[Any]]:
+        """A pooled connection; the database's failures (unreachable, cannot write) as ``StorageUnavailable``."""
+        used: psycopg.Connection[Any] | None = None
+        try:
+            with self._pool.connection() as conn:
+                used = conn
+                yield conn
+        except (psycopg.OperationalError, psycopg.errors.ReadOnlySqlTransaction) as exc:
+            # OperationalError: connection lost or refused, no connection free in time (PoolTimeout), disk
+            # full, server shutting down, deadlock; read-only: a standby after a failover
+            if used is not None and used.broken:
+                # closed by the server (a restart, a failover): the idle ones in the pool are too, most
+                # likely; replaced now, they do not fail the next calls one by one
+                self._pool.check()
+            raise StorageUnavailable(f"{exc} (PostgreSQL {exc.sqlstate or 'connection'})") from exc
+
+    def _read(self, work: Callable[[psycopg.Connection[Any]], T]) -> T:
+        """``work`` on a pooled connection, once more on another when that one turns out dead.
+
+        A pooled connection that the server closed (a restart, a failover, an idle timeout) fails
+        at its next use; a read is safe to run again, a write is not (it may have committed).
+        """
+        used: list[psycopg.Connection[Any]] = []
+
+        def run() -> T:
+            with self._connection() as conn:
+                used.append(conn)
+                return work(conn)
+
+        try:
+            return run()
+        except StorageUnavailable:
+            if not used or not used[-1].broken:
+                raise
+            return run()
+
+    def map_names(self) -> list[str]:
+        # COLLATE "C": sorted as Python and SQLite sort, whatever the database's locale
+        return self._read(lambda conn: [name for (name,) in conn.execute(
+            'SELECT name FROM maps ORDER BY name COLLATE "C"')])
+
+    def map_head(self, name: str) -> MapHead | None:
+        row = self._read(lambda conn: conn.execute(_HEAD + " WHERE name = %s", (name,)).fetchone())
+        return None if row is None else head_of(row)
+
+    def map_heads(self) -> list[MapHead]:
+        rows = self._read(lambda conn: conn.execute(_HEAD + ' ORDER BY name COLLATE "C"').fetchall())
+        return [head_of(row) for row in rows]
+
+    def load_map(self, name: str) -> StoredMap | None:
+        return self._read(lambda conn: _consistent_read(conn, name, None, None))
+
+    def load_since(self, name: str, after: int, up_to: int | None = None) -> StoredMap | None:
+        return self._read(lambda conn: _consistent_read(conn, name, after, up_to))
+
+    def create_map(self, name: str, meta: dict[str, Any], updated: str) -> None:
+        try:
+            with self._connection() as conn:
+                conn.execute("INSERT INTO maps (name, meta, updated, incarnation) VALUES (%s, %s, %s, %s)",
+                             (name, json.dumps(meta), updated, meta.get("incarnation")))
+        except psycopg.errors.UniqueViolation:
+            raise NameTaken(name) from None
+
+    def delete_map(self, name: str, incarnation: str | None = None) -> None:
+        # the foreign keys cascade to the map's batches and snapshot; the row lock waits for a write under way
+        with self._connection() as conn:
+            conn.execute("DELETE FROM maps WHERE name = %s AND (%s::text IS NULL OR incarnation = %s)",
+                         (name, incarnation, incarnation))
+
+    def append_batches(self, records: Sequence[BatchRecord]) -> list[int]:
+        if not records:
+            return []
+        # maps locked in name order (a stable sort keeps each map's own order): no deadlock between replicas
+        order = sorted(range(len(records)), key=lambda i: records[i].name)
+        params = [{"name": records[i].name, "incarnation": records[i].incarnation, "payload": records[i].payload,
+                   "crc": checksum(records[i].payload), "updated": records[i].updated, "scans": records[i].scans}
+                  for i in order]
+        versions = [0] * len(records)
+        # one transaction, so one WAL flush however many batches (group commit); executemany pipelines them
+        with self._connection() as conn, conn.transaction(), conn.cursor() as cur:
+            cur.executemany(_APPEND, params, returning=True)
+            for i in order:
+                row = cur.fetchone()
+                if row is None:
+                    raise MapGone(records[i].name)  # rolls the whole group back
+                versions[i] = row[0]
+                cur.nextset()
+        return versions
+
+    def discard_batch(self, name: str, version: int, incarnation: str | None = None) -> None:
+        with self._connection() as conn, conn.transaction():
+            if conn.execute(_LOCK_MAP, (name, incarnation, incarnation)).fetchone() is None:
+                return
+            row = conn.execute("SELECT scans FROM batches WHERE map = %s AND seq = %s AND length(payload) > 0",
+                               (name, version)).fetchone()
+            if row is None:  # already a tombstone, or covered by a snapshot since
+                return
+            conn.execute("UPDATE batches SET payload = %b, crc = %s, scans = 0 WHERE map = %s AND seq = %s",
+                         (TOMBSTONE, checksum(TOMBSTONE), name, version))
+            conn.execute("UPDATE maps SET scans = scans - %s WHERE name = %s", (row[0] or 0, name))
+
+    def write_snapshot(self, name: str, version: int, payload: bytes, incarnation: str | None = None) -> None:
+        with self._connection() as conn, conn.transaction():
+            # the map's row lock first, as every write takes it: two replicas' snapshots of a map go one at a time
+            if conn.execute(_LOCK_MAP, (name, incarnation, incarnation)).fetchone() is None:
+                return
+            # the snapshot keeps its version's ``updated`` (its batch row goes)
+            if conn.execute("INSERT INTO snapshots (map, version, payload, crc, updated) VALUES (%s, %s, %b, %s, "
+                            "(SELECT updated FROM batches WHERE map = %s AND seq = %s)) "
+                            "ON CONFLICT (map) DO UPDATE SET version = excluded.version, "
+                            "payload = excluded.payload, crc = excluded.crc, updated = excluded.updated "
+                            "WHERE snapshots.version < excluded.version RETURNING version",
+                            (name, version, payload, checksum(payload), name, version)).fetchone() is None:
+                return  # as new or newer already stored (another replica's)
+            conn.execute("DELETE FROM batches WHERE map = %s AND seq <= %s", (name, version))
+            conn.execute("UPDATE maps SET snapshot_version = %s WHERE name = %s", (version, name))
+
+    def close(self) -> None:
+        self._pool.close()
+
+
+def _consistent_read(conn: psycopg.Connection[Any], name: str, after: int | None,
+                     up_to: int | None) -> StoredMap | None:
+    """``read_map`` in a read-only REPEATABLE READ transaction: its queries see one state of the database
+    (a snapshot that another replica writes between them must not look like missing batches)."""
+    with conn.transaction(), conn.cursor(binary=True) as cur:
+        cur.execute("SET TRANSACTION ISOLATION LEVEL REPEATABLE READ, READ ONLY")
+
+        def query(sql: str, args: tuple[Any, ...]) -> Iterable[Sequence[Any]]:
+            return cur.execute(sql.replace("?", "%s"), args).fetchall()  # read_map's placeholders are ``?``
+
+        return read_map(query, name, after, up_to)
