@@ -213,8 +213,8 @@ class MapRegistry:
         """``InsufficientStorage`` when a new map would pass ``FUZZYRISK_MAX_MAPS`` or ``FUZZYRISK_MAX_TOTAL_CELLS``.
 
         Quarantined maps count: their rows are still stored. The others are unaffected either way. With a
-        shared database, the ``stored`` maps count (every replica's), and the cells are those this replica
-        holds, idle maps dropped first to make room.
+        shared database, the ``stored`` maps count (every replica's), and the cells are checked when a
+        replica loads the map.
         """
         held = len(self._maps) + len(self._quarantined) if stored is None else stored
         if held >= self.settings.max_maps:
@@ -226,8 +226,7 @@ class MapRegistry:
             hint = " (FUZZYRISK_MAX_MAP_CELLS)" if "limit" in str(exc) else ""
             raise Invalid(f"{exc}{hint}") from None
         if stored is not None:
-            self._make_room(cells)
-            return
+            return  # a replica takes a map's memory when it loads it (``_make_room``), not when it creates it
         used = sum(entry.spec.num_cells for entry in self._maps.values())
         if used + cells > self.settings.max_total_cells:
             raise InsufficientStorage(
@@ -272,8 +271,11 @@ class MapRegistry:
             except NameTaken:
                 raise Conflict(f"a map named {request.name!r} exists") from None
             entry = MapEntry(meta, built, 0, 0, 0, created)
-            self._maps[request.name] = entry
-            self.metrics.maps.set(len(self._maps))
+            if not self.settings.shared_storage:
+                self._maps[request.name] = entry
+                self.metrics.maps.set(len(self._maps))
+            # with a shared database the replica that will serve the map (the load balancer's choice for
+            # its name) loads it at its first request: the one that made it need not hold it
             return entry.info()
 
     async def delete_map(self, name: str) -> None:
