@@ -186,10 +186,20 @@ class MapReads:
         """The map as a ``nav_msgs/OccupancyGrid``: JSON (``OccupancyGrid``), CDR bytes, or an MCAP file.
 
         The stamp and ``map_load_time`` are when the map reached this version (``GridSnapshot.updated``),
-        so every read of one version gives the same bytes.
+        so every read of one version gives the same bytes. JSON is refused above ``MAX_JSON_CELLS`` cells, as
+        the risk grid's: 16 M values written as text took 1-3 s of the GIL per read, and stalled every
+        client of the service (issue 11); CDR and MCAP carry them as bytes.
         """
         _check_band(z_min, z_max)
         _check_thresholds(free_thresh, occupied_thresh)
+        if encoding == "json":
+            spec = (await self._current(name)).spec
+            cells = spec.shape[0] * spec.shape[1]  # the message is the plane, a 3-D map's included
+            if cells > MAX_JSON_CELLS:
+                raise Invalid(
+                    f"the map's OccupancyGrid has {cells:,} cells, too many for JSON (at most {MAX_JSON_CELLS:,}): "
+                    f"ask for GET /maps/{name}/occupancy_grid.cdr or .mcap (the same message as ROS 2 bytes)"
+                )
         grid = await self.read_grid(name)
 
         def render() -> bytes:

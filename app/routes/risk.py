@@ -260,7 +260,8 @@ async def occupancy_grid(
     if_none_match: IfNoneMatch = None,
 ) -> Response:
     """The map as a ``nav_msgs/OccupancyGrid`` in the map's frame (the message's fields, plus
-    ``version``): ``data[j * width + i]``, -1 unknown."""
+    ``version``): ``data[j * width + i]``, -1 unknown. JSON up to 4,000,000 cells (422 beyond: the
+    ``.cdr`` and ``.mcap`` forms carry any size)."""
     return await _occupancy_grid(name, service, format, mode, free_thresh, occupied_thresh, z_min, z_max,
                                  if_none_match, _OGRID_MEDIA[format])
 

@@ -373,3 +373,18 @@ def test_the_grid_stamp_is_the_time_of_the_maps_last_batch(lab: TestClient, kit:
     message = TYPESTORE.deserialize_cdr(grid, GRID_TYPE)
     assert ros_time(info["updated"]) == {"sec": message.header.stamp.sec, "nanosec": message.header.stamp.nanosec}
     assert message.info.map_load_time == message.header.stamp and info["updated"] != info["created"]
+
+
+def test_an_occupancy_grid_too_big_for_json_is_refused_with_the_binary_ways_named(client: TestClient,
+                                                                                  kit: Any) -> None:
+    # issue 11: two readers of a 16 M-cell JSON OccupancyGrid held the GIL 1-3 s a read, stalling every client
+    big = {**kit.MAP_2D, "name": "hall", "origin": [0.0, 0.0], "size": [205.0, 205.0]}  # 2050 x 2050 cells
+    assert client.post("/maps", json=big).status_code == 201
+    refused = client.get("/maps/hall/occupancy_grid")
+    assert refused.status_code == 422
+    assert "4,000,000" in error_message(refused) and "occupancy_grid.cdr" in error_message(refused)
+    cdr = client.get("/maps/hall/occupancy_grid.cdr")
+    assert cdr.status_code == 200 and len(cdr.content) > 2050 * 2050
+    small = {**kit.MAP_2D, "name": "room", "origin": [0.0, 0.0], "size": [200.0, 200.0]}  # 4 M cells: still JSON
+    assert client.post("/maps", json=small).status_code == 201
+    assert len(client.get("/maps/room/occupancy_grid").json()["data"]) == 2000 * 2000
