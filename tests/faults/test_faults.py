@@ -17,9 +17,12 @@ pytestmark = [pytest.mark.slow, pytest.mark.timeout(240)]
 KILLS = 5
 
 
-@pytest.fixture(scope="module")
-def killed() -> KillCounts:
-    return kill_loop(KILLS, seed=3, log=lambda _line: None, max_delay_s=1.0)
+@pytest.fixture(scope="module", params=["sqlite", "postgres"])
+def killed(request: pytest.FixtureRequest) -> KillCounts:
+    """The kill loop with the maps in SQLite, then in PostgreSQL (one replica: a fleet's replicas are
+    ``test_replica_kills``)."""
+    url = request.getfixturevalue("postgres_server").create_database() if request.param == "postgres" else None
+    return kill_loop(KILLS, seed=3, log=lambda _line: None, max_delay_s=1.0, database_url=url)
 
 
 @pytest.fixture(scope="module")
