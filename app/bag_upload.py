@@ -40,6 +40,7 @@ from app.errors import (
     error_body_of,
 )
 from app.import_bag import BagOptions, BagScan, BagStream, BagUnreadable
+from app.mapstate import in_use
 from app.mediatypes import MCAP, OCTET_STREAM, ROSBAG, X_MCAP
 from app.schemas import BagImportResult, ErrorBody
 from app.services import MapService
@@ -81,14 +82,18 @@ async def import_upload(
         path = await _spool(body, media, service.settings.temp_dir)
     options = BagOptions(map_frame=map_frame or info.frame_id, topics=topics, pose_topic=pose_topic,
                          pose_frame=pose_frame, cloud_range_max=range_max)
+    # in use until the import ends (no await since the body was read): a replica must not drop the map from
+    # memory between its batches, or the next batch would find another copy (another uid) of it
     try:
-        declared = await _reading(bagsize.decompressed_bytes, path)
-        limit = service.settings.max_bag_bytes
-        if declared > limit:
-            raise TooLarge(f"body: the bag's chunks decompress to {declared:,} bytes, more than "
-                           f"FUZZYRISK_MAX_BAG_BYTES ({limit:,}): split the bag (ros2 bag convert, rosbags-convert)")
-        stream = BagStream(path, options, dims=info.dimensions, limits=service.writes.limits)
-        return await _fuse(service, name, uid, stream, info.version)
+        with in_use(entry):
+            declared = await _reading(bagsize.decompressed_bytes, path)
+            limit = service.settings.max_bag_bytes
+            if declared > limit:
+                raise TooLarge(f"body: the bag's chunks decompress to {declared:,} bytes, more than "
+                               f"FUZZYRISK_MAX_BAG_BYTES ({limit:,}): split the bag (ros2 bag convert, "
+                               "rosbags-convert)")
+            stream = BagStream(path, options, dims=info.dimensions, limits=service.writes.limits)
+            return await _fuse(service, name, uid, stream, info.version)
     finally:
         await to_thread.run_sync(_remove, path)
 

@@ -17,7 +17,7 @@ from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 from app.metrics import Metrics
-from app.storage import BatchRecord, Storage
+from app.storage import BatchRecord, CommitUncertain, Storage
 
 
 @dataclass
@@ -68,8 +68,10 @@ class GroupCommitter:
             try:
                 versions = self._storage.append_batches([item.record for item in group])
             except BaseException as exc:
-                if len(group) == 1:
-                    group[0].future.set_exception(exc)
+                if len(group) == 1 or isinstance(exc, CommitUncertain):
+                    # a group that may have committed is not retried: its batches would be stored twice
+                    for item in group:
+                        item.future.set_exception(exc)
                     return
                 for item in group:
                     self._commit_alone(item)

@@ -23,11 +23,15 @@ from pydantic import BaseModel, Field
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.requests import ClientDisconnect
 
-from app.storage import StorageUnavailable
+from app.storage import CommitUncertain, StorageUnavailable
 
 LOG = logging.getLogger("fuzzyrisk.storage")
 #: What a client is told when the data directory cannot take a write.
-STORAGE_UNAVAILABLE_DETAIL = "the data directory is full or read-only; nothing was applied"
+STORAGE_UNAVAILABLE_DETAIL = ("the map store cannot take the write (the data directory full or read-only, or the "
+                              "database unreachable); nothing was applied")
+#: ... when the database connection was lost while it committed (``CommitUncertain``).
+COMMIT_UNCERTAIN_DETAIL = ("the connection to the database was lost while it committed: the batch may be stored; "
+                           "read the map's version before sending it again")
 #: Seconds a client should wait before retrying a write refused by storage (an operator must act first).
 STORAGE_RETRY_AFTER_S = 30
 
@@ -174,6 +178,8 @@ def error_body_of(exc: BaseException) -> dict[str, Any]:
     stopped part-way tells inside its 200."""
     if isinstance(exc, ServiceError):
         return error_body(exc.code, exc.message, exc.details)
+    if isinstance(exc, CommitUncertain):
+        return error_body(STORAGE_UNAVAILABLE, COMMIT_UNCERTAIN_DETAIL)
     if isinstance(exc, StorageUnavailable):
         return error_body(STORAGE_UNAVAILABLE, STORAGE_UNAVAILABLE_DETAIL)
     if isinstance(exc, StarletteHTTPException):

@@ -8,11 +8,12 @@ from __future__ import annotations
 
 import asyncio
 import collections
+import contextlib
 import functools
 import io
 import logging
 import time
-from collections.abc import Coroutine, Mapping
+from collections.abc import Coroutine, Iterator, Mapping
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from typing import Any, Protocol, TypeVar
@@ -180,6 +181,11 @@ class MapEntry:
     inflight: set[int] = field(default_factory=set)
     #: the newest stored version caught up to: versions up to it that were not applied are discarded batches
     checked: int = 0
+    #: requests that hold the map across awaits without a place in its line (a bag import between its batches):
+    #: the map is not dropped from memory meanwhile
+    users: int = 0
+    #: reads waiting in the line to apply other replicas' batches (not batches: ``_admit`` leaves them out)
+    catching_up: int = 0
 
     @property
     def incarnation(self) -> str | None:
@@ -351,6 +357,16 @@ def replay(built: OccupancyMap, stored: StoredMap, *, after: int, up_to: int | N
         progress.version, progress.last_scan = version, scans[-1]
         progress.updated = stored.stamps.get(version, stored.updated)
     return progress
+
+@contextlib.contextmanager
+def in_use(entry: MapEntry) -> Iterator[MapEntry]:
+    """Hold ``entry`` in memory across awaits outside its line (``MapEntry.users``)."""
+    entry.users += 1
+    try:
+        yield entry
+    finally:
+        entry.users -= 1
+
 
 def is_current(entry: MapEntry, version: int) -> bool:
     """Is ``version`` still the version of the map that ``entry`` holds?"""

@@ -83,14 +83,22 @@ class MapReads:
         committed but not applied yet are left out. ``render`` runs once the lock is released
         (``app.recording``); ``stored.snapshot`` is dropped, the arrays are not needed.
         """
-        entry = await self._current(name)
-        async with entry.apply_lock:
-            risk, observed, stored = await self._workers.run_read(
-                lambda: (entry.map.risk(), entry.map.observed(), self.storage.load_map(entry.name)))
-            grid = GridSnapshot(entry.spec, entry.version, risk, observed, entry.frame_id, entry.updated,
-                                entry.etag_seed)
-        if stored is None or stored.meta.get("created") != entry.meta["created"]:  # deleted (and made again)
+        for _ in range(3):
+            entry = await self._current(name)
+            async with entry.apply_lock:
+                risk, observed, stored = await self._workers.run_read(
+                    lambda: (entry.map.risk(), entry.map.observed(), self.storage.load_map(entry.name)))
+                grid = GridSnapshot(entry.spec, entry.version, risk, observed, entry.frame_id, entry.updated,
+                                    entry.etag_seed)
+            # another replica's snapshot newer than this grid dropped the batches up to it: catch up, again
+            if stored is None or stored.snapshot_version <= grid.version:
+                break
+        if stored is None or stored.incarnation != entry.incarnation \
+                or stored.meta.get("created") != entry.meta["created"]:  # deleted (and made again)
             raise NotFound(f"no map named {name!r}; GET /maps lists them")
+        if stored.snapshot_version > grid.version:
+            raise Unavailable(f"map {name!r} changes faster than its log can be read; retry",
+                              headers={"Retry-After": "1"})
         if stored.damage:
             raise Unavailable(f"map {name!r}: its stored log is damaged ({'; '.join(stored.damage)})")
         stored.snapshot = None

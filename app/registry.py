@@ -13,7 +13,15 @@ from app import engines
 from app.config import Settings
 from app.diskreserve import DiskReserve
 from app.errors import Conflict, InsufficientStorage, Invalid, NotFound, Unavailable
-from app.mapstate import UNLIMITED_CELLS, MapEntry, build_map, now, restore, shielded, stored_info
+from app.mapstate import (
+    UNLIMITED_CELLS,
+    MapEntry,
+    build_map,
+    now,
+    restore,
+    shielded,
+    stored_info,
+)
 from app.metrics import Metrics
 from app.plangrids import PlanGrids
 from app.schemas import MapCreate, MapInfo
@@ -41,6 +49,7 @@ class MapRegistry:
         self._quarantined_as: dict[str, str | None] = {}  # map name -> the incarnation set aside
         self._create_lock = asyncio.Lock()
         self._loading: dict[str, asyncio.Lock] = {}  # shared database: one load of a map at a time
+        self._loading_cells = 0  # cells of the maps being loaded
 
     @property
     def held_maps(self) -> list[MapEntry]:
@@ -125,7 +134,9 @@ class MapRegistry:
         if entry is None or entry.deleted:
             entry = await self._load(head)
         entry.last_used = time.monotonic()
-        return entry, head.version
+        # the head read first may be another incarnation's (the map deleted and made again while it loaded):
+        # its versions say nothing of this one, which was loaded with every batch it had then
+        return entry, head.version if entry.incarnation == head.incarnation else entry.checked
 
     async def gone(self, entry: MapEntry) -> Exception:
         """The error for a write or catch-up that found its map no longer stored as this replica holds it (deleted,
@@ -135,7 +146,7 @@ class MapRegistry:
         if head is None:
             return NotFound(f"no map named {entry.name!r}: it was deleted (through another replica)")
         return Conflict(f"map {entry.name!r} was deleted and created again (through another replica) while this "
-                        "request was under way; nothing was stored: send it again")
+                        "request was under way; nothing of it was done: send it again")
 
     async def _load(self, head: MapHead) -> MapEntry:
         """Load a map this replica does not hold (one load per map at a time); a damaged one is quarantined here."""
@@ -146,17 +157,25 @@ class MapRegistry:
                 return entry  # loaded by the request that held the lock before
             if head.name in self._quarantined and self._quarantined_as.get(head.name) == head.incarnation:
                 raise self._missing(head.name)
-            self._make_room(_cells(head.meta))
-            stored = await self._workers.run_read(self.storage.load_map, head.name)
-            if stored is None:
-                raise NotFound(f"no map named {head.name!r}; GET /maps lists them")
+            cells = _cells(head.meta)
+            self._make_room(cells)
+            self._loading_cells += cells  # taken from the budget while loading (another load may run meanwhile)
             try:
-                entry = await self._workers.run(restore, stored)
-            except Exception as exc:  # noqa: BLE001 - any damage: this map is set aside, the others are served
-                self._quarantined[head.name], self._quarantined_as[head.name] = str(exc), stored.incarnation
-                LOG.error("map %s quarantined: %s", head.name, exc)
-                raise self._missing(head.name) from None
-            entry.checked = stored.version
+                try:
+                    stored = await self._workers.run_read(self.storage.load_map, head.name)
+                    if stored is None:
+                        raise NotFound(f"no map named {head.name!r}; GET /maps lists them")
+                    entry = await self._workers.run(restore, stored)
+                except (NotFound, StorageUnavailable):
+                    raise
+                except Exception as exc:  # noqa: BLE001 - any damage: this map is set aside, the others are served
+                    self._quarantined[head.name], self._quarantined_as[head.name] = str(exc), head.incarnation
+                    LOG.error("map %s quarantined: %s", head.name, exc)
+                    raise self._missing(head.name) from None
+            finally:
+                self._loading_cells -= cells
+            self._quarantined.pop(head.name, None)  # set aside as another incarnation, or repaired since
+            self._quarantined_as.pop(head.name, None)
             self._maps[head.name] = entry
             self.metrics.maps.set(len(self._maps))
             LOG.info("map loaded", extra={"fields": {"map": head.name, "version": entry.version,
@@ -164,8 +183,9 @@ class MapRegistry:
             return entry
 
     def _make_room(self, cells: int) -> None:
-        """Drop idle maps, least recently used first, until a map of ``cells`` fits in FUZZYRISK_MAX_TOTAL_CELLS."""
-        used = sum(entry.spec.num_cells for entry in self._maps.values())
+        """Drop idle maps, least recently used first, until a map of ``cells`` fits in FUZZYRISK_MAX_TOTAL_CELLS
+        beside the maps held and those being loaded."""
+        used = sum(entry.spec.num_cells for entry in self._maps.values()) + self._loading_cells
         for entry in sorted(self._maps.values(), key=lambda e: e.last_used):
             if used + cells <= self.settings.max_total_cells:
                 break
@@ -205,8 +225,14 @@ class MapRegistry:
         infos = []
         for head in await self._workers.run_read(self.storage.map_heads):
             entry = self._maps.get(head.name)
-            current = entry is not None and entry.incarnation == head.incarnation and entry.version == head.version
-            infos.append(entry.info() if current and entry is not None else stored_info(head))
+            if entry is not None and entry.incarnation == head.incarnation and \
+                    max(entry.version, entry.checked) >= head.version:
+                infos.append(entry.info())  # current (a discarded batch on top is not a version of it)
+                continue
+            try:
+                infos.append(stored_info(head))
+            except Exception as exc:  # noqa: BLE001 - unusable stored meta: listed nowhere, as at a start
+                LOG.warning("map %s left out of the list: its stored metadata cannot be used (%s)", head.name, exc)
         return infos
 
     def _check_room(self, meta: Mapping[str, Any], stored: int | None) -> None:
@@ -226,7 +252,14 @@ class MapRegistry:
             hint = " (FUZZYRISK_MAX_MAP_CELLS)" if "limit" in str(exc) else ""
             raise Invalid(f"{exc}{hint}") from None
         if stored is not None:
-            return  # a replica takes a map's memory when it loads it (``_make_room``), not when it creates it
+            # a replica takes a map's memory when it loads it (``_make_room``), not when it creates it; a map that
+            # no replica could load is refused now
+            if cells > self.settings.max_total_cells:
+                raise InsufficientStorage(
+                    f"a map of {cells:,} cells does not fit in a replica's {self.settings.max_total_cells:,} "
+                    "(FUZZYRISK_MAX_TOTAL_CELLS); use a coarser resolution or a smaller region"
+                )
+            return
         used = sum(entry.spec.num_cells for entry in self._maps.values())
         if used + cells > self.settings.max_total_cells:
             raise InsufficientStorage(
@@ -238,7 +271,7 @@ class MapRegistry:
     async def create_map(self, request: MapCreate) -> MapInfo:
         """Create an empty map; ``Conflict`` if the name is taken, ``Invalid`` if the grid is unusable."""
         async with self._create_lock:
-            if request.name in self._maps:
+            if request.name in self._maps and not self.settings.shared_storage:  # with replicas: the database says
                 raise Conflict(f"a map named {request.name!r} exists; choose another name or DELETE it first")
             created = now()
             meta = {
@@ -270,6 +303,9 @@ class MapRegistry:
                 await self._workers.run(self.storage.create_map, request.name, meta, created)
             except NameTaken:
                 raise Conflict(f"a map named {request.name!r} exists") from None
+            stale = self._maps.get(request.name)
+            if stale is not None:  # a copy of a map of that name deleted through another replica
+                self._forget(stale, reason="deleted")
             entry = MapEntry(meta, built, 0, 0, 0, created)
             if not self.settings.shared_storage:
                 self._maps[request.name] = entry
@@ -326,7 +362,8 @@ class MapRegistry:
                 raise NotFound(f"no map named {entry.name!r}")
             await self._workers.run(self._delete_rows, entry.name, entry.incarnation)
             entry.deleted = True
-            del self._maps[entry.name]
+            if self._maps.get(entry.name) is entry:  # a read may have dropped it meanwhile (found its rows gone)
+                del self._maps[entry.name]
             self._grids.retire(entry.uid)  # its files go now, or when the last plan on them ends
             self._notify("map_deleted", entry.name)
         finally:
@@ -342,5 +379,6 @@ def _cells(meta: Mapping[str, Any]) -> int:
 
 
 def _idle(entry: MapEntry) -> bool:
-    """No batch in the map's line or on its way: dropping it loses nothing (its rows hold everything acknowledged)."""
-    return entry.line.outstanding == 0 and entry.arriving == 0
+    """No batch in the map's line or on its way, no import using it: dropping it loses nothing (its rows hold
+    everything acknowledged)."""
+    return entry.line.outstanding == 0 and entry.arriving == 0 and entry.users == 0

@@ -41,6 +41,13 @@ class StorageUnavailable(Exception):
     nothing was stored."""
 
 
+class CommitUncertain(StorageUnavailable):
+    """The connection to the database was lost while it committed: the write may be stored, or not.
+
+    Never retried by the service (a retry could store it twice); the client is told to check.
+    """
+
+
 def checksum(payload: bytes) -> int:
     """The CRC-32 stored with each payload (damage on disk is then found, not replayed)."""
     return zlib.crc32(payload)

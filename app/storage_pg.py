@@ -24,6 +24,7 @@ from psycopg_pool import ConnectionPool
 from app.storage import (
     TOMBSTONE,
     BatchRecord,
+    CommitUncertain,
     MapGone,
     MapHead,
     NameTaken,
@@ -186,15 +187,22 @@ class PostgresStorage:
                    "crc": checksum(records[i].payload), "updated": records[i].updated, "scans": records[i].scans}
                   for i in order]
         versions = [0] * len(records)
-        # one transaction, so one WAL flush however many batches (group commit); executemany pipelines them
-        with self._connection() as conn, conn.transaction(), conn.cursor() as cur:
-            cur.executemany(_APPEND, params, returning=True)
-            for i in order:
-                row = cur.fetchone()
-                if row is None:
-                    raise MapGone(records[i].name)  # rolls the whole group back
-                versions[i] = row[0]
-                cur.nextset()
+        committing = False
+        try:
+            # one transaction, so one WAL flush however many batches (group commit); executemany pipelines them
+            with self._connection() as conn, conn.transaction(), conn.cursor() as cur:
+                cur.executemany(_APPEND, params, returning=True)
+                for i in order:
+                    row = cur.fetchone()
+                    if row is None:
+                        raise MapGone(records[i].name)  # rolls the whole group back
+                    versions[i] = row[0]
+                    cur.nextset()
+                committing = True  # the transaction's exit sends COMMIT
+        except StorageUnavailable as exc:
+            if committing:  # the server may have committed before the connection went
+                raise CommitUncertain(str(exc)) from exc
+            raise
         return versions
 
     def discard_batch(self, name: str, version: int, incarnation: str | None = None) -> None:

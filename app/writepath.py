@@ -230,9 +230,14 @@ class WritePath:
         """
         try:
             stored = self.storage.load_map(entry.name)
-            if stored is None:
-                return  # deleted meanwhile
-            entry.map = restore(stored, up_to=entry.version).map
+            if stored is None or stored.incarnation != entry.incarnation:
+                return  # deleted (and made again) meanwhile: the next request drops this copy
+            fresh = restore(stored, up_to=entry.version)
+            entry.map = fresh.map
+            if fresh.version > entry.version:
+                # another replica's snapshot is newer than the version held: the map is now at that version
+                entry.version, entry.updated, entry.scans_fused = fresh.version, fresh.updated, fresh.scans_fused
+                entry.snapshot_version, entry.checked = fresh.snapshot_version, max(entry.checked, fresh.version)
         except Exception:
             LOG.exception("map %s: could not rebuild the map after a failed batch; it may differ from what a "
                           "restart rebuilds until then", entry.name)
@@ -256,7 +261,7 @@ class WritePath:
             entry.arriving -= 1
 
     def _admit(self, entry: MapEntry) -> None:
-        waiting = entry.line.outstanding + entry.arriving
+        waiting = entry.line.outstanding - entry.catching_up + entry.arriving
         if waiting >= self.settings.max_pending_batches:
             self.metrics.batches_rejected.labels("Backlog").inc()
             raise Unavailable(
@@ -340,7 +345,13 @@ class WritePath:
             async with entry.apply_lock:
                 if version > max(entry.version, entry.checked) + 1:
                     # other replicas' batches (or a discarded one) came between: theirs first, in the store's order
-                    await self._catch_up_locked(entry, version - 1)
+                    try:
+                        await self._catch_up_locked(entry, version - 1)
+                    except StorageUnavailable as exc:
+                        raise Unavailable(
+                            f"the batch is stored as version {version} of map {entry.name!r}, but the database could "
+                            f"not be read to apply the batches before it ({exc}); it will be applied with them at the "
+                            "map's next read: do not send it again", headers={"Retry-After": "1"}) from exc
                 if version <= entry.version:
                     # caught up to another replica's snapshot that already holds this batch (it was committed,
                     # so they fused it): fusing it again would count it twice
@@ -391,6 +402,7 @@ class WritePath:
         """Apply the stored batches up to ``target`` in the map's line, as a writer would."""
         ticket = entry.line.take()
         entry.line.commit.done(ticket)  # it commits nothing; a later batch commits after the version read
+        entry.catching_up += 1
         try:
             await entry.line.apply.wait(ticket)
             if entry.deleted:
@@ -399,6 +411,7 @@ class WritePath:
                 async with entry.apply_lock:
                     await self._catch_up_locked(entry, target)
         finally:
+            entry.catching_up -= 1
             entry.line.done(ticket)
 
     async def _catch_up_locked(self, entry: MapEntry, target: int) -> None:
@@ -423,7 +436,7 @@ class WritePath:
             entry.log.extend(progress.log)
             if progress.version:
                 entry.version, entry.updated, entry.last_scan = progress.version, progress.updated, progress.last_scan
-        entry.checked = max(entry.checked, target)
+        entry.checked = max(entry.checked, min(target, stored.version))
         entry.scans_fused, entry.last_view = entry.map.scans_fused, None
         self.metrics.catch_ups.inc()
         self._grids.retire(entry.uid, below=entry.version)
