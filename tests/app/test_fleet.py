@@ -7,19 +7,24 @@ PostgreSQL server (``tests/pgserver.py``), as two replicas behind a load balance
 from __future__ import annotations
 
 import asyncio
+import json
 import threading
 import time
-from concurrent.futures import ThreadPoolExecutor
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+import psycopg
 import pytest
 from fastapi.testclient import TestClient
 
+from app import bagsize
+from app.main import create_app
 from app.mapstate import restore
 from app.storage_pg import PostgresStorage
+from tests.app.test_import_bag import laser_scenario, upload, write_bag
 from tests.conftest import error_message
 
 Replicas = Callable[..., tuple[TestClient, TestClient]]
@@ -151,10 +156,12 @@ def test_a_replica_holds_only_the_maps_it_serves(replicas: Replicas, kit: Any) -
     assert b.get("/ready").json()["maps_loaded"] == 0  # listed from the database, not loaded
     assert b.get("/maps/two/risk", params={"format": "npy"}).status_code == 200
     assert b.get("/ready").json()["maps_loaded"] == 1
-    b.app.state.service.maps.evict_idle()  # type: ignore[attr-defined]
-    assert b.get("/ready").json()["maps_loaded"] == 1  # used just now
-    time.sleep(0.6)
-    assert b.app.state.service.maps.evict_idle() == 1  # type: ignore[attr-defined]
+    assert b.app.state.service.maps.evict_idle() == 0  # type: ignore[attr-defined]  # used just now
+    assert b.get("/ready").json()["maps_loaded"] == 1
+    # the replica's own eviction (every FUZZYRISK_MAP_IDLE_S / 2) drops it once idle that long
+    deadline = time.monotonic() + 10
+    while b.get("/ready").json()["maps_loaded"] and time.monotonic() < deadline:
+        time.sleep(0.05)
     assert b.get("/ready").json()["maps_loaded"] == 0
     assert b.get("/maps/two").json()["version"] == 0  # loaded again when asked for
 
@@ -209,3 +216,270 @@ def test_a_batch_already_in_another_replicas_snapshot_is_not_fused_twice(replica
     assert (held.version, held.scans_fused) == (4, 4)  # as the snapshot holds it (before any read)
     np.testing.assert_array_equal(kit.risk_npy(a, "lab"), kit.risk_npy(b, "lab"))
     assert a.get("/maps/lab").json()["scans_fused"] == 4
+
+
+# --- the review of the fleet mode (docs/DESIGN.md 6.1): each test holds a defect it found, fixed since ---
+
+
+def test_a_first_read_loading_a_map_made_again_meanwhile_misses_no_acknowledged_batch(
+        replicas: Replicas, kit: Any, monkeypatch: pytest.MonkeyPatch) -> None:
+    # review: a read's first load could land on a map made again meanwhile and take the old map's newest version
+    # as caught up: the new map's batches were then missing from reads, fused around, and erased by a snapshot
+    a, b = replicas(snapshot_every=4)
+    assert a.post("/maps", json=kit.MAP_2D).status_code == 201
+    for k in range(3):  # the first map of the name reaches version 3
+        assert a.post("/maps/lab/scans", json={"scans": [_scan(kit, k)]}).status_code == 200
+    storage = b.app.state.service.storage  # type: ignore[attr-defined]
+    load_map, made_again = storage.load_map, []
+
+    def made_again_first(name: str) -> Any:  # between b's look at the map's newest version and its load
+        if not made_again:
+            made_again.append(name)
+            assert a.delete("/maps/lab").status_code == 204
+            assert a.post("/maps", json=kit.MAP_2D).status_code == 201
+        return load_map(name)
+
+    monkeypatch.setattr(storage, "load_map", made_again_first)
+    assert b.get("/maps/lab").json()["version"] == 0 and made_again  # b loaded the new map
+    for k in range(3):
+        assert a.post("/maps/lab/scans", json={"scans": [_scan(kit, 10 + k)]}).json()["version"] == k + 1
+    assert kit.version(b, "lab") == 3  # every batch a acknowledged
+    assert b.post("/maps/lab/scans", json={"scans": [_scan(kit, 20)]}).json()["version"] == 4  # snapshot at 4
+    risk = kit.risk_npy(a, "lab")
+    np.testing.assert_array_equal(kit.risk_npy(b, "lab"), risk)
+    assert a.get("/maps/lab").json()["scans_fused"] == b.get("/maps/lab").json()["scans_fused"] == 4
+    store = PostgresStorage(replicas.url)  # type: ignore[attr-defined]
+    try:  # and a replica loading it now (from b's snapshot) serves the same 4 scans
+        stored = store.load_map("lab")
+        assert stored is not None and stored.snapshot_version == 4
+        replayed = restore(stored).map
+        assert replayed.scans_fused == 4
+        np.testing.assert_array_equal(replayed.risk(), risk)
+    finally:
+        store.close()
+
+
+def test_the_list_leaves_out_a_map_whose_stored_metadata_is_unusable(replicas: Replicas, kit: Any) -> None:
+    # review: one map whose stored metadata could not be used made GET /maps a 500 on every replica
+    a, b = replicas()
+    for name in ("lab", "bad"):
+        assert a.post("/maps", json={**kit.MAP_2D, "name": name}).status_code == 201
+    with psycopg.connect(replicas.url, autocommit=True) as db:  # type: ignore[attr-defined]
+        (text,) = db.execute("SELECT meta FROM maps WHERE name = 'bad'").fetchone()  # type: ignore[misc]
+        meta = {**json.loads(text), "engine": {"definition": {"not": "an engine"}}}
+        db.execute("UPDATE maps SET meta = %s WHERE name = 'bad'", (json.dumps(meta),))
+    for client in (a, b):
+        listed = client.get("/maps")
+        assert listed.status_code == 200 and [m["name"] for m in listed.json()] == ["lab"]
+    for route in ("/maps/bad", "/maps/bad/risk"):
+        response = b.get(route)
+        assert response.status_code == 503 and "quarantined" in error_message(response)
+    assert b.get("/ready").json()["maps_quarantined"] == ["bad"]
+    assert kit.version(b, "lab") == 0  # the others are served
+
+
+def test_a_delete_with_a_read_of_the_map_in_between_answers_204(replicas: Replicas, kit: Any,
+                                                                 monkeypatch: pytest.MonkeyPatch) -> None:
+    # review: a read while the delete's rows went found no row and dropped the map; the delete then failed (500)
+    a, _ = replicas()
+    assert a.post("/maps", json=kit.MAP_2D).status_code == 201
+    assert a.get("/maps/lab").status_code == 200  # held by a
+    storage = a.app.state.service.storage  # type: ignore[attr-defined]
+    delete_map, meanwhile = storage.delete_map, []
+
+    def read_meanwhile(*args: Any) -> None:
+        delete_map(*args)
+        meanwhile.append(a.get("/maps/lab").status_code)
+
+    monkeypatch.setattr(storage, "delete_map", read_meanwhile)
+    assert a.delete("/maps/lab").status_code == 204
+    assert meanwhile == [404]
+    assert a.get("/maps/lab").status_code == 404 and a.get("/maps").json() == []
+    assert a.post("/maps", json=kit.MAP_2D).status_code == 201
+
+
+def test_a_replica_holding_a_copy_of_a_map_deleted_elsewhere_creates_it_again(replicas: Replicas, kit: Any) -> None:
+    # review: b refused (409) to create a map deleted through a while it still held its copy of the old one
+    a, b = replicas()
+    assert a.post("/maps", json=kit.MAP_2D).status_code == 201
+    assert b.get("/maps/lab").status_code == 200  # b holds it
+    assert a.delete("/maps/lab").status_code == 204
+    assert b.get("/maps").json() == []
+    created = b.post("/maps", json={**kit.MAP_2D, "resolution": 0.2})  # a balancer sends the new one to b
+    assert created.status_code == 201, created.text
+    for client in (b, a):
+        assert client.get("/maps/lab").json()["resolution"] == 0.2
+    assert b.post("/maps/lab/scans", json={"scans": [_scan(kit, 0)]}).json()["version"] == 1
+    assert kit.risk_npy(b, "lab").shape == (50, 50)
+
+
+def test_a_bag_import_keeps_its_map_in_memory_while_another_map_is_asked_for(
+        replicas: Replicas, kit: Any, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    # review: once its body was spooled, a bag upload did not count as a use of its map: a load of another map
+    # dropped it to make room, and the import's first batch found another copy and answered 409
+    _, b = replicas(max_total_cells=15_000)  # room for one 100 x 100 map
+    for name in ("bag", "other"):
+        assert b.post("/maps", json={**kit.MAP_2D, "name": name}).status_code == 201
+    bag = write_bag(laser_scenario(), tmp_path / "drive", "ros1")
+    decompressed_bytes, meanwhile = bagsize.decompressed_bytes, []
+
+    def other_read_meanwhile(path: Path) -> int:  # while the spooled bag is checked, a client reads another map
+        meanwhile.append(b.get("/maps/other"))
+        return decompressed_bytes(path)
+
+    monkeypatch.setattr(bagsize, "decompressed_bytes", other_read_meanwhile)
+    imported = upload(b, "bag", bag)
+    assert imported.status_code == 200, imported.text
+    assert imported.json()["complete"] and imported.json()["scans_fused"] > 0
+    assert kit.version(b, "bag") == imported.json()["version"]
+    (other,) = meanwhile
+    assert other.status_code == 507 and "FUZZYRISK_MAX_TOTAL_CELLS" in error_message(other)  # bag was in use
+    assert b.get("/maps/other").status_code == 200  # the import over, bag makes room
+
+
+def test_maps_loading_at_once_count_in_the_memory_limit(replicas: Replicas, kit: Any,
+                                                        monkeypatch: pytest.MonkeyPatch) -> None:
+    # review: the room for a map was checked before its load's awaits: maps loading at once all passed the
+    # check and together held more than FUZZYRISK_MAX_TOTAL_CELLS
+    a, b = replicas(max_total_cells=15_000)  # room for one 100 x 100 map
+    for name in ("one", "two"):
+        assert a.post("/maps", json={**kit.MAP_2D, "name": name}).status_code == 201
+    storage = b.app.state.service.storage  # type: ignore[attr-defined]
+    load_map, loading, gate = storage.load_map, threading.Event(), threading.Event()
+
+    def held_back(name: str) -> Any:  # a load that takes a while (a long log, a slow database)
+        loading.set()
+        gate.wait(10)
+        return load_map(name)
+
+    monkeypatch.setattr(storage, "load_map", held_back)
+    with ThreadPoolExecutor(1) as pool:
+        first = pool.submit(b.get, "/maps/one")
+        assert loading.wait(10)
+        second = b.get("/maps/two")  # while "one" loads
+        gate.set()
+        assert first.result().status_code == 200
+    assert second.status_code == 507 and "FUZZYRISK_MAX_TOTAL_CELLS" in error_message(second)
+    maps = b.app.state.service.maps  # type: ignore[attr-defined]
+    assert [entry.name for entry in maps.held_maps] == ["one"]
+    assert b.get("/maps/two").status_code == 200  # "one" loaded and idle: dropped to make room
+    assert [entry.name for entry in maps.held_maps] == ["two"]
+
+
+def test_reads_waiting_to_catch_up_are_not_batches_in_line(replicas: Replicas, kit: Any,
+                                                           monkeypatch: pytest.MonkeyPatch) -> None:
+    # review: a read catching up took a place in the map's line that FUZZYRISK_MAX_PENDING_BATCHES counted:
+    # reads waiting for another replica's batches made the replica refuse scan batches (503)
+    a, b = replicas(max_pending_batches=2)
+    assert a.post("/maps", json=kit.MAP_2D).status_code == 201
+    assert b.get("/maps/lab").status_code == 200
+    assert a.post("/maps/lab/scans", json={"scans": [_scan(kit, 1)]}).status_code == 200  # b is one behind
+    writes = b.app.state.service.writes  # type: ignore[attr-defined]
+    catch_up, gate = writes._catch_up_locked, threading.Event()
+
+    async def held_back(entry: Any, target: int) -> None:  # a catch-up that takes a while
+        await asyncio.get_running_loop().run_in_executor(None, gate.wait, 10)
+        await catch_up(entry, target)
+
+    monkeypatch.setattr(writes, "_catch_up_locked", held_back)
+    line = b.app.state.service.maps.entry("lab").line  # type: ignore[attr-defined]
+    with ThreadPoolExecutor(3) as pool:
+        reads = [pool.submit(b.get, "/maps/lab") for _ in range(2)]
+        _wait_for(lambda: line.outstanding == 2)  # both reads in line, waiting to catch up
+        batch = pool.submit(b.post, "/maps/lab/scans", json={"scans": [_scan(kit, 2)]})
+        _wait_for(lambda: batch.done() or line.outstanding == 3)  # refused, or in line behind the reads
+        gate.set()
+        assert batch.result().status_code == 200, batch.result().text
+        assert batch.result().json()["version"] == 2
+        assert [read.result().status_code for read in reads] == [200, 200]
+    assert kit.version(b, "lab") == kit.version(a, "lab") == 2
+
+
+def _wait_for(condition: Callable[[], bool], timeout: float = 10.0) -> None:
+    deadline = time.monotonic() + timeout
+    while not condition():
+        assert time.monotonic() < deadline, "timed out"
+        time.sleep(0.005)
+
+
+def test_an_export_overtaken_by_another_replicas_snapshot_records_from_its_own_version(
+        replicas: Replicas, kit: Any, monkeypatch: pytest.MonkeyPatch) -> None:
+    # review: the MCAP export read the log after the grid; a snapshot another replica wrote meanwhile gave a
+    # recording whose scans start after a version newer than its grid (X-Scans-Since-Version > X-Map-Version)
+    a, b = replicas(snapshot_every=3)
+    assert a.post("/maps", json=kit.MAP_2D).status_code == 201
+    assert a.post("/maps/lab/scans", json={"scans": [_scan(kit, 1)]}).status_code == 200
+    assert kit.version(b, "lab") == 1  # b holds version 1
+    storage = b.app.state.service.storage  # type: ignore[attr-defined]
+    load_map, overtaken = storage.load_map, []
+
+    def snapshot_meanwhile(name: str) -> Any:  # a writes 2 and 3 and snapshots at 3 as b copies its grid
+        if not overtaken:
+            overtaken.append(name)
+            for k in (2, 3):
+                assert a.post("/maps/lab/scans", json={"scans": [_scan(kit, k)]}).status_code == 200
+        return load_map(name)
+
+    monkeypatch.setattr(storage, "load_map", snapshot_meanwhile)
+    exported = b.get("/maps/lab/export/mcap")
+    assert exported.status_code == 200 and overtaken
+    assert exported.headers["X-Map-Version"] == exported.headers["X-Scans-Since-Version"] == "3"
+    assert kit.version(b, "lab") == 3
+
+
+def test_a_map_no_replica_could_load_is_refused_at_creation(replicas: Replicas, kit: Any) -> None:
+    # review: with a shared database POST /maps skipped FUZZYRISK_MAX_TOTAL_CELLS: a map larger than a replica's
+    # memory was created (201), then every request for it answered 507 on every replica
+    a, b = replicas(max_total_cells=5_000)
+    refused = a.post("/maps", json=kit.MAP_2D)  # 100 x 100 cells
+    assert refused.status_code == 507 and "FUZZYRISK_MAX_TOTAL_CELLS" in error_message(refused)
+    assert b.get("/maps").json() == [] and b.get("/maps/lab").status_code == 404
+    assert a.post("/maps", json={**kit.MAP_2D, "resolution": 0.2}).status_code == 201  # 50 x 50 fits
+    assert kit.version(b, "lab") == 0
+
+
+def test_a_quarantine_ends_with_its_map_when_the_map_is_made_again(replicas: Replicas, kit: Any) -> None:
+    # review: a replica kept its quarantine of a map deleted and made again elsewhere: the new map was served,
+    # yet /ready went on reporting it quarantined
+    a, b = replicas()
+    assert a.post("/maps", json=kit.MAP_2D).status_code == 201
+    assert a.post("/maps/lab/scans", json={"scans": [_scan(kit, 0)]}).status_code == 200
+    with psycopg.connect(replicas.url, autocommit=True) as db:  # type: ignore[attr-defined]
+        db.execute("UPDATE batches SET crc = crc + 1 WHERE map = 'lab'")  # a flipped bit
+    assert b.get("/maps/lab").status_code == 503
+    assert b.get("/ready").json()["maps_quarantined"] == ["lab"]
+    assert a.delete("/maps/lab").status_code == 204
+    assert a.post("/maps", json=kit.MAP_2D).status_code == 201
+    assert b.get("/maps/lab").json()["version"] == 0
+    assert b.get("/ready").json()["maps_quarantined"] == []
+
+
+def test_the_list_and_a_maps_own_route_agree_after_a_discarded_batch(
+        replicas: Replicas, kit: Any, make_settings: Callable[..., Any], tmp_path: Path,
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    # review: after a batch discarded as a tombstone, GET /maps gave a map held by the replica the tombstone's
+    # version and time, GET /maps/{name} the map's own
+    _, b = replicas()
+    settings = make_settings(data_dir=tmp_path / "c", database_url=replicas.url)  # type: ignore[attr-defined]
+    with TestClient(create_app(settings), raise_server_exceptions=False) as a:  # a 500 is answered, not raised
+        assert a.post("/maps", json=kit.MAP_2D).status_code == 201
+        assert a.post("/maps/lab/scans", json={"scans": [_scan(kit, 0)]}).status_code == 200
+        live = a.app.state.service.maps.entry("lab").map  # type: ignore[attr-defined]
+
+        def out_of_memory(scans: Any) -> Any:
+            raise MemoryError("simulated")
+
+        monkeypatch.setattr(live, "integrate_batch", out_of_memory)
+        assert a.post("/maps/lab/scans", json={"scans": [_scan(kit, 1)]}).status_code == 500  # version 2: a tombstone
+        for client in (a, b):
+            got = client.get("/maps/lab").json()
+            (listed,) = client.get("/maps").json()
+            assert (listed["version"], listed["updated"]) == (got["version"], got["updated"])
+            assert got["version"] == 1
+        assert a.post("/maps/lab/scans", json={"scans": [_scan(kit, 2)]}).json()["version"] == 3
+        for client in (a, b):
+            got = client.get("/maps/lab").json()
+            (listed,) = client.get("/maps").json()
+            assert (listed["version"], listed["updated"], listed["scans_fused"]) == \
+                (got["version"], got["updated"], got["scans_fused"])
+            assert (got["version"], got["scans_fused"]) == (3, 2)
