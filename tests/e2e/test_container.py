@@ -3,6 +3,7 @@ service on a read-only root (a mount namespace, as ``docker run --read-only -v v
 
 from __future__ import annotations
 
+import fnmatch
 import json
 import os
 import re
@@ -26,6 +27,7 @@ pytestmark = pytest.mark.slow
 DOCKERFILE = (Path(__file__).resolve().parents[2] / "Dockerfile").read_text()
 #: docker stop's default wait between SIGTERM and SIGKILL.
 DOCKER_STOP_S = 10.0
+SITE_PACKAGES = "/opt/fuzzyrisk/lib/python3.11/site-packages"
 
 
 def _exec_form(instruction: str) -> list[str]:
@@ -55,6 +57,80 @@ def test_the_image_is_built_in_two_stages_from_a_pinned_base_with_locked_depende
     assert _exec_form("ENTRYPOINT") == ["/usr/bin/tini", "--"]
     assert _exec_form("CMD") == ["python", "-m", "app", "--host", "0.0.0.0"]
     assert "curl" not in final.split("HEALTHCHECK", 1)[1]
+
+
+def _trim_step() -> str:
+    """The build stage's RUN that trims the environment (continuation lines joined)."""
+    build = _stage(0).replace("\\\n", " ")
+    (trim,) = [line for line in build.splitlines() if line.startswith(f"RUN cd {SITE_PACKAGES}")]
+    return trim
+
+
+def _trimmed_paths() -> list[str]:
+    """What the trim step's ``rm -rf`` commands remove: globs relative to site-packages."""
+    paths: list[str] = []
+    for command in _trim_step().split("&&"):
+        words = command.split()
+        if words[:2] == ["rm", "-rf"]:
+            paths += words[2:]
+    return paths
+
+
+#: Imports the service and does the work that loads more than its imports (a PNG, MCAP chunks compressed both
+#: ways, the scipy calls, the ROS type stores), then prints every file it loaded: the modules' files, and the
+#: shared libraries mapped into the process (the dependencies of the extension modules among them).
+_LOADED = """
+import io, json, sys
+import app.main, app.planworker, app.import_bag, app.rosmsgs, app.recording, app.rosout, app.bagsize, app.exports
+import fuzzyocc, planning.query
+import numpy as np
+from PIL import Image
+from mcap.writer import CompressionType, Writer
+from rosbags.typesys import Stores, get_typestore
+from scipy import ndimage
+from scipy.spatial.transform import Rotation
+Image.fromarray(np.zeros((4, 4), np.uint8)).save(io.BytesIO(), format="PNG")
+for compression in (CompressionType.ZSTD, CompressionType.LZ4):
+    writer = Writer(io.BytesIO(), compression=compression)
+    writer.start()
+    channel = writer.register_channel("/t", "cdr", writer.register_schema("s", "ros2msg", b""))
+    writer.add_message(channel, log_time=0, data=bytes(1000), publish_time=0)
+    writer.finish()
+ndimage.maximum_filter(np.zeros((5, 5)), size=3, mode="constant", cval=1.0)
+ndimage.minimum_filter(np.ones((5, 5), bool), size=3, mode="constant", cval=False)
+Rotation.from_quat([0.0, 0.0, 0.0, 1.0]).apply(np.ones((2, 3)))
+get_typestore(Stores.ROS2_JAZZY), get_typestore(Stores.ROS1_NOETIC)
+files = {getattr(m, "__file__", None) for m in list(sys.modules.values())} - {None}
+files |= {line.split()[-1] for line in open("/proc/self/maps") if ".so" in line}
+print(json.dumps(sorted(files)))
+"""
+
+
+def test_the_environment_is_trimmed_in_the_build_stage_of_nothing_the_service_loads() -> None:
+    """Issue 15 (an image of at most 450 MB): the build stage removes what the service never loads, after the
+    dependencies and before the sources, so the final image never gets it; and none of it is what the service
+    loads, here with the same locked versions: no module, no shared library, nothing under a test suite."""
+    build = _stage(0)
+    trim = build.index(f"RUN cd {SITE_PACKAGES}")
+    assert build.index("--constraint constraints.txt --requirement") < trim < build.index("COPY app")
+    step = _trim_step()
+    # every shared library stripped, but one that strip breaks (ldd refuses the stripped copy) kept whole
+    assert "strip --strip-unneeded" in step and 'ldd "$f.stripped"' in step
+    # the build fails if a trim went too far for the service's imports
+    assert re.search(r"python -I -c \s*\"import app\.main, app\.planworker, app\.import_bag, planning\.query\"",
+                     build[build.index("COPY app"):].replace("\\\n", " "))
+    removed = _trimmed_paths()
+    assert len(removed) > 20 and "scipy/optimize" in removed and "numba/cuda" in removed
+    # scipy.ndimage and scipy.spatial.transform load these: they stay
+    assert not {"scipy/ndimage", "scipy/spatial", "scipy/linalg", "scipy/special", "scipy/sparse"} & set(removed)
+    result = subprocess.run([sys.executable, "-c", _LOADED], capture_output=True, text=True, timeout=600,
+                            cwd=Path(__file__).resolve().parents[2])
+    assert result.returncode == 0, result.stderr
+    loaded = [f.split("site-packages/", 1)[1] for f in json.loads(result.stdout) if "site-packages/" in f]
+    assert any(f.startswith("scipy/ndimage/") for f in loaded) and any(f.startswith("pillow.libs/") for f in loaded)
+    hits = [(f, p) for f in loaded for p in removed if fnmatch.fnmatch(f, p) or f.startswith(p.rstrip("/") + "/")]
+    assert not hits, hits
+    assert not [f for f in loaded if "/tests/" in f"/{f}" or f.endswith((".pyi", ".pxd", ".pyx", ".pxi", ".a"))]
 
 
 def test_a_stop_fits_in_docker_stop() -> None:
