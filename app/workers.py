@@ -1,4 +1,4 @@
-"""The service's thread pools: fusion, parsing and reads, each with its own threads.
+"""The service's thread pools: fusion (light and heavy batches apart), parsing and reads, each with its own threads.
 
 Parsing has its own threads so that a burst of queued batches cannot put its parsing ahead of
 the commit and fusion of the batch whose turn it is, nor ahead of readers' copies; reads have
@@ -20,11 +20,16 @@ class Workers:
 
     def __init__(self, *, fusion_threads: int, read_threads: int) -> None:
         self._fusion = ThreadPoolExecutor(fusion_threads, thread_name_prefix="fusion")
+        self._heavy = ThreadPoolExecutor(fusion_threads, thread_name_prefix="fusion-heavy")
         self._parsers = ThreadPoolExecutor(fusion_threads, thread_name_prefix="parse")
         self._readers = ThreadPoolExecutor(read_threads, thread_name_prefix="read")
 
     async def run(self, fn: Callable[..., T], *args: object) -> T:
         return await asyncio.get_running_loop().run_in_executor(self._fusion, fn, *args)
+
+    async def run_heavy(self, fn: Callable[..., T], *args: object) -> T:
+        """``run`` for a heavy batch (``writepath.HEAVY_BATCH_CELLS``): it never takes the threads of the others."""
+        return await asyncio.get_running_loop().run_in_executor(self._heavy, fn, *args)
 
     async def run_parser(self, fn: Callable[..., T], *args: object) -> T:
         return await asyncio.get_running_loop().run_in_executor(self._parsers, fn, *args)
@@ -36,4 +41,5 @@ class Workers:
         """Wait for the work under way (grids being written included), then release the threads."""
         self._parsers.shutdown(wait=True)
         self._readers.shutdown(wait=True)
+        self._heavy.shutdown(wait=True)
         self._fusion.shutdown(wait=True)

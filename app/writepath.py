@@ -74,6 +74,10 @@ LOG = logging.getLogger("fuzzyrisk.maps")
 #: (pydantic holds the GIL either way, so the loop waits for it wherever it runs) takes well under a
 #: millisecond, less than the two thread switches of a trip through the parsing pool.
 INLINE_PARSE_BYTES = 128 * 1024
+#: A batch whose rays walk more cells than this (about 2 s of a thread at 10 M cells/s) is heavy: it is fused in
+#: threads of its own, so that heavy batches never hold every fusion thread (a robot's batch of a few 1080-beam
+#: scans walks about 1 M cells).
+HEAVY_BATCH_CELLS = 20_000_000
 
 
 class WritePath:
@@ -179,16 +183,14 @@ class WritePath:
 
     def _prepare(
         self, entry: MapEntry, body: bytes, content_type: str, query: Mapping[str, str]
-    ) -> tuple[list[batches.Scan], bytes]:
-        """Parse, validate (query and body) and encode a batch (no lock held: it touches no map state).
-
-        In a parsing thread, or on the event loop for a small body (``INLINE_PARSE_BYTES``).
+    ) -> tuple[list[batches.Scan], bytes, int]:
+        """Parse, validate (query and body) and encode a batch, with its cast work (no lock held: it touches no
+        map state). In a parsing thread, or on the event loop for a small body (``INLINE_PARSE_BYTES``).
         """
         scans = self._parse(body, content_type, query, entry.spec.ndim)
-        self._check_work(entry, scans)
-        return scans, batches.encode(scans)
+        return scans, batches.encode(scans), self._check_work(entry, scans)
 
-    def _check_work(self, entry: MapEntry, scans: list[batches.Scan]) -> None:
+    def _check_work(self, entry: MapEntry, scans: list[batches.Scan]) -> int:
         """413 for a batch whose rays would walk more than ``FUZZYRISK_MAX_BATCH_CELLS`` cells of this map.
 
         Before it is stored: one small request (12 scans of 16,384 beams reaching past a 16 M-cell
@@ -200,6 +202,7 @@ class WritePath:
                 f"the batch's rays walk about {work:,} cells of this map, more than FUZZYRISK_MAX_BATCH_CELLS "
                 f"({self.settings.max_batch_cells:,}): send fewer scans per batch, or shorter range_max"
             )
+        return work
 
     def _apply(self, entry: MapEntry, version: int, scans: list[batches.Scan]) -> BatchResult:
         """Fuse a committed batch (in a fusion thread; the caller holds the apply turn and the apply lock)."""
@@ -283,9 +286,10 @@ class WritePath:
         ticket = entry.line.take()  # before any await: this fixes the batch's place in line
         try:
             if len(body) <= INLINE_PARSE_BYTES:
-                scans, payload = self._prepare(entry, body, content_type, query)
+                scans, payload, work = self._prepare(entry, body, content_type, query)
             else:
-                scans, payload = await self._workers.run_parser(self._prepare, entry, body, content_type, query)
+                scans, payload, work = await self._workers.run_parser(self._prepare, entry, body, content_type,
+                                                                      query)
         except BaseException as exc:
             entry.line.done(ticket)
             if isinstance(exc, (Invalid, TooLarge, RequestValidationError, UnsupportedMediaType)):
@@ -293,7 +297,7 @@ class WritePath:
             raise
         # the task owns the ticket from here; shielded, so that a cancelled request cannot leave its
         # batch committed but not applied
-        return await shielded(self._write(entry, ticket, scans, payload))
+        return await shielded(self._write(entry, ticket, scans, payload, work))
 
     async def add_parsed_scans(self, name: str, scans: list[batches.Scan], *, uid: int,
                                admitted: bool = False) -> BatchResult:
@@ -313,18 +317,23 @@ class WritePath:
             raise Conflict(f"map {name!r} was deleted and created again while its scans were being read; "
                            "nothing was stored: import into the new map again")
         try:
-            payload = await self._workers.run_parser(self._checked_payload, entry, scans)
+            payload, work = await self._workers.run_parser(self._checked_payload, entry, scans)
         except BaseException:
             entry.line.done(ticket)
             raise
-        return await shielded(self._write(entry, ticket, scans, payload))
+        return await shielded(self._write(entry, ticket, scans, payload, work))
 
-    def _checked_payload(self, entry: MapEntry, scans: list[batches.Scan]) -> bytes:
-        self._check_work(entry, scans)
-        return batches.encode(scans)
+    def _checked_payload(self, entry: MapEntry, scans: list[batches.Scan]) -> tuple[bytes, int]:
+        return batches.encode(scans), self._check_work(entry, scans)
 
-    async def _write(self, entry: MapEntry, ticket: int, scans: list[batches.Scan], payload: bytes) -> BatchResult:
-        """Commit, then apply, a parsed batch in its turns; gives both turns up when done, whatever happens."""
+    async def _write(self, entry: MapEntry, ticket: int, scans: list[batches.Scan], payload: bytes,
+                     work: int) -> BatchResult:
+        """Commit, then apply, a parsed batch in its turns; gives both turns up when done, whatever happens.
+
+        A batch whose rays walk more than ``HEAVY_BATCH_CELLS`` is fused in the heavy batches' threads: two
+        scans of 2 M beams held both fusion threads for 3-4 s, and every other map's batch (and the reads of
+        that map, behind its apply lock) waited for them (issue 11).
+        """
         version = 0
         try:
             await entry.line.commit.wait(ticket)
@@ -361,7 +370,8 @@ class WritePath:
                 # later batch may have committed with the next one meanwhile, and should its
                 # removal from the log have failed too, the row is still there under this version
                 try:
-                    result = await self._workers.run(self._apply, entry, version, scans)
+                    run = self._workers.run_heavy if work > HEAVY_BATCH_CELLS else self._workers.run
+                    result = await run(self._apply, entry, version, scans)
                 except BaseException:
                     # the map may have changed in part (issue 11): a grid published for its
                     # current version would no longer be that map

@@ -569,3 +569,31 @@ def test_uploads_still_arriving_count_against_their_maps_line(make_client: Any, 
         assert client.post("/maps/other/scans", json={"scans": [kit.laser()]}).status_code == 200  # its own line
     assert client.post("/maps/lab/scans", json={"scans": [kit.laser()]}).status_code == 200  # room again
     assert kit.version(client, "lab") == 1 and service.maps.entry("lab").arriving == 0
+
+
+def test_a_light_batch_is_not_held_behind_heavy_batches_of_other_maps(make_client: Any, kit: Any,
+                                                                      monkeypatch: pytest.MonkeyPatch) -> None:
+    # issue 11: two 2 M-beam scans held both fusion threads for 3-4 s; every other map's batch waited, and so
+    # did the reads of those maps (behind their apply lock)
+    client = make_client(fusion_threads=1)
+    for name in ("heavy", "light"):
+        assert client.post("/maps", json={**kit.MAP_2D, "name": name}).status_code == 201
+    monkeypatch.setattr(writepath, "HEAVY_BATCH_CELLS", 10_000)  # 900 beams of 3 m: about 27,000 cells
+    original, entered, release = FuzzyMap.integrate_batch, threading.Event(), threading.Event()
+
+    def held(self: FuzzyMap, scans: Any) -> Any:
+        if len(scans[0].ranges) == 900:
+            entered.set()
+            assert release.wait(30)
+        return original(self, scans)
+
+    monkeypatch.setattr(FuzzyMap, "integrate_batch", held)
+    with ThreadPoolExecutor(1) as pool:
+        heavy = pool.submit(client.post, "/maps/heavy/scans", json={"scans": [kit.laser(beams=900)]})
+        assert entered.wait(30)  # the only fusion thread of its kind is held
+        light = client.post("/maps/light/scans", json={"scans": [kit.laser(beams=90)]})  # about 2,700 cells
+        assert light.status_code == 200 and light.json()["version"] == 1
+        assert kit.version(client, "light") == 1
+        assert not heavy.done()
+        release.set()
+        assert heavy.result().json()["version"] == 1
