@@ -2,6 +2,8 @@
 
     python -m bench.bench_load [--quick] [--robots N] [--seconds S] [--client lean|httpx] [--py-spy DIR]
                                                                                     (from the repository root)
+    python -m bench.bench_load --fleet [--quick] ...   # = python -m bench.bench_fleet: SQLite, 1 and 2
+                                                       #   replicas on one PostgreSQL (issue 14)
 
 N simulated robots in one 20 m x 20 m room (``bench.bench_fusion.planar_scene``: 1080-beam
 LaserScans over 270 degrees, 0.05 m maps of 420 x 420 cells) each stream their scans into their
@@ -365,8 +367,15 @@ def _py_spy(pid: int, seconds: float, out: Path, *extra: str) -> subprocess.Pope
 
 
 def main(argv: list[str] | None = None) -> int:
+    args_in = sys.argv[1:] if argv is None else argv
+    if "--fleet" in args_in:  # issue 14: SQLite, 1 and 2 replicas on one PostgreSQL (bench/bench_fleet.py)
+        from bench import bench_fleet
+
+        return bench_fleet.main([a for a in args_in if a != "--fleet"])
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="2 robots, 8 s phases")
+    parser.add_argument("--fleet", action="store_true",
+                        help="run bench/bench_fleet.py instead (its own options follow; see its --help)")
     parser.add_argument("--robots", type=int, default=None, help="simulated robots (default 4, quick 2)")
     parser.add_argument("--batch", type=int, default=4, help="scans per JSON batch")
     parser.add_argument("--seconds", type=float, default=None, help="length of each phase (default 30, quick 8)")
