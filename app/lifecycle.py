@@ -168,3 +168,17 @@ def exit_with_parent() -> None:
         os._exit(1)
 
     threading.Thread(target=watch, name="parent-watch", daemon=True).start()
+
+
+def give_back_freed_memory() -> None:
+    """Return the free pages of every malloc arena to the system (glibc's ``malloc_trim``; a no-op elsewhere).
+
+    A map's state is many small blocks, allocated by whichever fusion thread touched them, in that
+    thread's arena: freed, they stay with the process. Measured (issue 11; 25 maps of 16 M cells made, a
+    scan fused into each, all deleted, six rounds): 0 MiB given back after a round's deletes before, 330-1,120
+    MiB with this; the process still grows from round to round (allocator fragmentation, left open in issue 11).
+    """
+    try:
+        ctypes.CDLL("libc.so.6").malloc_trim(0)
+    except (OSError, AttributeError):  # not glibc: its allocator has its own policy
+        pass

@@ -13,6 +13,7 @@ from app import engines
 from app.config import Settings
 from app.diskreserve import DiskReserve
 from app.errors import Conflict, InsufficientStorage, Invalid, NotFound, Unavailable
+from app.lifecycle import give_back_freed_memory
 from app.mapstate import (
     UNLIMITED_CELLS,
     MapEntry,
@@ -344,6 +345,8 @@ class MapRegistry:
         # shielded as a batch's write is: a cancelled request must not leave the rows deleted
         # and the map still served
         await shielded(self._delete(entry, ticket))
+        del entry  # the last reference: the map's memory is free, and can go back to the system
+        await self._workers.run(give_back_freed_memory)
 
     def _delete_rows(self, name: str, incarnation: str | None) -> None:
         """``storage.delete_map``; on a full disk, with the disk reserve given up first (then taken back)."""
