@@ -27,11 +27,10 @@ print('\n'.join(p['dependencies'] + [d for e in extras for d in p['optional-depe
         > requirements.txt \
     && /opt/fuzzyrisk/bin/pip install --constraint constraints.txt --requirement requirements.txt
 #    then out of the environment, before the image copies it, what the service never loads (issue 15: an image
-#    of at most 450 MB). These take it from 447 MB to 330 (du -sm), and the service, driven through every kind of
-#    work without them, answered alike; tests/e2e/test_container.py checks that the service loads none of them:
+#    of at most 450 MB). With scipy out of the runtime dependencies too, /opt/fuzzyrisk comes to 275 MiB (du -sm;
+#    447 before), and the service, driven through every kind of work without them, answered alike (74 requests, no
+#    5xx); tests/e2e/test_container.py checks that the service loads none of them:
 #    - the packages' test suites, typing stubs, Cython declarations and static libraries;
-#    - scipy but for what `scipy.ndimage` and `scipy.spatial.transform` load (constants, linalg, ndimage, sparse,
-#      spatial, special): 43 MB;
 #    - zstandard's cffi backend (CPython loads the C one), apsw's SQLite extensions and shell tools, numpy's
 #      distutils, C headers and SIMD test module, numba's CUDA target;
 #    - pillow's AVIF, WebP, FreeType and LittleCMS modules and the libraries only they use: the service writes
@@ -42,11 +41,6 @@ print('\n'.join(p['dependencies'] + [d for e in extras for d in p['optional-depe
 RUN cd /opt/fuzzyrisk/lib/python3.11/site-packages \
     && find . -depth -type d -name tests -exec rm -rf {} + \
     && find . -type f \( -name '*.pyi' -o -name '*.pxd' -o -name '*.pyx' -o -name '*.pxi' -o -name '*.a' \) -delete \
-    && rm -rf scipy/cluster scipy/datasets scipy/differentiate scipy/fft scipy/fftpack scipy/integrate \
-              scipy/interpolate scipy/io scipy/misc scipy/odr scipy/optimize scipy/signal scipy/stats \
-              scipy/sparse/csgraph scipy/sparse/linalg scipy/special/cython_special.* scipy/_lib/cobyqa \
-              scipy/_lib/pyprima scipy/linalg/_decomp_interpolative.* scipy/linalg/interpolative.py \
-              scipy/linalg/__pycache__/interpolative.* \
     && rm -rf zstandard/_cffi.*.so zstandard/backend_cffi.py zstandard/__pycache__/backend_cffi.* \
               apsw/sqlite_extra_binaries numpy/distutils numpy/_pyinstaller numpy/doc numpy/_core/include \
               numpy/_core/_simd.*.so numba/cuda \

@@ -37,12 +37,12 @@ from typing import Any
 import numpy as np
 from pydantic import ValidationError
 from rosbags.serde import SerdeError
-from scipy.spatial.transform import Rotation
 
 from app import batches
 from app.errors import Invalid, TooLarge
 from app.rostypes import typestore
 from app.schemas import Pose2D, Pose3D
+from fuzzyocc.quaternion import rotate_points
 from fuzzyocc.tf import Transform
 
 LASER_SCAN = "sensor_msgs/msg/LaserScan"
@@ -317,7 +317,7 @@ def sensor_scan(msg: Any, msgtype: str, pose: SensorPose, *, dims: int, limits: 
     if dims == 3:
         return SensorCloud(_pose3d(pose, name), points, float(range_max))
     # a 2-D map: rotated into the map's axes as PointCloud.from_sensor_frame rotates, then z dropped
-    rotated = Rotation.from_quat(_unit_quaternion(pose)).apply(points) if points.size else points
+    rotated = rotate_points(_unit_quaternion(pose), points) if points.size else points
     return SensorCloud(Pose2D(x=pose.position[0], y=pose.position[1], theta=0.0), rotated[:, :2], float(range_max))
 
 

@@ -22,7 +22,6 @@ from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
-from scipy import ndimage
 
 UNKNOWN_RISK = 0.5  # risk of never-observed space (and of space outside the map)
 
@@ -72,6 +71,62 @@ def _boxes(fp: np.ndarray) -> list[tuple[int, ...]]:
     return boxes
 
 
+def box_max(values: np.ndarray, halves: Sequence[int], cval: float) -> np.ndarray:
+    """Maximum of ``values`` over the box of ``2 h + 1`` cells along each axis around each cell.
+
+    Cells beyond the array count as ``cval``: ``ndimage.maximum_filter(values, size=[2 h + 1, ...],
+    mode="constant", cval=cval)`` bit for bit, a maximum rounding nothing (tests/planning/test_box_max.py).
+
+    Parameters
+    ----------
+    values : float32 or uint8 array, 2-D or more (another dtype compiles a kernel of its own)
+    halves : sequence of int >= 0
+        Half-width ``h`` of the box along each axis.
+    cval : float
+        Value of the cells beyond the array (cast to the dtype).
+    """
+    src = np.ascontiguousarray(values)
+    if src.ndim < 2 or len(halves) != src.ndim or min(halves) < 0:
+        raise ValueError(f"box_max: {src.ndim}-D values need {src.ndim} half-widths >= 0, got {tuple(halves)}")
+    out = np.empty_like(src)
+    _box_max(src, halves, src.dtype.type(cval), out, False)
+    return out
+
+
+def _box_max(src: np.ndarray, halves: Sequence[int], fill: Any, out: np.ndarray, accumulate: bool) -> None:
+    """``box_max`` of C-ordered ``src`` into ``out``; with ``accumulate``, the larger of it and ``out``.
+
+    One pass over the last two axes, then one along each axis before them (``_kernels.box_max_2d``),
+    each costing the same whatever the box's size.
+    """
+    shape = src.shape
+    passes = []  # (outer, n, m, half along n, half along m) of (outer, n, m) views
+    if halves[-2] or halves[-1]:
+        passes.append((math.prod(shape[:-2]), shape[-2], shape[-1], halves[-2], halves[-1]))
+    for axis in range(src.ndim - 2):
+        if halves[axis]:
+            passes.append((math.prod(shape[:axis]), shape[axis], math.prod(shape[axis + 1 :]), halves[axis], 0))
+    if not passes:
+        if accumulate:
+            np.maximum(out, src, out=out)
+        else:
+            np.copyto(out, src)
+        return
+    # imported here: the web process imports this module but plans (and compiles kernels) only in workers
+    from planning import _kernels
+
+    # the passes between the first and the last go through one array, in place
+    scratch = np.empty_like(src) if len(passes) > 1 else None
+    for k, (outer, n, m, half_n, half_m) in enumerate(passes):
+        final = k == len(passes) - 1
+        dst = out if final else scratch
+        assert dst is not None
+        flat = src.reshape(-1)
+        flat.flags.writeable = False  # a view: one compiled kernel per dtype, whether src is writable or not
+        _kernels.box_max_2d(flat, outer, n, m, int(half_n), int(half_m), fill, dst.reshape(-1), final and accumulate)
+        src = dst
+
+
 def _dilate_max(values: np.ndarray, fp: np.ndarray, outside: float) -> np.ndarray:
     """Maximum of ``values`` under the footprint, the footprint's union of boxes at a time.
 
@@ -79,12 +134,10 @@ def _dilate_max(values: np.ndarray, fp: np.ndarray, outside: float) -> np.ndarra
     so the cost grows with the number of boxes (about the radius in cells in 2-D) and not with
     the footprint's area, as a generic ``grey_dilation`` with a footprint would.
     """
-    out = None
-    for half in _boxes(fp):
-        size = tuple(2 * h + 1 for h in half)
-        part = ndimage.maximum_filter(values, size=size, mode="constant", cval=outside)
-        out = part if out is None else np.maximum(out, part, out=out)
-    assert out is not None  # the centre offset is always in the footprint
+    src = np.ascontiguousarray(values)
+    out = np.empty_like(src)
+    for k, half in enumerate(_boxes(fp)):
+        _box_max(src, half, src.dtype.type(outside), out, k > 0)
     return out
 
 
@@ -251,7 +304,7 @@ class RiskField:
             if kind == "risk":
                 hit = _dilate_max(self._risk, fp, UNKNOWN_RISK)
             else:
-                hit = _dilate_max((~self._observed).view(np.uint8), fp, 1).astype(bool)
+                hit = _dilate_max((~self._observed).view(np.uint8), fp, 1).view(bool)  # 0 or 1
             hit.setflags(write=False)
             self._cache[(kind, radius)] = hit
         return hit

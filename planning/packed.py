@@ -8,10 +8,9 @@ from functools import cached_property
 from typing import Any
 
 import numpy as np
-from scipy import ndimage
 
 from planning import _kernels
-from planning.field import RiskField
+from planning.field import RiskField, box_max
 
 
 def entry(dispatcher: Any) -> Any:
@@ -95,8 +94,9 @@ class PackedGrid:
         and goal cells stay valid (a segment from a pose to another in the same cell stays in
         that cell), so the erosion never turns a usable start or goal away.
         """
-        eroded = ndimage.minimum_filter(self.valid, size=3, mode="constant", cval=False)
-        flat = eroded.reshape(-1)
+        # the minimum over the box, False beyond the map: no invalid cell (nor the outside) in the box
+        invalid = box_max((~self.valid).view(np.uint8), (1,) * self.ndim, 1)
+        flat = (invalid == 0).reshape(-1)
         for cell in self.endpoint_cells:
             flat[cell] = self.valid.reshape(-1)[cell]
         return flat.tolist()
