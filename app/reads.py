@@ -87,7 +87,7 @@ class MapReads:
             entry = await self._current(name)
             async with entry.apply_lock:
                 risk, observed, stored = await self._workers.run_read(
-                    lambda: (entry.map.risk(), entry.map.observed(), self.storage.load_map(entry.name)))
+                    lambda e=entry: (e.map.risk(), e.map.observed(), self.storage.load_map(e.name)))
                 grid = GridSnapshot(entry.spec, entry.version, risk, observed, entry.frame_id, entry.updated,
                                     entry.etag_seed)
             # another replica's snapshot newer than this grid dropped the batches up to it: catch up, again
@@ -200,15 +200,15 @@ class MapReads:
         """
         _check_band(z_min, z_max)
         _check_thresholds(free_thresh, occupied_thresh)
+        entry = await self._current(name)
         if encoding == "json":
-            spec = (await self._current(name)).spec
-            cells = spec.shape[0] * spec.shape[1]  # the message is the plane, a 3-D map's included
+            cells = entry.spec.shape[0] * entry.spec.shape[1]  # the message is the plane, a 3-D map's included
             if cells > MAX_JSON_CELLS:
                 raise Invalid(
                     f"the map's OccupancyGrid has {cells:,} cells, too many for JSON (at most {MAX_JSON_CELLS:,}): "
                     f"ask for GET /maps/{name}/occupancy_grid.cdr or .mcap (the same message as ROS 2 bytes)"
                 )
-        grid = await self.read_grid(name)
+        grid = await self.read_grid_of(entry)
 
         def render() -> bytes:
             risk, observed = grid.planar(z_min, z_max)

@@ -7,7 +7,7 @@ import logging
 import time
 import uuid
 from collections.abc import Callable, Mapping
-from typing import Any
+from typing import Any, NamedTuple
 
 from app import engines
 from app.config import Settings
@@ -46,8 +46,7 @@ class MapRegistry:
         self._reserve = reserve
         self._notify = notify
         self._maps: dict[str, MapEntry] = {}
-        self._quarantined: dict[str, str] = {}  # map name -> why it was set aside
-        self._quarantined_as: dict[str, str | None] = {}  # map name -> the incarnation set aside
+        self._quarantined: dict[str, Quarantine] = {}  # map name -> why, and which incarnation, was set aside
         self._create_lock = asyncio.Lock()
         self._loading: dict[str, asyncio.Lock] = {}  # shared database: one load of a map at a time
         self._loading_cells = 0  # cells of the maps being loaded
@@ -78,8 +77,7 @@ class MapRegistry:
             try:
                 entry = await self._workers.run(restore, item)
             except Exception as exc:  # noqa: BLE001 - any damage: this map is set aside, the others start
-                self._quarantined[item.name], self._quarantined_as[item.name] = str(exc), item.incarnation
-                LOG.error("map %s quarantined: %s", item.name, exc)
+                self._set_aside(item.name, item.incarnation, exc)
                 continue
             replayed += len(item.batches)
             self._maps[entry.name] = entry
@@ -98,11 +96,16 @@ class MapRegistry:
             raise self._missing(name)
         return entry
 
+    def _set_aside(self, name: str, incarnation: str | None, exc: Exception) -> None:
+        """Quarantine a map whose stored rows cannot be loaded: its routes answer 503, the others are served."""
+        self._quarantined[name] = Quarantine(str(exc), incarnation)
+        LOG.error("map %s quarantined: %s", name, exc)
+
     def _missing(self, name: str) -> Exception:
-        reason = self._quarantined.get(name)
-        if reason is not None:
+        quarantine = self._quarantined.get(name)
+        if quarantine is not None:
             return Unavailable(
-                f"map {name!r} is quarantined: its stored rows are damaged ({reason}); it is not served. "
+                f"map {name!r} is quarantined: its stored rows are damaged ({quarantine.reason}); it is not served. "
                 f"Restore the database from a backup, or drop the map with DELETE /maps/{name}"
             )
         return NotFound(f"no map named {name!r}; GET /maps lists them")
@@ -115,29 +118,34 @@ class MapRegistry:
         database for its newest version (one indexed row: a read must see what other replicas acknowledged). A
         map deleted, or deleted and created again, through another replica is dropped here.
         """
-        entry = self._maps.get(name)
         if not self.settings.shared_storage:
-            if entry is None or entry.deleted:
-                raise self._missing(name)
+            entry = self.entry(name)
             return entry, entry.version
+        entry = self._maps.get(name)
         if entry is not None and not entry.deleted and not fresh:
             entry.last_used = time.monotonic()
             return entry, entry.version  # a write: its commit checks the map is still the stored one
         head = await self._workers.run_read(self.storage.map_head, name)
+        entry = self._current_copy(name, head)
         if head is None:
-            if entry is not None:
-                self._forget(entry, reason="deleted")
-            self._quarantined.pop(name, None)
             raise NotFound(f"no map named {name!r}; GET /maps lists them")
-        if entry is not None and entry.incarnation != head.incarnation:
-            self._forget(entry, reason="deleted")
-            entry = None
         if entry is None or entry.deleted:
             entry = await self._load(head)
         entry.last_used = time.monotonic()
         # the head read first may be another incarnation's (the map deleted and made again while it loaded):
         # its versions say nothing of this one, which was loaded with every batch it had then
         return entry, head.version if entry.incarnation == head.incarnation else entry.checked
+
+    def _current_copy(self, name: str, head: MapHead | None) -> MapEntry | None:
+        """The copy held of the stored map ``head``: a copy of a map deleted (or deleted and made again) through
+        another replica is dropped, and with no map stored, its quarantine too."""
+        entry = self._maps.get(name)
+        if entry is not None and (head is None or entry.incarnation != head.incarnation):
+            self._forget(entry, reason="deleted")
+            entry = None
+        if head is None:
+            self._quarantined.pop(name, None)
+        return entry
 
     async def gone(self, entry: MapEntry) -> Exception:
         """The error for a write or catch-up that found its map no longer stored as this replica holds it (deleted,
@@ -156,7 +164,8 @@ class MapRegistry:
             entry = self._maps.get(head.name)
             if entry is not None and not entry.deleted and entry.incarnation == head.incarnation:
                 return entry  # loaded by the request that held the lock before
-            if head.name in self._quarantined and self._quarantined_as.get(head.name) == head.incarnation:
+            quarantine = self._quarantined.get(head.name)
+            if quarantine is not None and quarantine.incarnation == head.incarnation:
                 raise self._missing(head.name)
             cells = _cells(head.meta)
             self._make_room(cells)
@@ -170,13 +179,11 @@ class MapRegistry:
                 except (NotFound, StorageUnavailable):
                     raise
                 except Exception as exc:  # noqa: BLE001 - any damage: this map is set aside, the others are served
-                    self._quarantined[head.name], self._quarantined_as[head.name] = str(exc), head.incarnation
-                    LOG.error("map %s quarantined: %s", head.name, exc)
+                    self._set_aside(head.name, head.incarnation, exc)
                     raise self._missing(head.name) from None
             finally:
                 self._loading_cells -= cells
             self._quarantined.pop(head.name, None)  # set aside as another incarnation, or repaired since
-            self._quarantined_as.pop(head.name, None)
             self._maps[head.name] = entry
             self.metrics.maps.set(len(self._maps))
             LOG.info("map loaded", extra={"fields": {"map": head.name, "version": entry.version,
@@ -201,14 +208,20 @@ class MapRegistry:
             )
 
     def _forget(self, entry: MapEntry, *, reason: str) -> None:
-        """Drop a map from memory (its rows stay, unless ``reason`` is that they are gone)."""
-        if self._maps.get(entry.name) is entry:
-            del self._maps[entry.name]
-        if reason == "deleted":
-            entry.deleted = True  # its queued writers answer 404 instead of committing to another map's log
-            self._notify("map_deleted", entry.name)
-        self._grids.retire(entry.uid)
+        """Drop a map from memory, counted as an eviction (its rows stay, unless ``reason`` is that they are gone:
+        deleted through another replica)."""
+        self._drop(entry, deleted=reason == "deleted")
         self.metrics.evictions.labels(reason).inc()
+
+    def _drop(self, entry: MapEntry, *, deleted: bool) -> None:
+        """Drop a map from memory; ``deleted``: its rows are gone too (its queued writers answer 404 instead of
+        committing to another map's log)."""
+        if self._maps.get(entry.name) is entry:  # a read may have dropped it already (found its rows gone)
+            del self._maps[entry.name]
+        if deleted:
+            entry.deleted = True
+            self._notify("map_deleted", entry.name)
+        self._grids.retire(entry.uid)  # its files go now, or when the last plan on them ends
         self.metrics.maps.set(len(self._maps))
 
     def evict_idle(self) -> int:
@@ -322,22 +335,16 @@ class MapRegistry:
         """
         if self.settings.shared_storage:
             head = await self._workers.run_read(self.storage.map_head, name)
-            entry = self._maps.get(name)
             if head is None:
-                if entry is not None:
-                    self._forget(entry, reason="deleted")
-                self._quarantined.pop(name, None)
+                self._current_copy(name, head)
                 raise NotFound(f"no map named {name!r}; GET /maps lists them")
-            if entry is None or entry.incarnation != head.incarnation:
-                # not held here (or held as it was before another replica made it again): its rows only
-                if entry is not None:
-                    self._forget(entry, reason="deleted")
+            if self._current_copy(name, head) is None:  # not held here: its rows only
                 await self._workers.run(self._delete_rows, name, head.incarnation)
                 self._quarantined.pop(name, None)
                 self._notify("map_deleted", name)
                 return
         if name in self._quarantined and name not in self._maps:
-            await self._workers.run(self._delete_rows, name, self._quarantined_as.get(name))
+            await self._workers.run(self._delete_rows, name, self._quarantined[name].incarnation)
             del self._quarantined[name]
             return
         entry = self.entry(name)
@@ -364,16 +371,16 @@ class MapRegistry:
             if entry.deleted:
                 raise NotFound(f"no map named {entry.name!r}")
             await self._workers.run(self._delete_rows, entry.name, entry.incarnation)
-            entry.deleted = True
-            if self._maps.get(entry.name) is entry:  # a read may have dropped it meanwhile (found its rows gone)
-                del self._maps[entry.name]
-            self._grids.retire(entry.uid)  # its files go now, or when the last plan on them ends
-            self._notify("map_deleted", entry.name)
+            self._drop(entry, deleted=True)
         finally:
             entry.line.done(ticket)
-        self.metrics.maps.set(len(self._maps))
 
-    # ---------------------------------------------------------------- scans
+
+class Quarantine(NamedTuple):
+    """A map set aside: why, and the incarnation whose rows were damaged (another one made since loads)."""
+
+    reason: str
+    incarnation: str | None
 
 
 def _cells(meta: Mapping[str, Any]) -> int:
