@@ -188,6 +188,11 @@ class MapEntry:
     catching_up: int = 0
 
     @property
+    def batches_in_line(self) -> int:
+        """Batches in its line or arriving, not yet applied (reads catching up are not batches)."""
+        return self.line.outstanding - self.catching_up + self.arriving
+
+    @property
     def incarnation(self) -> str | None:
         """Tells this map apart from another stored under its name before or after it (None: a map from before)."""
         value = self.meta.get("incarnation")

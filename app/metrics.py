@@ -62,6 +62,14 @@ class Metrics:
             "fuzzyrisk_plan_grid_bytes", "Bytes of map grids published for the planner workers", registry=r
         )
         self.maps = Gauge("fuzzyrisk_maps", "Maps held", registry=r)
+        self.batches_in_line = Gauge(
+            "fuzzyrisk_batches_in_line", "Scan batches accepted or arriving and not yet applied, all maps",
+            registry=r,
+        )
+        self.longest_fusion_job = Gauge(
+            "fuzzyrisk_longest_fusion_job_seconds", "How long the oldest job in a fusion thread has run (0: idle)",
+            registry=r,
+        )
         self.snapshots = Counter("fuzzyrisk_snapshots", "Map snapshots written", registry=r)
         self.snapshot_failures = Counter(
             "fuzzyrisk_snapshot_failures", "Map snapshots that storage refused (retried later)", registry=r

@@ -56,6 +56,10 @@ class MapRegistry:
         """The maps in memory."""
         return list(self._maps.values())
 
+    def batches_in_line(self) -> int:
+        """Batches accepted or arriving and not yet applied, over every map held (reads catching up excluded)."""
+        return sum(entry.batches_in_line for entry in self._maps.values())
+
     @property
     def quarantined(self) -> list[str]:
         return sorted(self._quarantined)

@@ -663,6 +663,14 @@ class Readiness(BaseModel):
         description="planner workers readiness waits for: FUZZYRISK_PLAN_WORKERS, or 0 when FUZZYRISK_PLAN_WARMUP "
         "is false (they start at the first plan)"
     )
+    batches_in_line: int = Field(
+        0, description="scan batches accepted or still arriving and not yet applied, over all maps held (each map "
+        "holds at most FUZZYRISK_MAX_PENDING_BATCHES): a backlog that grows means fusion does not keep up"
+    )
+    longest_fusion_job_s: float = Field(
+        0.0, description="how long the oldest job in a fusion thread (a batch's fusion, a snapshot, a map's load) "
+        "has run so far, in seconds; 0 when they are idle"
+    )
     detail: str = Field("", description="what failed, when status is failed")
 
 

@@ -22,6 +22,7 @@ from typing import Any
 from app import plangrids, warmup
 from app.config import Settings
 from app.diskreserve import DiskReserve
+from app.lifecycle import give_back_freed_memory
 from app.mapstate import MapObserver
 from app.metrics import Metrics
 from app.plangrids import PlanGrids
@@ -58,6 +59,8 @@ class MapService:
         self.reads = MapReads(settings, storage, self._workers, self.writes.current)
         self.plans = MapPlans(settings, metrics, self.writes.current, self.reads, self._grids, self._pool,
                               self._notify)
+        metrics.batches_in_line.set_function(self.maps.batches_in_line)
+        metrics.longest_fusion_job.set_function(self._workers.longest_fusion_job_s)
         self._kernels: asyncio.Task[None] | None = None
         self._kernels_error: str | None = None
         self._evictor: asyncio.Task[None] | None = None
@@ -91,6 +94,7 @@ class MapService:
             await asyncio.sleep(min(60.0, self.settings.map_idle_s / 2))
             if dropped := self.maps.evict_idle():
                 LOG.info("idle maps dropped from memory", extra={"fields": {"maps": dropped}})
+                await self._workers.run(give_back_freed_memory)
 
     async def _warm_kernels(self) -> None:
         """Compile the fusion kernels, or load them from numba's cache, in a fusion thread, with progress in the log."""
@@ -125,6 +129,8 @@ class MapService:
             kernels_compiled=kernels,
             planner_workers_ready=len(self._pool.warmed),
             planner_workers_wanted=self.settings.plan_workers if self.settings.plan_warmup else 0,
+            batches_in_line=self.maps.batches_in_line(),
+            longest_fusion_job_s=round(self._workers.longest_fusion_job_s(), 3),
             detail="; ".join(problems),
         )
 

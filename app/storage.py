@@ -234,9 +234,16 @@ def read_map(query: Callable[[str, tuple[Any, ...]], Iterable[Sequence[Any]]], n
             if snapshot[3] is not None:
                 stored.stamps[snapshot[0]] = snapshot[3]
     lower = -_NO_LIMIT if after is None else max(after, snapshot_row or 0)
+    previous = max(after or 0, snapshot_row or 0)
     for seq, payload, crc, stamp in query("SELECT seq, payload, crc, updated FROM batches WHERE map = ? AND seq > ? "
                                           "AND seq <= ? ORDER BY seq",
                                           (name, lower, _NO_LIMIT if up_to is None else up_to)):
+        # a row with its own stamp was written since discards became tombstones: nothing below it may be
+        # missing (before, a discarded batch's row was deleted, so an older row may follow a gap)
+        if stamp is not None and seq > previous + 1:
+            stored.damage.append(f"its batches {previous + 1} to {seq - 1} are missing (the log jumps from "
+                                 f"version {previous} to {seq})")
+        previous = seq
         _take_batch(stored, seq, bytes(payload), crc)
         if stamp is not None:
             stored.stamps[seq] = stamp

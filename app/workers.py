@@ -8,8 +8,10 @@ theirs so that a read of one map never waits behind minutes of fusion of others 
 from __future__ import annotations
 
 import asyncio
+import itertools
 import os
 import threading
+import time
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from typing import TypeVar
@@ -25,13 +27,28 @@ class Workers:
         self._heavy = ThreadPoolExecutor(fusion_threads, thread_name_prefix="fusion-heavy", initializer=_yield_cpu)
         self._parsers = ThreadPoolExecutor(fusion_threads, thread_name_prefix="parse")
         self._readers = ThreadPoolExecutor(read_threads, thread_name_prefix="read")
+        self._started: dict[int, float] = {}  # fusion jobs running: id -> time.monotonic() at their start
+        self._ids = itertools.count()
 
     async def run(self, fn: Callable[..., T], *args: object) -> T:
-        return await asyncio.get_running_loop().run_in_executor(self._fusion, fn, *args)
+        return await asyncio.get_running_loop().run_in_executor(self._fusion, self._timed, fn, args)
 
     async def run_heavy(self, fn: Callable[..., T], *args: object) -> T:
         """``run`` for a heavy batch (``writepath.HEAVY_BATCH_CELLS``): it never takes the threads of the others."""
-        return await asyncio.get_running_loop().run_in_executor(self._heavy, fn, *args)
+        return await asyncio.get_running_loop().run_in_executor(self._heavy, self._timed, fn, args)
+
+    def _timed(self, fn: Callable[..., T], args: tuple[object, ...]) -> T:
+        job = next(self._ids)
+        self._started[job] = time.monotonic()
+        try:
+            return fn(*args)
+        finally:
+            del self._started[job]
+
+    def longest_fusion_job_s(self) -> float:
+        """How long the oldest job now in a fusion thread (a batch, a snapshot, a load) has run; 0 when idle."""
+        started = tuple(self._started.values())  # one C-level copy: the threads add and remove meanwhile
+        return time.monotonic() - min(started) if started else 0.0
 
     async def run_parser(self, fn: Callable[..., T], *args: object) -> T:
         return await asyncio.get_running_loop().run_in_executor(self._parsers, fn, *args)

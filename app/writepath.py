@@ -264,7 +264,7 @@ class WritePath:
             entry.arriving -= 1
 
     def _admit(self, entry: MapEntry) -> None:
-        waiting = entry.line.outstanding - entry.catching_up + entry.arriving
+        waiting = entry.batches_in_line
         if waiting >= self.settings.max_pending_batches:
             self.metrics.batches_rejected.labels("Backlog").inc()
             raise Unavailable(

@@ -135,7 +135,8 @@ def test_ready_answers_503_then_200_once_the_kernels_are_compiled(make_client: C
     client = make_client(api_key="k" * 16)  # /ready needs no key, as /health
     ready = _wait_ready(client)
     assert ready == {"status_code": 200, "status": "ready", "maps_loaded": 0, "maps_quarantined": [],
-                     "kernels_compiled": True, "planner_workers_ready": 0, "planner_workers_wanted": 0, "detail": ""}
+                     "kernels_compiled": True, "planner_workers_ready": 0, "planner_workers_wanted": 0,
+                     "batches_in_line": 0, "longest_fusion_job_s": 0.0, "detail": ""}
 
 
 def test_ready_waits_for_the_planner_workers_when_they_start_with_the_service(

@@ -387,19 +387,21 @@ def test_a_map_is_snapshotted_once_its_log_holds_the_byte_limit(make_client: Any
     assert kit.risk_npy(make_client(), "lab").tobytes() == risk.tobytes()
 
 
-@pytest.mark.parametrize(("delete", "message"), [
-    ("DELETE FROM snapshots WHERE map = 'lab'", "its snapshot (version 2) is missing"),
-    ("DELETE FROM batches WHERE map = 'lab' AND seq = 3", "its batches up to version 3 are missing"),
+@pytest.mark.parametrize(("snapshot_every", "delete", "message"), [
+    (2, "DELETE FROM snapshots WHERE map = 'lab'", "its snapshot (version 2) is missing"),
+    (2, "DELETE FROM batches WHERE map = 'lab' AND seq = 3", "its batches up to version 3 are missing"),
+    (1000, "DELETE FROM batches WHERE map = 'lab' AND seq = 2", "its batches 2 to 2 are missing"),
 ])
-def test_rows_deleted_behind_the_services_back_quarantine_the_map(make_settings: Any, kit: Any, delete: str,
-                                                                  message: str,
+def test_rows_deleted_behind_the_services_back_quarantine_the_map(make_settings: Any, kit: Any, snapshot_every: int,
+                                                                  delete: str, message: str,
                                                                   monkeypatch: pytest.MonkeyPatch) -> None:
-    # issue 11: a deleted snapshot row left a map without batches 1-2 reporting version 3
-    settings = make_settings(snapshot_every=2)
+    # issue 11: a deleted snapshot row left a map without batches 1-2 reporting version 3; a gap inside the
+    # log was replayed over
+    settings = make_settings(snapshot_every=snapshot_every)
     _keep_the_log_at_shutdown(monkeypatch)
     with TestClient(create_app(settings)) as client:
         client.post("/maps", json=kit.MAP_2D)
-        for body in _scans(kit, 3):  # a snapshot at version 2, batch 3 after it
+        for body in _scans(kit, 3):  # every 2: a snapshot at version 2, batch 3 after it; every 1000: 3 batches
             assert client.post("/maps/lab/scans", json=body).status_code == 200
     monkeypatch.undo()
     with sqlite3.connect(settings.data_dir / "fuzzyrisk.sqlite3") as db:
@@ -713,6 +715,21 @@ def test_rows_deleted_behind_the_stores_back_are_damage_but_tombstones_are_not(b
     backend.sql(delete)
     for stored in (store.load_map("m"), store.load_since("m", 3)):
         assert stored is not None and any(message in damage for damage in stored.damage), stored.damage
+
+
+def test_a_batch_deleted_from_the_middle_of_the_log_is_damage(backend: Backend) -> None:
+    # issue 11: a gap inside the log was replayed over as if nothing were missing (only the tail was checked)
+    store = backend.open()
+    _make(store)
+    for k in range(1, 6):
+        _append(store, str(k).encode())
+    store.write_snapshot("m", 1, b"one")
+    store.discard_batch("m", 4)  # a tombstone keeps its version: no gap
+    backend.sql("DELETE FROM batches WHERE map = 'm' AND seq = 3")
+    expected = ["its batches 3 to 3 are missing (the log jumps from version 2 to 4)"]
+    assert store.load_map("m").damage == expected  # type: ignore[union-attr]
+    assert store.load_since("m", 1).damage == expected  # type: ignore[union-attr]
+    assert store.load_since("m", 3).damage == []  # type: ignore[union-attr]  (a replica at 3 misses nothing)
 
 
 def test_postgres_connection_loss_is_storage_unavailable_and_the_next_call_reconnects(postgres: Backend) -> None:

@@ -556,6 +556,38 @@ def test_a_read_of_one_map_does_not_wait_behind_the_fusion_of_another(make_clien
     assert waited < 10.0  # before: until the fusion ended (here: never, release came after)
 
 
+def test_ready_shows_the_fusion_backlog_while_reads_are_served(make_client: Any, kit: Any,
+                                                              monkeypatch: pytest.MonkeyPatch) -> None:
+    # issue 11 item 5: two fusions of minutes stalled every map while /health stayed green and nothing said why
+    client = make_client(fusion_threads=1)
+    assert client.post("/maps", json=kit.MAP_2D).status_code == 201
+    service = client.app.state.service  # type: ignore[attr-defined]
+    held, release = threading.Event(), threading.Event()
+    apply = service.writes._apply
+
+    def slow_apply(entry: Any, version: int, scans: Any) -> Any:
+        held.set()
+        release.wait(60)
+        return apply(entry, version, scans)
+
+    monkeypatch.setattr(service.writes, "_apply", slow_apply)
+    with ThreadPoolExecutor(2) as pool:
+        first = pool.submit(client.post, "/maps/lab/scans", json={"scans": [kit.laser()]})
+        assert held.wait(30)
+        second = pool.submit(client.post, "/maps/lab/scans", json={"scans": [kit.laser()]})
+        deadline = time.monotonic() + 30
+        while (ready := client.get("/ready").json())["batches_in_line"] < 2 and time.monotonic() < deadline:
+            time.sleep(0.05)
+        time.sleep(0.3)
+        ready = client.get("/ready").json()
+        assert ready["status"] == "ready" and ready["batches_in_line"] == 2 and ready["longest_fusion_job_s"] >= 0.3
+        assert "fuzzyrisk_batches_in_line 2.0" in client.get("/metrics").text
+        release.set()
+        assert [f.result(60).json()["version"] for f in (first, second)] == [1, 2]
+    ready = client.get("/ready").json()
+    assert ready["batches_in_line"] == 0 and ready["longest_fusion_job_s"] == 0.0
+
+
 def test_uploads_still_arriving_count_against_their_maps_line(make_client: Any, kit: Any) -> None:
     # issue 11: bodies read side by side all passed a check that counted only batches already in line
     client = make_client(max_pending_batches=2)
