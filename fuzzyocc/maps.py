@@ -44,6 +44,15 @@ Scan = LaserScan | PointCloud
 _BAYES_CHUNK = 1 << 16  # cells per step of a Bayes update (each cell is updated on its own)
 #: (scan, cell) entries one cast of a batch may hold (12 bytes each: about 200 MB); see ``_cast_chunks``
 CAST_CHUNK_ENTRIES = 16_000_000
+#: beams one cast may hold (about 300 bytes each while their rays are made and cast: about 20 MB); a scan with
+#: more is cast part by part (see ``_cast_in_parts``)
+CAST_CHUNK_BEAMS = 65_536
+
+
+def _parts(scan: Scan) -> list[slice]:
+    """``scan``'s readings in consecutive slices of at most ``CAST_CHUNK_BEAMS``."""
+    n = scan.beam_count
+    return [slice(a, min(a + CAST_CHUNK_BEAMS, n)) for a in range(0, n, CAST_CHUNK_BEAMS)] or [slice(0, 0)]
 
 
 def cast_work(spec: GridSpec, scans: Sequence[Scan]) -> int:
@@ -55,8 +64,9 @@ def cast_work(spec: GridSpec, scans: Sequence[Scan]) -> int:
     """
     total = 0
     for scan in scans:
-        rays = scan.to_rays()
-        total += traversal_cells(spec, rays.origin, rays.endpoints)
+        for part in _parts(scan):  # part by part: a scan of millions of beams is estimated in bounded memory
+            rays = scan.to_rays(beams=part)
+            total += traversal_cells(spec, rays.origin, rays.endpoints)
     return total
 
 
@@ -169,12 +179,19 @@ class OccupancyMap:
             self._check_scan(scan, f"scans[{i}]")
         if not scans:
             return IntegrationStats(scans=0, rays=0, cells_updated=0)
-        rays = [self._rays_of(scan) for scan in scans]
-        chunks = self._cast_chunks(rays)
-        scratch = new_scratch(self.spec, self._grid.block_shift) if len(chunks) > 1 else None
-        updated = traversed = 0
+        chunks = self._cast_chunks(scans)
+        parted = any(scans[first].beam_count > CAST_CHUNK_BEAMS for first, _ in chunks)
+        scratch = new_scratch(self.spec, self._grid.block_shift) if len(chunks) > 1 or parted else None
+        updated = traversed = n_rays = skipped = 0
         for first, last in chunks:
-            cast = self._cast(scans[first:last], rays[first:last], scratch)
+            if scans[first].beam_count > CAST_CHUNK_BEAMS:  # a chunk of its own (``_cast_chunks``)
+                cast, beams, dropped = self._cast_in_parts(scans[first], scratch)
+            else:
+                rays = [self._rays_of(scan) for scan in scans[first:last]]
+                cast = self._cast(scans[first:last], rays, scratch)
+                beams, dropped = sum(r.ranges.size for r in rays), sum(r.skipped for r in rays)
+                del rays
+            n_rays, skipped = n_rays + beams, skipped + dropped
             traversed += int(cast.cells_traversed.sum())
             for s in range(last - first):
                 lo, hi = cast.scan_offsets[s], cast.scan_offsets[s + 1]
@@ -187,32 +204,60 @@ class OccupancyMap:
         self._scans_fused += len(scans)
         return IntegrationStats(
             scans=len(scans),
-            rays=int(sum(r.ranges.size for r in rays)),
+            rays=int(n_rays),
             cells_updated=int(updated),
             cells_traversed=traversed,
-            rays_skipped=int(sum(r.skipped for r in rays)),
+            rays_skipped=int(skipped),
         )
 
-    def _cast_chunks(self, rays: list[Rays]) -> list[tuple[int, int]]:
-        """Consecutive runs of scans ``[first, last)`` whose cast holds at most ``CAST_CHUNK_ENTRIES``.
+    def _cast_chunks(self, scans: list[Scan]) -> list[tuple[int, int]]:
+        """Consecutive runs of scans ``[first, last)`` whose cast holds at most ``CAST_CHUNK_ENTRIES`` entries and
+        ``CAST_CHUNK_BEAMS`` beams; a scan with more beams is a run of its own, cast in parts.
 
         A cast keeps an entry (12 bytes) per scan and cell reached; a scan reaches at most its
         rays times the cells along the map's diagonal, and at most every cell. Casting a whole
         batch at once made memory grow with the batch (12 scans of 16,384 beams on a 16 M-cell
-        map: 3 GB, issue 11); chunks keep it near ``12 x CAST_CHUNK_ENTRIES`` bytes whatever the
-        batch, with the same cells and evidence (each scan is cast on its own anyway).
+        map: 3 GB, issue 11); so did making the rays of every beam of a batch first (about 300
+        bytes a beam: two scans of 2 M beams fused side by side took 1 GB). Chunks keep both
+        bounded whatever the batch, with the same cells and evidence (each scan is cast on its
+        own anyway).
         """
         reach = math.ceil(math.hypot(*self.spec.shape)) + 1
         chunks: list[tuple[int, int]] = []
-        first, held = 0, 0
-        for s, r in enumerate(rays):
-            entries = min(self.spec.num_cells, r.ranges.size * reach)
-            if s > first and held + entries > CAST_CHUNK_ENTRIES:
+        first, held, held_beams = 0, 0, 0
+        for s, scan in enumerate(scans):
+            beams = scan.beam_count
+            entries = min(self.spec.num_cells, beams * reach)
+            if s > first and (held + entries > CAST_CHUNK_ENTRIES or held_beams + beams > CAST_CHUNK_BEAMS
+                              or beams > CAST_CHUNK_BEAMS):
                 chunks.append((first, s))
-                first, held = s, 0
-            held += entries
-        chunks.append((first, len(rays)))
+                first, held, held_beams = s, 0, 0
+            held, held_beams = held + entries, held_beams + beams
+        chunks.append((first, len(scans)))
         return chunks
+
+    def _cast_in_parts(self, scan: Scan, scratch: np.ndarray | None) -> tuple[CastResult, int, int]:
+        """One scan's cast, ``CAST_CHUNK_BEAMS`` beams at a time; with its rays and the beams it dropped.
+
+        Equal to the whole scan's cast: a cell's evidence is the largest of its beams', so the
+        largest of the parts' (``np.fmax``, NaN for a cell a part did not reach), gathered in a
+        scratch over every cell. Memory: two scratches (4 bytes a cell each) and one part's
+        rays and cells, whatever the scan's size.
+        """
+        merged = new_scratch(self.spec, self._grid.block_shift)
+        traversed = n_rays = skipped = 0
+        for part in _parts(scan):
+            rays = self._rays_of(scan, part)
+            n_rays, skipped = n_rays + rays.ranges.size, skipped + rays.skipped
+            cast = self._cast([scan], [rays], scratch)
+            del rays
+            traversed += int(cast.cells_traversed.sum())
+            merged[cast.cells] = np.fmax(merged[cast.cells], cast.distance_sigmas)
+            del cast
+        cells = np.flatnonzero(~np.isnan(merged))  # in increasing id order, as a cast hands them out
+        result = CastResult(cells=cells, distance_sigmas=merged[cells], scan_offsets=np.array([0, cells.size]),
+                            cells_traversed=np.array([traversed]))
+        return result, n_rays, skipped
 
     def _check_scan(self, scan: object, name: str) -> None:
         if isinstance(scan, LaserScan):
@@ -254,9 +299,9 @@ class OccupancyMap:
         """Sigma along a beam is divided by ``max(sin(incidence), incidence_floor)``; 1 = incidence ignored."""
         return 1.0
 
-    def _rays_of(self, scan: Scan) -> Rays:
-        """The beams of ``scan`` as this model fuses them."""
-        return scan.to_rays()
+    def _rays_of(self, scan: Scan, beams: slice | None = None) -> Rays:
+        """The beams of ``scan`` (of its readings ``beams``, if given) as this model fuses them."""
+        return scan.to_rays(beams=beams)
 
     def _grazing(self, rays: Rays) -> np.ndarray | float:
         """Factor on each beam's sigma for its incidence (1 where unknown or ignored)."""
@@ -402,13 +447,19 @@ class FuzzyMap(OccupancyMap):
         """The engine's (1 for the paper's: incidence ignored)."""
         return self.engine.incidence_floor
 
-    def _rays_of(self, scan: Scan) -> Rays:
+    def _rays_of(self, scan: Scan, beams: slice | None = None) -> Rays:
         if not isinstance(scan, LaserScan):
-            return scan.to_rays()
-        rays = scan.to_rays(incidence=self.engine.incidence_floor < 1.0)
-        if self.engine.no_return_neighbours:
-            return rays.cut_no_returns(self.engine.no_return_neighbours)
-        return rays
+            return scan.to_rays(beams=beams)
+        incidence, neighbours = self.engine.incidence_floor < 1.0, self.engine.no_return_neighbours
+        if not neighbours:
+            return scan.to_rays(incidence, beams)
+        if beams is None:
+            return scan.to_rays(incidence).cut_no_returns(neighbours)
+        # a cut reads that many usable neighbours on each side: cut a wider part, keep this one's rays
+        wide = scan.widen(beams, neighbours)
+        rays = scan.to_rays(incidence, wide).cut_no_returns(neighbours)
+        before, own = scan.usable(slice(wide.start, beams.start)), scan.usable(beams)
+        return rays.part(before, before + own, skipped=(beams.stop - beams.start) - own)
 
     def _update(self, cells: np.ndarray, distance_sigmas: np.ndarray) -> int:
         self._blocks.fuse(cells, self.engine.fuzzify(distance_sigmas), self.engine.row_fusion())

@@ -82,6 +82,12 @@ class Rays:
         ranges[cut] = np.minimum(ranges[cut], np.maximum(nearest - NO_RETURN_CUT_MARGIN_M, 0.0))
         return dataclasses.replace(self, ranges=ranges)
 
+    def part(self, first: int, last: int, skipped: int) -> Rays:
+        """Rays ``[first, last)`` of these, dropped beams counted as ``skipped``."""
+        return Rays(origin=self.origin, directions=self.directions[first:last], ranges=self.ranges[first:last],
+                    hit=self.hit[first:last], skipped=skipped,
+                    incidence=None if self.incidence is None else self.incidence[first:last])
+
     @property
     def endpoints(self) -> np.ndarray:
         """(N, D) beam ends, map frame: the hit, or the ``range_max`` point of a no-return."""
@@ -172,28 +178,71 @@ class LaserScan:
         set_(self, "range_max", rmax)
         set_(self, "registration_sigma", _finite_scalar("registration_sigma", self.registration_sigma, minimum=0.0))
 
-    def to_rays(self, incidence: bool = False) -> Rays:
+    @property
+    def beam_count(self) -> int:
+        """Readings in the scan, usable or not."""
+        return int(self.ranges.size)
+
+    def to_rays(self, incidence: bool = False, beams: slice | None = None) -> Rays:
         """The beams that carry information (hits and no-returns), in the map frame.
 
         ``incidence``: also estimate each hit's incidence on its surface (``Rays.incidence``).
+        ``beams``: only the readings of this slice (step 1), the same rays as the whole scan's
+        for those readings: a huge scan is cast part by part, in bounded memory.
         """
-        r = self.ranges
+        n = self.ranges.size
+        first, last = (0, n) if beams is None else beams.indices(n)[:2]
+        r = self.ranges[first:last]
         keep = r >= self.range_min  # False for NaN and -inf as well
         no_return = r >= self.range_max  # +inf and the legacy range_max / range_max + 1
         x, y, theta = self.pose
         beam = np.flatnonzero(keep)
-        angles = theta + self.angle_min + beam * self.angle_increment
+        angles = theta + self.angle_min + (beam + first) * self.angle_increment
         directions = np.stack([np.cos(angles), np.sin(angles)], axis=1)
-        hit = keep & ~no_return
         return Rays(
             origin=np.array([x, y]),
             directions=directions,
             ranges=np.where(no_return[beam], self.range_max, r[beam]),
             hit=~no_return[beam],
             skipped=int(r.size - beam.size),
-            incidence=(_incidence(r, hit, self.angle_min + np.arange(r.size) * self.angle_increment)[beam]
-                       if incidence else None),
+            incidence=self._incidence_of(first, last)[beam] if incidence else None,
         )
+
+    def _incidence_of(self, first: int, last: int) -> np.ndarray:
+        """``_incidence`` of readings ``[first, last)``, from their neighbours (one more on each side)."""
+        lo, hi = max(first - 1, 0), min(last + 1, self.ranges.size)
+        r = self.ranges[lo:hi]
+        hit = (r >= self.range_min) & (r < self.range_max)
+        return _incidence(r, hit, self.angle_min + np.arange(lo, hi) * self.angle_increment)[first - lo:last - lo]
+
+    def widen(self, beams: slice, kept: int) -> slice:
+        """``beams`` (step 1) widened to hold ``kept`` usable readings more on each side, or up to the scan's ends:
+        what :meth:`Rays.cut_no_returns` with that many neighbours reads of a part of the scan."""
+        n = self.ranges.size
+        first, last = beams.indices(n)[:2]
+        if kept <= 0:
+            return slice(first, last)
+        window = 8 * kept + 64
+        while True:  # the nearest readings first: a scan of millions of beams is not searched whole per part
+            lo = max(first - window, 0)
+            before = np.flatnonzero(self.ranges[lo:first] >= self.range_min)
+            if before.size >= kept or lo == 0:
+                start = lo + int(before[-kept]) if before.size >= kept else 0
+                break
+            window *= 4
+        window = 8 * kept + 64
+        while True:
+            hi = min(last + window, n)
+            after = np.flatnonzero(self.ranges[last:hi] >= self.range_min)
+            if after.size >= kept or hi == n:
+                stop = last + int(after[kept - 1]) + 1 if after.size >= kept else n
+                break
+            window *= 4
+        return slice(start, stop)
+
+    def usable(self, beams: slice) -> int:
+        """Readings in ``beams`` that ``to_rays`` keeps."""
+        return int(np.count_nonzero(self.ranges[beams] >= self.range_min))
 
 
 #: Neighbouring end points farther apart than this fraction of the range (or of 1 m, below
@@ -298,10 +347,19 @@ class PointCloud:
         return cls(points=points_map, origin=tuple(position_map), range_max=range_max,
                    registration_sigma=registration_sigma)
 
-    def to_rays(self) -> Rays:
-        """The beams from the origin to each point (cut at ``range_max``), in the map frame."""
+    @property
+    def beam_count(self) -> int:
+        """Points in the cloud."""
+        return int(self.points.shape[0])
+
+    def to_rays(self, beams: slice | None = None) -> Rays:
+        """The beams from the origin to each point (cut at ``range_max``), in the map frame.
+
+        ``beams``: only the points of this slice (a huge cloud is cast part by part).
+        """
         origin = np.asarray(self.origin)
-        offsets = self.points - origin
+        points = self.points if beams is None else self.points[beams]
+        offsets = points - origin
         dist = np.linalg.norm(offsets, axis=1)
         beam = np.flatnonzero(dist > 0.0)
         dist = dist[beam]
@@ -310,5 +368,5 @@ class PointCloud:
             directions=offsets[beam] / dist[:, None],
             ranges=np.minimum(dist, self.range_max),
             hit=dist <= self.range_max,
-            skipped=int(self.points.shape[0] - beam.size),
+            skipped=int(points.shape[0] - beam.size),
         )

@@ -378,10 +378,87 @@ def test_a_batch_cast_in_chunks_gives_the_map_of_one_cast(model, ndim, monkeypat
                             origin=(2.0 + 0.1 * k, 1.5, 1.0), range_max=5.0) for k in range(7)]
     whole = model(spec, SensorModel(range_sigma=0.05))
     whole.integrate_batch(scans)
-    assert len(whole._cast_chunks([whole._rays_of(s) for s in scans])) == 1  # the default: one cast here
+    assert len(whole._cast_chunks(scans)) == 1  # the default: one cast here
     monkeypatch.setattr(maps_module, "CAST_CHUNK_ENTRIES", 1)  # every scan a chunk of its own
     chunked = model(spec, SensorModel(range_sigma=0.05))
-    assert chunked._cast_chunks([chunked._rays_of(s) for s in scans]) == [(k, k + 1) for k in range(7)]
+    assert chunked._cast_chunks(scans) == [(k, k + 1) for k in range(7)]
     stats = chunked.integrate_batch(scans)
     assert np.array_equal(chunked.risk(), whole.risk()) and np.array_equal(chunked.observed(), whole.observed())
     assert stats.scans == 7 and chunked.scans_fused == whole.scans_fused
+
+
+def _awkward_scan(rng: np.random.Generator, n: int, k: int) -> LaserScan:
+    """Hits, no-returns beside hits and in runs, and every kind of unusable reading, in random places."""
+    ranges = rng.uniform(0.3, 4.5, n)
+    kind = rng.integers(0, 8, n)
+    ranges[kind == 0] = math.inf
+    ranges[kind == 1] = 6.0  # range_max: a no-return too
+    ranges[kind == 2] = math.nan
+    ranges[kind == 3] = 0.01  # below range_min
+    ranges[kind == 4] = -math.inf
+    ranges[40:70] = math.inf  # a run of no-returns: cut only near its ends
+    return LaserScan(pose=(3.0 + 0.2 * k, 2.0 - 0.1 * k, 0.4 * k), angle_min=-math.pi, angle_increment=2 * math.pi / n,
+                     ranges=ranges, range_min=0.1, range_max=6.0)
+
+
+@pytest.mark.parametrize("model", [FuzzyMap, BayesMap])
+@pytest.mark.parametrize("ndim", [2, 3])
+def test_a_scan_cast_in_parts_gives_the_map_of_one_cast(model, ndim, monkeypatch) -> None:
+    # issue 11: the rays of every beam of a scan were made at once (about 300 bytes a beam): two scans of
+    # 2 M beams fused side by side took 1 GB; a huge scan is now made and cast a part at a time
+    import fuzzyocc.maps as maps_module
+
+    rng = np.random.default_rng(7)
+    if ndim == 2:
+        spec = GridSpec(origin=(0.0, 0.0), size=(6.0, 4.0), resolution=0.05)
+        scans = [_awkward_scan(rng, 997, k) for k in range(3)]
+    else:
+        spec = GridSpec(origin=(0.0, 0.0, 0.0), size=(4.0, 3.0, 2.0), resolution=0.1)
+        scans = [PointCloud(points=rng.uniform((0.2, 0.2, 0.2), (3.8, 2.8, 1.8), (400, 3)),
+                            origin=(2.0 + 0.1 * k, 1.5, 1.0), range_max=2.5) for k in range(3)]
+    whole = model(spec, SensorModel(range_sigma=0.05))
+    expected = whole.integrate_batch(scans)
+    monkeypatch.setattr(maps_module, "CAST_CHUNK_BEAMS", 50)  # parts of 50 beams: 20 or so a scan
+    parted = model(spec, SensorModel(range_sigma=0.05))
+    assert parted._cast_chunks(scans) == [(0, 1), (1, 2), (2, 3)]
+    stats = parted.integrate_batch(scans)
+    assert parted.to_arrays().keys() == whole.to_arrays().keys()
+    for key, value in whole.to_arrays().items():
+        assert np.array_equal(parted.to_arrays()[key], value), key
+    assert np.array_equal(parted.risk(), whole.risk())
+    assert stats == expected  # the same rays, dropped readings and cells walked
+
+
+def test_the_rays_of_a_scans_parts_are_the_rays_of_the_whole_scan() -> None:
+    # the parts read their neighbours across the cut: the incidence (one reading on each side) and the
+    # no-returns cut at hits beside them (the engine's 3 usable readings on each side)
+    scan = _awkward_scan(np.random.default_rng(3), 500, 1)
+    m = FuzzyMap(GridSpec(origin=(0.0, 0.0), size=(6.0, 4.0), resolution=0.05))
+    assert m.engine.no_return_neighbours and m.engine.incidence_floor < 1.0  # the default engine reads both
+    whole = m._rays_of(scan)
+    for size in (1, 2, 3, 7, 64, 499):
+        parts = [m._rays_of(scan, slice(a, min(a + size, 500))) for a in range(0, 500, size)]
+        for field in ("directions", "ranges", "hit", "incidence"):
+            joined = np.concatenate([getattr(r, field) for r in parts])
+            assert np.array_equal(joined, getattr(whole, field), equal_nan=field == "incidence"), (size, field)
+        assert sum(r.skipped for r in parts) == whole.skipped
+
+
+def test_fusing_a_huge_scan_takes_memory_for_its_readings_not_for_its_rays() -> None:
+    import tracemalloc
+
+    spec = GridSpec(origin=(-10.0, -10.0), size=(20.0, 20.0), resolution=0.05)
+    m = FuzzyMap(spec)
+    beams = 1_000_000
+    scan = LaserScan(pose=(0.0, 0.0, 0.0), angle_min=-math.pi, angle_increment=2 * math.pi / beams,
+                     ranges=np.full(beams, 7.4), range_min=0.05, range_max=30.0)
+    m.integrate_batch([LaserScan(pose=(0.0, 0.0, 0.0), angle_min=-math.pi, angle_increment=0.1,
+                                 ranges=np.full(63, 7.4), range_min=0.05, range_max=30.0)])  # kernels compiled
+    tracemalloc.start()
+    try:
+        m.integrate_batch([scan])
+        _, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    # before: about 170 bytes a beam (rays of the whole scan, then their cast); now parts of 65,536 beams
+    assert peak < 40 * beams, f"{peak / beams:.0f} bytes a beam"
