@@ -9,12 +9,12 @@ from __future__ import annotations
 
 import asyncio
 import itertools
-import os
-import threading
 import time
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from typing import TypeVar
+
+from app import lifecycle
 
 T = TypeVar("T")
 
@@ -71,7 +71,4 @@ HEAVY_NICE = 10
 def _yield_cpu() -> None:
     """Run this thread at a lower priority: a heavy batch then takes the CPU a robot's batch leaves, not a share
     of it (two 2 M-beam scans at equal priority took two thirds of the 2 cores from every other map's fusion)."""
-    try:
-        os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), HEAVY_NICE)
-    except (AttributeError, OSError):  # not Linux, or not allowed: equal shares, as before
-        pass
+    lifecycle.lower_priority(HEAVY_NICE)

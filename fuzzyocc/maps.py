@@ -24,8 +24,9 @@ Maps are not thread-safe: serialise calls on one map.
 
 from __future__ import annotations
 
+import functools
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import cast
 
@@ -53,6 +54,14 @@ def _parts(scan: Scan) -> list[slice]:
     """``scan``'s readings in consecutive slices of at most ``CAST_CHUNK_BEAMS``."""
     n = scan.beam_count
     return [slice(a, min(a + CAST_CHUNK_BEAMS, n)) for a in range(0, n, CAST_CHUNK_BEAMS)] or [slice(0, 0)]
+
+
+def _defuzzified(engine: FuzzyEngine, state: np.ndarray) -> np.ndarray:
+    return np.asarray(engine.defuzzify(state), dtype=np.float32)
+
+
+def _probability(logodds: np.ndarray) -> np.ndarray:
+    return np.asarray(bayes.probability(logodds), dtype=np.float32)
 
 
 def cast_work(spec: GridSpec, scans: Sequence[Scan]) -> int:
@@ -126,7 +135,7 @@ class OccupancyMap:
 
     def _grid_from(self, state: np.ndarray, observed: np.ndarray) -> CellGrid | BlockGrid:
         """Storage holding ``state`` ((num_cells, ...), taken over) and ``observed``."""
-        return CellGrid(self.spec, state, observed, self._risk_of)
+        return CellGrid(self.spec, state, observed, self._risk_fn())
 
     # -- what a model defines ------------------------------------------------------------
     def _initial_state(self) -> np.ndarray:
@@ -142,8 +151,13 @@ class OccupancyMap:
         """Fuse one scan's evidence (finite float32 distances, sigmas) into ``cells``; returns how many."""
         raise NotImplementedError
 
-    def _risk_of(self, state: np.ndarray) -> np.ndarray:
-        """(n, ...) states -> (n,) float32 risk."""
+    def _risk_fn(self) -> Callable[[np.ndarray], np.ndarray]:
+        """(n, ...) states -> (n,) float32 risk, as a function that does not hold the map.
+
+        (A bound method held by the map's own storage made every map a reference cycle: a
+        map let go was freed only by the cyclic garbage collector, whenever it ran, so the
+        memory of a deleted map could not go back to the system at the delete, issue 11.)
+        """
         raise NotImplementedError
 
     # -- integration ---------------------------------------------------------------------
@@ -432,10 +446,10 @@ class FuzzyMap(OccupancyMap):
 
     def _new_grid(self) -> BlockGrid:
         # Without the dense initial state: one uniform row for the whole grid.
-        return BlockGrid.filled(self.spec, np.asarray(self.engine.unknown_state(), dtype=np.uint8), self._risk_of)
+        return BlockGrid.filled(self.spec, np.asarray(self.engine.unknown_state(), dtype=np.uint8), self._risk_fn())
 
     def _grid_from(self, state: np.ndarray, observed: np.ndarray) -> BlockGrid:
-        return BlockGrid.from_dense(self.spec, state, observed, self._risk_of)
+        return BlockGrid.from_dense(self.spec, state, observed, self._risk_fn())
 
     @property
     def occupied_extent(self) -> float:
@@ -465,8 +479,8 @@ class FuzzyMap(OccupancyMap):
         self._blocks.fuse(cells, self.engine.fuzzify(distance_sigmas), self.engine.row_fusion())
         return int(cells.size)
 
-    def _risk_of(self, state: np.ndarray) -> np.ndarray:
-        return np.asarray(self.engine.defuzzify(state), dtype=np.float32)
+    def _risk_fn(self) -> Callable[[np.ndarray], np.ndarray]:
+        return functools.partial(_defuzzified, self.engine)
 
     def to_arrays(self) -> dict[str, np.ndarray]:
         """Everything needed to restore the map bit for bit (copies)."""
@@ -519,8 +533,8 @@ class BayesMap(OccupancyMap):
             self._cells.write(part, bayes.update_logodds(self._cells.read(part), evidence))
         return int(cells.size)
 
-    def _risk_of(self, state: np.ndarray) -> np.ndarray:
-        return np.asarray(bayes.probability(state), dtype=np.float32)
+    def _risk_fn(self) -> Callable[[np.ndarray], np.ndarray]:
+        return _probability
 
     def to_arrays(self) -> dict[str, np.ndarray]:
         """Everything needed to restore the map bit for bit (copies)."""

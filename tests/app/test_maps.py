@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import gc
+import weakref
 from typing import Any
 
 import pytest
@@ -122,3 +124,18 @@ def test_a_size_that_is_not_whole_cells_is_rounded_up_and_reported_as_built(clie
     inside = client.post("/maps/odd/risk/query", json={"points": [[1.04, 0.34]]})
     outside = client.post("/maps/odd/risk/query", json={"points": [[1.06, 0.1]]})
     assert inside.status_code == 200 and outside.status_code == 422
+
+
+def test_a_deleted_maps_memory_is_freed_at_the_delete(lab: TestClient, kit: Any) -> None:
+    # issue 11: every map was a reference cycle (its storage held a bound method of the map), so a deleted
+    # map stayed in memory until the cyclic garbage collector ran, after the delete had returned its
+    # memory to the system: 25 maps of 16 M cells made and deleted, round after round, kept up to 400 MiB
+    assert lab.post("/maps/lab/scans", json={"scans": [kit.laser()]}).status_code == 200
+    held = weakref.ref(lab.app.state.service.maps.entry("lab").map)  # type: ignore[attr-defined]
+    gc.collect()
+    gc.disable()
+    try:
+        assert lab.delete("/maps/lab").status_code == 204
+        assert held() is None
+    finally:
+        gc.enable()

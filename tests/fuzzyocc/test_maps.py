@@ -462,3 +462,25 @@ def test_fusing_a_huge_scan_takes_memory_for_its_readings_not_for_its_rays() -> 
         tracemalloc.stop()
     # before: about 170 bytes a beam (rays of the whole scan, then their cast); now parts of 65,536 beams
     assert peak < 40 * beams, f"{peak / beams:.0f} bytes a beam"
+
+
+@pytest.mark.parametrize("model", [FuzzyMap, BayesMap])
+def test_a_map_is_freed_as_soon_as_it_is_let_go(model) -> None:
+    # without the cyclic garbage collector: no reference cycle (issue 11: a map's storage held a bound
+    # method of the map, so a map let go lingered until the collector ran)
+    import gc
+    import weakref
+
+    spec = GridSpec(origin=(0.0, 0.0), size=(4.0, 4.0), resolution=0.1)
+    m = model(spec, SensorModel(range_sigma=0.05))
+    m.integrate_scan(pose=(2.0, 2.0, 0.0), angle_min=-1.0, angle_increment=0.1, ranges=np.full(21, 1.5),
+                     range_min=0.1, range_max=5.0)
+    restored = model.from_arrays(spec, SensorModel(range_sigma=0.05), m.to_arrays())
+    refs = [weakref.ref(m), weakref.ref(restored)]
+    gc.collect()
+    gc.disable()
+    try:
+        del m, restored
+        assert [r() for r in refs] == [None, None]
+    finally:
+        gc.enable()
