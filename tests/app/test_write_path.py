@@ -525,6 +525,21 @@ def test_a_map_with_a_full_line_refuses_more_batches_with_503_and_other_maps_go_
         assert kit.risk_npy(client, "lab").tobytes() == _replay(kit, bodies)
 
 
+def _hold_applies(service: Any, monkeypatch: pytest.MonkeyPatch, name: str) -> tuple[threading.Event, threading.Event]:
+    """Hold every batch of map ``name`` in its fusion thread until ``release``; ``held`` is set when one is."""
+    held, release = threading.Event(), threading.Event()
+    apply = service.writes._apply
+
+    def slow_apply(entry: Any, version: int, scans: Any) -> Any:
+        if entry.name == name:
+            held.set()
+            release.wait(60)
+        return apply(entry, version, scans)
+
+    monkeypatch.setattr(service.writes, "_apply", slow_apply)
+    return held, release
+
+
 def test_a_read_of_one_map_does_not_wait_behind_the_fusion_of_another(make_client: Any, kit: Any,
                                                                       monkeypatch: pytest.MonkeyPatch) -> None:
     # every fusion thread busy with map a (held here, as a scan of millions of beams would be): a read
@@ -533,16 +548,7 @@ def test_a_read_of_one_map_does_not_wait_behind_the_fusion_of_another(make_clien
     for name in ("a", "b"):
         assert client.post("/maps", json={**kit.MAP_2D, "name": name}).status_code == 201
     service = client.app.state.service  # type: ignore[attr-defined]
-    held, release = threading.Event(), threading.Event()
-    apply = service.writes._apply
-
-    def slow_apply(entry: Any, version: int, scans: Any) -> Any:
-        if entry.name == "a":
-            held.set()
-            release.wait(60)
-        return apply(entry, version, scans)
-
-    monkeypatch.setattr(service.writes, "_apply", slow_apply)
+    held, release = _hold_applies(service, monkeypatch, "a")
     with ThreadPoolExecutor(1) as pool:
         fusing = pool.submit(client.post, "/maps/a/scans", json={"scans": [kit.laser()]})
         assert held.wait(30)
@@ -562,15 +568,7 @@ def test_ready_shows_the_fusion_backlog_while_reads_are_served(make_client: Any,
     client = make_client(fusion_threads=1)
     assert client.post("/maps", json=kit.MAP_2D).status_code == 201
     service = client.app.state.service  # type: ignore[attr-defined]
-    held, release = threading.Event(), threading.Event()
-    apply = service.writes._apply
-
-    def slow_apply(entry: Any, version: int, scans: Any) -> Any:
-        held.set()
-        release.wait(60)
-        return apply(entry, version, scans)
-
-    monkeypatch.setattr(service.writes, "_apply", slow_apply)
+    held, release = _hold_applies(service, monkeypatch, "lab")
     with ThreadPoolExecutor(2) as pool:
         first = pool.submit(client.post, "/maps/lab/scans", json={"scans": [kit.laser()]})
         assert held.wait(30)
