@@ -62,6 +62,7 @@ from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
+from pathlib import Path
 from typing import Any
 
 import httpx
@@ -640,6 +641,8 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--only", default="", help="comma-separated scenario keys (default: all)")
     parser.add_argument("--server-log", default="/tmp/bench-abuse-server.log", help="where the server's log is kept")
+    parser.add_argument("--samples", default="/tmp/bench-abuse-samples.json",
+                        help="where the innocent's requests (start, end, kind, status) and the rows' windows are kept")
     args = parser.parse_args(argv)
     only = {k for k in args.only.split(",") if k}
     settings = _settings()
@@ -737,6 +740,10 @@ def main(argv: list[str] | None = None) -> int:
 
             shutil.copy(server.log_path, args.server_log)
         server.close()
+
+    Path(args.samples).write_text(json.dumps({
+        "samples": [list(s[:4]) for s in samples], "baselines": [base1, base2],
+        "rows": [{"key": r.key, "start": r.start, "end": r.end} for r in rows]}))
 
     # ---- the unloaded reference: both quiet windows, pooled
     ref: dict[str, float] = {}

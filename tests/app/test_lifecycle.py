@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import gc
 import os
 import re
 import signal
@@ -137,6 +138,19 @@ def test_ready_answers_503_then_200_once_the_kernels_are_compiled(make_client: C
     assert ready == {"status_code": 200, "status": "ready", "maps_loaded": 0, "maps_quarantined": [],
                      "kernels_compiled": True, "planner_workers_ready": 0, "planner_workers_wanted": 0,
                      "batches_in_line": 0, "longest_fusion_job_s": 0.0, "detail": ""}
+
+
+def test_once_ready_a_full_garbage_collection_skips_what_lives_as_long_as_the_process(
+    make_settings: Callable[..., Settings],
+) -> None:
+    # issue 11: a full collection walked every module, kernel and map of the process (about 100 ms on 175,000
+    # objects, holding the GIL): every client's requests waited, at the collector's rhythm
+    from app.main import create_app
+
+    with TestClient(create_app(make_settings())) as client:
+        _wait_ready(client)
+        assert gc.get_freeze_count() > 10_000
+    assert gc.get_freeze_count() == 0  # a stopped service leaves the collector as it found it
 
 
 def test_ready_waits_for_the_planner_workers_when_they_start_with_the_service(
