@@ -113,6 +113,9 @@ class BodyBudgetMiddleware:
     (issue 11). A body whose next chunk takes longer than ``read_timeout_s``, or which is not all
     in within ``body_timeout_s`` of its first wait, answers 408: a trickled body (a byte every 10 s
     passes any per-chunk timeout) does not hold its connection and its share of the budget for ever.
+    The bodies of one map hold at most half the budget once two of them are arriving: forty
+    uploads to one map took all of it, and every other map's scans answered 503 for a second at
+    a time (bench abuse row 3). One body alone may still take the whole budget.
     """
 
     def __init__(self, app: ASGIApp, max_bytes: int, read_timeout_s: float, body_timeout_s: float = math.inf) -> None:
@@ -121,6 +124,7 @@ class BodyBudgetMiddleware:
         self.read_timeout_s = read_timeout_s
         self.body_timeout_s = body_timeout_s
         self.in_flight = 0  # bytes of bodies received and not yet answered (one event loop: no lock)
+        self.by_map: dict[str, int] = {}  # the same, by the map the request's path names ("" for others)
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http":
@@ -129,6 +133,7 @@ class BodyBudgetMiddleware:
         held = 0
         body_done = False
         deadline: float | None = None  # the whole body's, from the first wait for it
+        target = _map_of(scope.get("path", ""))
 
         async def budgeted_receive() -> Message:
             nonlocal held, body_done, deadline
@@ -154,7 +159,13 @@ class BodyBudgetMiddleware:
                     raise HTTPException(status_code=503, headers={"Retry-After": "1"}, detail=(
                         f"the service is receiving {self.in_flight} bytes of request bodies, its limit "
                         f"(FUZZYRISK_MAX_BODIES_IN_FLIGHT_BYTES); retry"))
+                mine = self.by_map.get(target, 0)
+                if mine > held and mine + size > self.max_bytes // 2:
+                    raise HTTPException(status_code=503, headers={"Retry-After": "1"}, detail=(
+                        f"map {target!r} is receiving {mine} bytes of request bodies, the most one map's "
+                        f"may hold while others arrive (half of FUZZYRISK_MAX_BODIES_IN_FLIGHT_BYTES); retry"))
                 self.in_flight += size
+                self.by_map[target] = mine + size
                 held += size
                 body_done = not message.get("more_body", False)
             else:
@@ -165,6 +176,18 @@ class BodyBudgetMiddleware:
             await self.app(scope, budgeted_receive, send)
         finally:
             self.in_flight -= held
+            if held:
+                left = self.by_map[target] - held
+                if left:
+                    self.by_map[target] = left
+                else:
+                    del self.by_map[target]
+
+
+def _map_of(path: str) -> str:
+    """The map a request's path names (``/maps/{name}/...``), or "" for any other path."""
+    parts = path.split("/", 3)
+    return parts[2] if len(parts) > 2 and parts[1] == "maps" else ""
 
 
 class ObserveMiddleware:

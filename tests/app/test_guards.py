@@ -212,6 +212,34 @@ def test_bodies_in_flight_share_one_budget_and_a_refused_one_gives_its_bytes_bac
     assert held == 6_000 and budget.in_flight == 0
 
 
+def test_one_maps_bodies_leave_half_of_the_budget_to_the_others() -> None:
+    # issue 11 (bench abuse row 3): forty uploads to one map held the whole budget, and every other map's
+    # scans answered 503 with Retry-After 1 s
+    budget = BodyBudgetMiddleware(ExceptionMiddleware(_drain), max_bytes=10_000, read_timeout_s=5.0)
+
+    def request(path: str, chunks: list[bytes], gate: Any = None) -> tuple[dict, Any, list[dict]]:
+        scope, receive, sent = _request(chunks, gate)
+        return {**scope, "path": path}, receive, sent
+
+    async def run() -> list[int]:
+        gate = asyncio.Event()
+        held = [request("/maps/a/scans", [b"x" * 3_000, b"x"], gate) for _ in range(2)]
+        alone = request("/maps/c/scans", [b"z" * 4_000, b"z" * 4_000])  # one body alone: past half, within all
+        tasks = [asyncio.create_task(budget(*_with_send(r))) for r in held[:1]]
+        await asyncio.sleep(0.05)
+        third_of_a = request("/maps/a/scans", [b"x" * 3_000])  # a would hold 6,000: past half of 10,000
+        await budget(*_with_send(third_of_a))
+        other_map = request("/maps/b/scans", [b"y" * 3_000])  # 6,000 of 10,000 in all: room
+        await budget(*_with_send(other_map))
+        gate.set()
+        await asyncio.gather(*tasks)
+        await budget(*_with_send(alone))
+        return [_status(third_of_a[2]), _status(other_map[2]), _status(held[0][2]), _status(alone[2])]
+
+    assert asyncio.run(run()) == [503, 200, 200, 200]
+    assert budget.in_flight == 0 and budget.by_map == {}
+
+
 def test_a_stalled_body_answers_408() -> None:
     budget = BodyBudgetMiddleware(ExceptionMiddleware(_drain), max_bytes=10_000, read_timeout_s=0.1)
     never = asyncio.Event()
