@@ -170,14 +170,17 @@ def exit_with_parent() -> None:
     threading.Thread(target=watch, name="parent-watch", daemon=True).start()
 
 
-def lower_priority(niceness: int) -> None:
-    """Run the calling thread (and the threads it starts) at ``niceness``: the CPU goes to the others first.
+def lower_priority(by: int) -> None:
+    """Run the calling thread (and the threads and processes it starts) ``by`` steps of niceness below where it
+    runs now: the CPU goes to the others first.
 
-    Linux schedules each thread with its own niceness; elsewhere, or where it is not allowed, nothing
-    changes (equal shares, as before).
+    Relative, so that a service started niced (``nice``, systemd's ``Nice=``) keeps the order. Linux
+    schedules each thread with its own niceness; elsewhere, or where it is not allowed, nothing changes
+    (equal shares, as before).
     """
     try:
-        os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), niceness)
+        me = threading.get_native_id()
+        os.setpriority(os.PRIO_PROCESS, me, min(19, os.getpriority(os.PRIO_PROCESS, me) + by))
     except (AttributeError, OSError):
         pass
 

@@ -67,7 +67,7 @@ def _ensure_forkserver(context: multiprocessing.context.BaseContext) -> None:
         _FORKSERVER_STARTER.submit(multiprocessing.forkserver.ensure_running).result()
 
 
-#: The niceness of the planner workers: a plan (seconds of CPU) takes what scans and reads leave (issue 11: a
+#: How much nicer than the server the planner workers run: a plan (seconds of CPU) takes what scans and reads leave (issue 11: a
 #: 30 s plan, and ten clients' plans on both cores, made an innocent client's map reads 2.6x slower)
 PLAN_NICE = 5
 #: Bytes of fields a worker keeps when its pool is not told (``PlanPool(field_cache_bytes=...)``).

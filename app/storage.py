@@ -234,7 +234,8 @@ def read_map(query: Callable[[str, tuple[Any, ...]], Iterable[Sequence[Any]]], n
             if snapshot[3] is not None:
                 stored.stamps[snapshot[0]] = snapshot[3]
     lower = -_NO_LIMIT if after is None else max(after, snapshot_row or 0)
-    previous = max(after or 0, snapshot_row or 0)
+    # (a recorded snapshot whose row is gone is reported as such below, not again as the batches it held)
+    previous = max(after or 0, snapshot_row or 0, snapshot_version or 0)
     for seq, payload, crc, stamp in query("SELECT seq, payload, crc, updated FROM batches WHERE map = ? AND seq > ? "
                                           "AND seq <= ? ORDER BY seq",
                                           (name, lower, _NO_LIMIT if up_to is None else up_to)):
@@ -247,6 +248,12 @@ def read_map(query: Callable[[str, tuple[Any, ...]], Iterable[Sequence[Any]]], n
         _take_batch(stored, seq, bytes(payload), crc)
         if stamp is not None:
             stored.stamps[seq] = stamp
+    if up_to is not None and previous < up_to:  # a gap just below up_to shows only in the row above it
+        for seq, stamp in query("SELECT seq, updated FROM batches WHERE map = ? AND seq > ? ORDER BY seq LIMIT 1",
+                                (name, previous)):
+            if stamp is not None and seq > previous + 1:
+                stored.damage.append(f"its batches {previous + 1} to {seq - 1} are missing (the log jumps from "
+                                     f"version {previous} to {seq})")
     _check_versions(stored, version, snapshot_version, snapshot_row or 0, newest_seq or 0)
     return stored
 

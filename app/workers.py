@@ -64,7 +64,7 @@ class Workers:
         self._fusion.shutdown(wait=True)
 
 
-#: The niceness of the heavy batches' threads (Linux schedules each thread with its own).
+#: How much nicer than the server the heavy batches' threads run (Linux schedules each thread with its own).
 HEAVY_NICE = 10
 
 

@@ -43,6 +43,7 @@ import contextlib
 import functools
 import logging
 import time
+import traceback
 from collections.abc import AsyncIterator, Callable, Mapping
 
 from fastapi.exceptions import RequestValidationError
@@ -209,7 +210,7 @@ class WritePath:
         started = time.perf_counter()
         try:
             stats = entry.map.integrate_batch(scans)
-        except BaseException:
+        except BaseException as exc:
             # never acknowledged: it must not come back at the next start
             try:
                 self.storage.discard_batch(entry.name, version, entry.incarnation)
@@ -217,6 +218,10 @@ class WritePath:
                 LOG.exception("map %s: batch %d failed to apply and could not be removed from the log; "
                               "a start before the next snapshot will replay it", entry.name, version)
             self._rebuild(entry)
+            # the frames of the traceback hold the replaced map (``self`` of integrate_batch), and the error
+            # and its frames make a cycle: that map, maybe hundreds of MB after a MemoryError, would stay until
+            # the cyclic collector ran
+            traceback.clear_frames(exc.__traceback__)
             raise
         model = entry.meta["model"]
         self.metrics.fusion_seconds.labels(model).observe(time.perf_counter() - started)

@@ -24,6 +24,7 @@ Maps are not thread-safe: serialise calls on one map.
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import math
 from collections.abc import Callable, Sequence
@@ -469,11 +470,15 @@ class FuzzyMap(OccupancyMap):
             return scan.to_rays(incidence, beams)
         if beams is None:
             return scan.to_rays(incidence).cut_no_returns(neighbours)
-        # a cut reads that many usable neighbours on each side: cut a wider part, keep this one's rays
+        # a cut reads that many usable neighbours on each side: cut a wider part, keep this one's rays. The wide
+        # part may span the whole scan (usable readings only at its ends): nothing but the cut is made of it
         wide = scan.widen(beams, neighbours)
-        rays = scan.to_rays(incidence, wide).cut_no_returns(neighbours)
+        rays = scan.to_rays(False, wide).cut_no_returns(neighbours)
         before, own = scan.usable(slice(wide.start, beams.start)), scan.usable(beams)
-        return rays.part(before, before + own, skipped=(beams.stop - beams.start) - own)
+        rays = rays.part(before, before + own, skipped=(beams.stop - beams.start) - own)
+        if incidence:
+            rays = dataclasses.replace(rays, incidence=scan.incidence_of(beams))
+        return rays
 
     def _update(self, cells: np.ndarray, distance_sigmas: np.ndarray) -> int:
         self._blocks.fuse(cells, self.engine.fuzzify(distance_sigmas), self.engine.row_fusion())

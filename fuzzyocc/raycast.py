@@ -280,6 +280,10 @@ def cast_rays(
     n_rays = origins.shape[0]
     if origins.shape != (n_rays, d) or directions.shape != (n_rays, d):
         raise ValueError(f"origins and directions must both have shape (R, {d}), got {origins.shape}, {directions.shape}")
+    if not (np.isfinite(origins).all() and np.isfinite(directions).all()
+            and np.isfinite(np.asarray(t_end, dtype=np.float64)).all()):
+        # the kernel trusts them: a NaN direction made it hand out cell ids it never wrote (out of bounds)
+        raise ValueError("origins, directions and t_end must be finite")
     offsets = np.asarray(ray_offsets, dtype=np.int64)
     if offsets.ndim != 1 or offsets.size < 1 or offsets[0] != 0 or offsets[-1] != n_rays or np.any(np.diff(offsets) < 0):
         raise ValueError("ray_offsets must rise from 0 to the number of rays")

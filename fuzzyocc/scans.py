@@ -123,6 +123,10 @@ def _check_count(name: str, count: int, max_rays: int) -> None:
         raise ValueError(f"{name} has {count} beams, more than the limit of {max_rays} per scan; split the scan")
 
 
+#: Largest angle, radians, a LaserScan's beam may have (before it is wrapped).
+MAX_ANGLE = 1e6
+
+
 @dataclass(frozen=True, eq=False)
 class LaserScan:
     """A planar scan (``sensor_msgs/LaserScan``) taken from a 2-D pose.
@@ -169,6 +173,12 @@ class LaserScan:
         if inc == 0.0 and ranges.size > 1:  # one beam (a single-point rangefinder) has no increment
             raise ValueError("angle_increment must be non-zero for more than one range")
         _check_count("ranges", ranges.size, self.max_rays)
+        # beyond this a beam's direction means nothing, and past float range it is NaN: a cast of NaN
+        # directions wrote outside the map (a segfault at every restart, issue 11)
+        span = abs(self.pose[2]) + abs(self.angle_min) + max(ranges.size - 1, 0) * abs(inc)
+        if not span <= MAX_ANGLE:
+            raise ValueError(f"the beams' angles (pose theta + angle_min + i * angle_increment) must stay within "
+                             f"{MAX_ANGLE:g} rad of 0, got up to {span:g}")
         set_(self, "ranges", _readonly(ranges))
         rmin = _finite_scalar("range_min", self.range_min, minimum=0.0)
         rmax = _finite_scalar("range_max", self.range_max, minimum=0.0)
@@ -190,8 +200,7 @@ class LaserScan:
         ``beams``: only the readings of this slice (step 1), the same rays as the whole scan's
         for those readings: a huge scan is cast part by part, in bounded memory.
         """
-        n = self.ranges.size
-        first, last = (0, n) if beams is None else beams.indices(n)[:2]
+        first, last = self._bounds(beams)
         r = self.ranges[first:last]
         keep = r >= self.range_min  # False for NaN and -inf as well
         no_return = r >= self.range_max  # +inf and the legacy range_max / range_max + 1
@@ -208,6 +217,20 @@ class LaserScan:
             incidence=self._incidence_of(first, last)[beam] if incidence else None,
         )
 
+    def _bounds(self, beams: slice | None) -> tuple[int, int]:
+        n = self.ranges.size
+        if beams is None:
+            return 0, n
+        first, last, step = beams.indices(n)
+        if step != 1:
+            raise ValueError(f"beams must be a slice of consecutive readings, got step {step}")
+        return first, max(first, last)
+
+    def incidence_of(self, beams: slice) -> np.ndarray:
+        """``Rays.incidence`` of the rays ``to_rays(beams=beams)`` makes (the usable readings of ``beams``)."""
+        first, last = self._bounds(beams)
+        return self._incidence_of(first, last)[self.ranges[first:last] >= self.range_min]
+
     def _incidence_of(self, first: int, last: int) -> np.ndarray:
         """``_incidence`` of readings ``[first, last)``, from their neighbours (one more on each side)."""
         lo, hi = max(first - 1, 0), min(last + 1, self.ranges.size)
@@ -219,7 +242,7 @@ class LaserScan:
         """``beams`` (step 1) widened to hold ``kept`` usable readings more on each side, or up to the scan's ends:
         what :meth:`Rays.cut_no_returns` with that many neighbours reads of a part of the scan."""
         n = self.ranges.size
-        first, last = beams.indices(n)[:2]
+        first, last = self._bounds(beams)
         if kept <= 0:
             return slice(first, last)
         window = 8 * kept + 64

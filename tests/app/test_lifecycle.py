@@ -210,3 +210,22 @@ def test_constraints_pin_every_dependency_of_every_extra() -> None:
               if line and not line.startswith("#")}
     assert all("==" in line for line in pinned.values())
     assert sorted({name(r) for r in wanted} - set(pinned)) == []
+
+
+def test_a_lower_priority_is_lower_than_where_the_thread_ran_started_niced_or_not() -> None:
+    # relative: a service started at niceness 10 (nice, systemd's Nice=) set its workers to 5, above itself
+    import threading
+
+    def niced_then_lowered() -> tuple[int, int]:
+        me = threading.get_native_id()
+        os.setpriority(os.PRIO_PROCESS, me, os.getpriority(os.PRIO_PROCESS, me) + 3)
+        before = os.getpriority(os.PRIO_PROCESS, me)
+        lifecycle.lower_priority(5)
+        return before, os.getpriority(os.PRIO_PROCESS, me)
+
+    result: list[tuple[int, int]] = []
+    thread = threading.Thread(target=lambda: result.append(niced_then_lowered()))
+    thread.start()
+    thread.join()
+    before, after = result[0]
+    assert after == min(19, before + 5)

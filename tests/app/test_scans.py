@@ -321,3 +321,12 @@ def test_a_single_beam_rangefinder_needs_no_angle_increment(lab: TestClient, kit
     two = {**kit.laser(ranges=[2.0, 2.0]), "angle_increment": 0.0}
     answer = lab.post("/maps/lab/scans", json={"scans": [two]})
     assert answer.status_code == 422 and "angle_increment" in answer.text
+
+
+def test_a_scan_whose_angles_overflow_is_refused_and_nothing_is_stored(lab: TestClient, kit: Any) -> None:
+    # angle_increment 1e308 is finite, but the beams' angles overflow: the cast wrote outside the map (a
+    # segfault, replayed at every restart) before this check (review of issue 11)
+    body = {"scans": [{**kit.laser(beams=5000), "angle_increment": 1e308}]}
+    refused = lab.post("/maps/lab/scans", json=body)
+    assert refused.status_code == 422 and "angles" in error_message(refused)
+    assert kit.version(lab, "lab") == 0

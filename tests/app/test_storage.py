@@ -171,6 +171,31 @@ def test_a_batch_that_fails_while_applied_is_not_kept(make_settings: Any, kit: A
         assert client.post("/maps/lab/scans", json=_scans(kit, 1)[0]).json()["version"] == 3
 
 
+def test_the_map_a_failed_batch_replaced_is_freed_at_once(make_settings: Any, kit: Any,
+                                                         monkeypatch: pytest.MonkeyPatch) -> None:
+    # the traceback's frames held the replaced map (a cycle with the error): after a MemoryError, that map
+    # stayed in memory until the cyclic collector ran (review of issue 11)
+    import gc
+    import weakref
+
+    with TestClient(create_app(make_settings()), raise_server_exceptions=False) as client:
+        client.post("/maps", json=kit.MAP_2D)
+        replaced = weakref.ref(client.app.state.service.maps.entry("lab").map)  # type: ignore[attr-defined]
+
+        def broken(self: FuzzyMap, scans: Any) -> Any:
+            raise MemoryError("simulated")
+
+        monkeypatch.setattr(FuzzyMap, "integrate_batch", broken)
+        gc.collect()
+        gc.disable()
+        try:
+            assert client.post("/maps/lab/scans", json=_scans(kit, 1)[0]).status_code == 500
+            assert client.app.state.service.maps.entry("lab").map is not replaced()  # type: ignore[attr-defined]
+            assert replaced() is None
+        finally:
+            gc.enable()
+
+
 def test_a_batch_that_fails_half_way_leaves_the_live_map_as_a_restart_rebuilds_it(
         make_settings: Any, kit: Any, monkeypatch: pytest.MonkeyPatch) -> None:
     # issue 11: a MemoryError after part of a batch was fused left the live map changed in part
@@ -730,6 +755,8 @@ def test_a_batch_deleted_from_the_middle_of_the_log_is_damage(backend: Backend) 
     assert store.load_map("m").damage == expected  # type: ignore[union-attr]
     assert store.load_since("m", 1).damage == expected  # type: ignore[union-attr]
     assert store.load_since("m", 3).damage == []  # type: ignore[union-attr]  (a replica at 3 misses nothing)
+    # a replica catching up to just below its own batch reads no row past the gap: the row above it tells
+    assert store.load_since("m", 2, up_to=3).damage == expected  # type: ignore[union-attr]
 
 
 def test_postgres_connection_loss_is_storage_unavailable_and_the_next_call_reconnects(postgres: Backend) -> None:

@@ -1,3 +1,4 @@
+import dataclasses
 import math
 
 import numpy as np
@@ -429,10 +430,16 @@ def test_a_scan_cast_in_parts_gives_the_map_of_one_cast(model, ndim, monkeypatch
     assert stats == expected  # the same rays, dropped readings and cells walked
 
 
-def test_the_rays_of_a_scans_parts_are_the_rays_of_the_whole_scan() -> None:
+@pytest.mark.parametrize("usable", ["random", "at the ends only"])
+def test_the_rays_of_a_scans_parts_are_the_rays_of_the_whole_scan(usable: str) -> None:
     # the parts read their neighbours across the cut: the incidence (one reading on each side) and the
     # no-returns cut at hits beside them (the engine's 3 usable readings on each side)
     scan = _awkward_scan(np.random.default_rng(3), 500, 1)
+    if usable != "random":
+        ranges = np.array(scan.ranges)
+        ranges[2:-2] = math.nan
+        ranges[0], ranges[-1] = math.inf, math.inf  # no-returns beside a hit: cut
+        scan = dataclasses.replace(scan, ranges=ranges)
     m = FuzzyMap(GridSpec(origin=(0.0, 0.0), size=(6.0, 4.0), resolution=0.05))
     assert m.engine.no_return_neighbours and m.engine.incidence_floor < 1.0  # the default engine reads both
     whole = m._rays_of(scan)
@@ -444,14 +451,20 @@ def test_the_rays_of_a_scans_parts_are_the_rays_of_the_whole_scan() -> None:
         assert sum(r.skipped for r in parts) == whole.skipped
 
 
-def test_fusing_a_huge_scan_takes_memory_for_its_readings_not_for_its_rays() -> None:
+@pytest.mark.parametrize("usable", ["all", "at the ends only"])
+def test_fusing_a_huge_scan_takes_memory_for_its_readings_not_for_its_rays(usable: str) -> None:
+    # "at the ends only": every part's no-return cut reads the whole scan for its neighbours (review of issue 11:
+    # each of the 16 parts then made the whole scan's incidence, 10x the time and 200 MB)
     import tracemalloc
 
     spec = GridSpec(origin=(-10.0, -10.0), size=(20.0, 20.0), resolution=0.05)
     m = FuzzyMap(spec)
     beams = 1_000_000
+    ranges = np.full(beams, 7.4)
+    if usable != "all":
+        ranges[3:-3] = math.nan
     scan = LaserScan(pose=(0.0, 0.0, 0.0), angle_min=-math.pi, angle_increment=2 * math.pi / beams,
-                     ranges=np.full(beams, 7.4), range_min=0.05, range_max=30.0)
+                     ranges=ranges, range_min=0.05, range_max=30.0)
     m.integrate_batch([LaserScan(pose=(0.0, 0.0, 0.0), angle_min=-math.pi, angle_increment=0.1,
                                  ranges=np.full(63, 7.4), range_min=0.05, range_max=30.0)])  # kernels compiled
     tracemalloc.start()
@@ -484,3 +497,15 @@ def test_a_map_is_freed_as_soon_as_it_is_let_go(model) -> None:
         assert [r() for r in refs] == [None, None]
     finally:
         gc.enable()
+
+
+def test_beam_angles_past_float_range_are_refused_before_any_cast() -> None:
+    # a scan whose last beam's angle overflowed to inf cast NaN directions; the kernel then handed out cell ids
+    # it never wrote and the service segfaulted, at every restart too (review of issue 11)
+    with pytest.raises(ValueError, match="angles"):
+        LaserScan(pose=(0.0, 0.0, 0.0), angle_min=0.0, angle_increment=1e308, ranges=[1.0] * 5000, range_min=0.1,
+                  range_max=10.0)
+    spec = GridSpec(origin=(0.0, 0.0), size=(2.0, 2.0), resolution=0.1)
+    with pytest.raises(ValueError, match="finite"):
+        cast_rays(spec, np.array([[1.0, 1.0]]), np.array([[np.nan, 0.0]]), t_end=np.array([1.0]),
+                  measured=np.array([0.5]), sigma=np.array([0.05]), ray_offsets=np.array([0, 1]), unknown_from=1.5)
