@@ -16,12 +16,17 @@ from app.mapstate import GridSnapshot, MapEntry
 from app.schemas import LastScan, MapInfo, OccupancyGrid, RiskGridJSON, RiskValues
 from app.storage import Storage, StoredMap
 from app.workers import Workers
+from fuzzyocc import GridSpec
 
 LOG = logging.getLogger("fuzzyrisk.maps")
 T = TypeVar("T")
 
 #: Above this many cells the JSON risk grid is refused (use format=npy or png).
 MAX_JSON_CELLS = 4_000_000
+#: Reads of maps with more cells run in threads of their own (``Workers.run_read(heavy=True)``): two readers of a
+#: 16 M-cell map's OccupancyGrid (16 MB of CDR, about 0.3 s each) held both read threads, and another map's
+#: 176,000-cell reads waited (issue 11, bench abuse row 10: p99 13 -> 232 ms)
+HEAVY_READ_CELLS = 4_000_000
 #: Most pixels of one PNG.
 MAX_PNG_PIXELS = 64_000_000
 
@@ -69,7 +74,8 @@ class MapReads:
 
     async def read_grid_of(self, entry: MapEntry) -> GridSnapshot:
         async with entry.apply_lock:
-            risk, observed = await self._workers.run_read(lambda: (entry.map.risk(), entry.map.observed()))
+            risk, observed = await self._workers.run_read(lambda: (entry.map.risk(), entry.map.observed()),
+                                                          heavy=_heavy(entry.spec))
             # version and updated are assigned together under this lock (``_write``): they match the arrays
             return GridSnapshot(entry.spec, entry.version, risk, observed, entry.frame_id, entry.updated,
                                 entry.etag_seed)
@@ -87,7 +93,8 @@ class MapReads:
             entry = await self._current(name)
             async with entry.apply_lock:
                 risk, observed, stored = await self._workers.run_read(
-                    lambda e=entry: (e.map.risk(), e.map.observed(), self.storage.load_map(e.name)))
+                    lambda e=entry: (e.map.risk(), e.map.observed(), self.storage.load_map(e.name)),
+                    heavy=_heavy(entry.spec))
                 grid = GridSnapshot(entry.spec, entry.version, risk, observed, entry.frame_id, entry.updated,
                                     entry.etag_seed)
             # another replica's snapshot newer than this grid dropped the batches up to it: catch up, again
@@ -103,7 +110,7 @@ class MapReads:
             raise Unavailable(f"map {name!r}: its stored log is damaged ({'; '.join(stored.damage)})")
         stored.snapshot = None
         stored.batches = [(version, payload) for version, payload in stored.batches if version <= grid.version]
-        return await self._workers.run_read(render, grid, stored)
+        return await self._workers.run_read(render, grid, stored, heavy=_heavy(grid.spec))
 
     async def risk_at(self, name: str, points: list[list[float]]) -> RiskValues:
         if len(points) > self.settings.max_query_points:
@@ -139,12 +146,13 @@ class MapReads:
                 risk=np.round(grid.risk.astype(np.float64), 6).tolist(), observed=grid.observed.tolist(),
             ).model_dump_json().encode()
 
-        return await self._workers.run_read(encode), grid
+        return await self._workers.run_read(encode, heavy=_heavy(grid.spec)), grid
 
     async def risk_npy(self, name: str, layer: Literal["risk", "observed"] = "risk") -> tuple[bytes, GridSnapshot]:
         """The risk (float32) or the observed mask (bool) as ``.npy``, of one version."""
         grid = await self.read_grid(name)
-        return await self._workers.run_read(exports.npy_bytes, grid.risk if layer == "risk" else grid.observed), grid
+        return await self._workers.run_read(exports.npy_bytes, grid.risk if layer == "risk" else grid.observed,
+                                            heavy=_heavy(grid.spec)), grid
 
     async def risk_png(self, name: str, *, scale: int, z_min: float | None, z_max: float | None) -> tuple[bytes, GridSnapshot]:
         _check_band(z_min, z_max)
@@ -161,7 +169,7 @@ class MapReads:
             risk, observed = grid.planar(z_min, z_max)
             return exports.risk_png(risk, observed, scale=scale, text=text)
 
-        return await self._workers.run_read(render), grid
+        return await self._workers.run_read(render, heavy=_heavy(grid.spec)), grid
 
     async def nav2_zip(
         self, name: str, *, mode: Literal["trinary", "scale", "raw"], image_format: Literal["pgm", "png"],
@@ -184,7 +192,7 @@ class MapReads:
                 frame_id=grid.frame_id, date_time=rosout.zip_date_time(grid.updated),
             )
 
-        return await self._workers.run_read(render), grid
+        return await self._workers.run_read(render, heavy=_heavy(grid.spec)), grid
 
     async def occupancy_grid(
         self, name: str, *, mode: Literal["trinary", "scale", "probability"], free_thresh: float,
@@ -241,7 +249,7 @@ class MapReads:
             assert head.count(empty) == 1
             return head.replace(empty, b'"data":' + exports.int8_json_array(data))
 
-        return await self._workers.run_read(render), grid
+        return await self._workers.run_read(render, heavy=_heavy(grid.spec)), grid
 
 
 
@@ -256,3 +264,7 @@ def _check_thresholds(free_thresh: float, occupied_thresh: float) -> None:
 def _check_band(z_min: float | None, z_max: float | None) -> None:
     if z_min is not None and z_max is not None and z_min > z_max:
         raise Invalid(f"z_min ({z_min}) must not exceed z_max ({z_max})")
+
+
+def _heavy(spec: GridSpec) -> bool:
+    return spec.num_cells > HEAVY_READ_CELLS

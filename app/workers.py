@@ -27,6 +27,8 @@ class Workers:
         self._heavy = ThreadPoolExecutor(fusion_threads, thread_name_prefix="fusion-heavy", initializer=_yield_cpu)
         self._parsers = ThreadPoolExecutor(fusion_threads, thread_name_prefix="parse")
         self._readers = ThreadPoolExecutor(read_threads, thread_name_prefix="read")
+        self._heavy_readers = ThreadPoolExecutor(read_threads, thread_name_prefix="read-heavy",
+                                                 initializer=_yield_cpu)
         self._started: dict[int, float] = {}  # fusion jobs running: id -> time.monotonic() at their start
         self._ids = itertools.count()
 
@@ -53,13 +55,17 @@ class Workers:
     async def run_parser(self, fn: Callable[..., T], *args: object) -> T:
         return await asyncio.get_running_loop().run_in_executor(self._parsers, fn, *args)
 
-    async def run_read(self, fn: Callable[..., T], *args: object) -> T:
-        return await asyncio.get_running_loop().run_in_executor(self._readers, fn, *args)
+    async def run_read(self, fn: Callable[..., T], *args: object, heavy: bool = False) -> T:
+        """A read; ``heavy`` (a grid of more than ``reads.HEAVY_READ_CELLS``) in threads of its own, at a lower
+        priority, so that big reads never hold every read thread."""
+        pool = self._heavy_readers if heavy else self._readers
+        return await asyncio.get_running_loop().run_in_executor(pool, fn, *args)
 
     def shutdown(self) -> None:
         """Wait for the work under way (grids being written included), then release the threads."""
         self._parsers.shutdown(wait=True)
         self._readers.shutdown(wait=True)
+        self._heavy_readers.shutdown(wait=True)
         self._heavy.shutdown(wait=True)
         self._fusion.shutdown(wait=True)
 

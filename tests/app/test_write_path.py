@@ -586,6 +586,38 @@ def test_ready_shows_the_fusion_backlog_while_reads_are_served(make_client: Any,
     assert ready["batches_in_line"] == 0 and ready["longest_fusion_job_s"] == 0.0
 
 
+def test_a_read_of_a_small_map_does_not_wait_behind_big_reads(make_client: Any, kit: Any,
+                                                              monkeypatch: pytest.MonkeyPatch) -> None:
+    # issue 11 (bench abuse row 10): two readers of a 16 M-cell map's OccupancyGrid held both read threads, and
+    # another map's reads waited (p99 13 -> 232 ms)
+    from app import exports, reads
+
+    client = make_client(read_threads=1)
+    assert client.post("/maps", json={**kit.MAP_2D, "name": "big"}).status_code == 201  # 10,000 cells
+    small = {**kit.MAP_2D, "name": "small", "size": [2.0, 2.0], "origin": [-1.0, -1.0]}  # 400 cells
+    assert client.post("/maps", json=small).status_code == 201
+    monkeypatch.setattr(reads, "HEAVY_READ_CELLS", 5_000)
+    held, release = threading.Event(), threading.Event()
+    npy_bytes = exports.npy_bytes
+
+    def slow_npy(array: Any) -> bytes:
+        if array.size == 10_000:
+            held.set()
+            release.wait(60)
+        return npy_bytes(array)
+
+    monkeypatch.setattr(exports, "npy_bytes", slow_npy)
+    with ThreadPoolExecutor(1) as pool:
+        big = pool.submit(client.get, "/maps/big/risk.npy")
+        assert held.wait(30)  # the only heavy read thread is held
+        started = time.monotonic()
+        assert client.get("/maps/small/risk.npy").status_code == 200
+        waited = time.monotonic() - started
+        release.set()
+        assert big.result(60).status_code == 200
+    assert waited < 10.0  # before: until the big read ended (here: never, release came after)
+
+
 def test_uploads_still_arriving_count_against_their_maps_line(make_client: Any, kit: Any) -> None:
     # issue 11: bodies read side by side all passed a check that counted only batches already in line
     client = make_client(max_pending_batches=2)
