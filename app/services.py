@@ -20,7 +20,7 @@ import logging
 import os
 from typing import Any
 
-from app import plangrids, warmup
+from app import plangrids, rostypes, warmup
 from app.config import Settings
 from app.diskreserve import DiskReserve
 from app.lifecycle import give_back_freed_memory
@@ -107,6 +107,9 @@ class MapService:
 
         try:
             seconds = await self._workers.run(warmup.warm_fusion, progress)
+            # the ROS message types too: built at the first CDR body or OccupancyGrid, they held the GIL for
+            # 0.1-0.3 s in the middle of serving (and came after the freeze below)
+            await self._workers.run(rostypes.typestore)
         except Exception as exc:  # noqa: BLE001 - a bug: readiness reports it; requests report their own
             self._kernels_error = f"the fusion kernels did not compile: {exc!r}"
             LOG.error(self._kernels_error, exc_info=True)

@@ -8,6 +8,7 @@ from fastapi import APIRouter, Response
 
 from app import conditional, recording, rosout
 from app.deps import MapNamePath, ServiceDep
+from app.largebody import bytes_response
 from app.mediatypes import MCAP
 from app.routes.risk import (
     _NOT_FOUND,
@@ -64,4 +65,4 @@ async def export_mcap(name: MapNamePath, service: ServiceDep, if_none_match: IfN
         return unchanged
     headers = {**_grid_headers(name, made.grid, made.variant), **since,
                "Content-Disposition": f'attachment; filename="{name}-v{made.grid.version}.mcap"'}
-    return Response(made.data, media_type=str(made.variant["media_type"]), headers=headers)
+    return bytes_response(made.data, media_type=str(made.variant["media_type"]), headers=headers)

@@ -10,6 +10,7 @@ from pydantic import FiniteFloat
 from app import conditional, rosout
 from app.deps import MapNamePath, ServiceDep
 from app.errors import Invalid
+from app.largebody import bytes_response
 from app.exports import NAV2_FREE_THRESH, NAV2_OCCUPIED_THRESH
 from app.mediatypes import MCAP, OCTET_STREAM
 from app.schemas import OccupancyGrid, RiskQuery, RiskValues
@@ -129,7 +130,7 @@ async def get_risk(
     if (unchanged := await _unchanged(service, name, variant, if_none_match)) is not None:
         return unchanged
     data, grid = await service.reads.risk_json(name)
-    return Response(data, media_type="application/json", headers=_grid_headers(name, grid, variant))
+    return bytes_response(data, media_type="application/json", headers=_grid_headers(name, grid, variant))
 
 
 async def _risk_npy(name: str, service: MapService, layer: str, if_none_match: str | None,
@@ -141,7 +142,7 @@ async def _risk_npy(name: str, service: MapService, layer: str, if_none_match: s
     data, grid = await service.reads.risk_npy(name, layer)
     headers = _grid_headers(name, grid, variant)
     headers["Content-Disposition"] = f'attachment; filename="{name}-{layer}-v{grid.version}.npy"'
-    return Response(data, media_type=media_type, headers=headers)
+    return bytes_response(data, media_type=media_type, headers=headers)
 
 
 async def _risk_png(name: str, service: MapService, scale: int, z_min: float | None, z_max: float | None,
@@ -151,7 +152,7 @@ async def _risk_png(name: str, service: MapService, scale: int, z_min: float | N
     if (unchanged := await _unchanged(service, name, variant, if_none_match)) is not None:
         return unchanged
     data, grid = await service.reads.risk_png(name, scale=scale, z_min=z_min, z_max=z_max)
-    return Response(data, media_type=media_type, headers=_grid_headers(name, grid, variant))
+    return bytes_response(data, media_type=media_type, headers=_grid_headers(name, grid, variant))
 
 
 @router.get(
@@ -226,7 +227,7 @@ async def _occupancy_grid(name: str, service: MapService, format: str, mode: str
     headers = _grid_headers(name, grid, variant)
     if format == "mcap":
         headers["Content-Disposition"] = f'attachment; filename="{name}-v{grid.version}.mcap"'
-    return Response(data, media_type=media_type, headers=headers)
+    return bytes_response(data, media_type=media_type, headers=headers)
 
 
 @router.get(
@@ -341,5 +342,5 @@ async def export_nav2(
     )
     headers = _grid_headers(name, grid, variant)
     headers["Content-Disposition"] = f'attachment; filename="{name}-nav2.zip"'
-    return Response(data, media_type=media_type, headers=headers)
+    return bytes_response(data, media_type=media_type, headers=headers)
 

@@ -1,0 +1,40 @@
+"""Big response bodies go out a MiB at a time (issue 11: one 16 MB write held the event loop)."""
+
+from __future__ import annotations
+
+import asyncio
+import os
+
+from app.largebody import CHUNK_BYTES, ChunkedBytesResponse, bytes_response
+
+
+def _sent(response: object) -> list[dict]:
+    messages: list[dict] = []
+
+    async def receive() -> dict:
+        return {"type": "http.disconnect"}
+
+    async def send(message: dict) -> None:
+        messages.append(message)
+
+    asyncio.run(response({"type": "http", "method": "GET", "path": "/"}, receive, send))  # type: ignore[operator]
+    return messages
+
+
+def test_a_big_body_is_sent_in_pieces_whole_and_with_its_length() -> None:
+    data = os.urandom(2 * CHUNK_BYTES + 123)
+    response = bytes_response(data, media_type="application/octet-stream", headers={"ETag": '"v1"'})
+    assert isinstance(response, ChunkedBytesResponse)
+    messages = _sent(response)
+    start, bodies = messages[0], messages[1:]
+    headers = dict(start["headers"])
+    assert start["status"] == 200 and headers[b"content-length"] == str(len(data)).encode()
+    assert headers[b"etag"] == b'"v1"' and headers[b"content-type"] == b"application/octet-stream"
+    assert [len(m["body"]) for m in bodies] == [CHUNK_BYTES, CHUNK_BYTES, 123]
+    assert [m["more_body"] for m in bodies] == [True, True, False]
+    assert b"".join(m["body"] for m in bodies) == data
+
+
+def test_a_small_body_is_one_write() -> None:
+    messages = _sent(bytes_response(b"abc", media_type="text/plain"))
+    assert [m.get("body") for m in messages[1:]] == [b"abc"]
