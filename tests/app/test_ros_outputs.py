@@ -388,3 +388,18 @@ def test_an_occupancy_grid_too_big_for_json_is_refused_with_the_binary_ways_name
     small = {**kit.MAP_2D, "name": "room", "origin": [0.0, 0.0], "size": [200.0, 200.0]}  # 4 M cells: still JSON
     assert client.post("/maps", json=small).status_code == 201
     assert len(client.get("/maps/room/occupancy_grid").json()["data"]) == 2000 * 2000
+
+
+@pytest.mark.parametrize("cells", [0, 1, 3, 4, 7, 12_345])
+def test_the_grid_is_serialized_as_rosbags_serializes_it_whole(cells: int) -> None:
+    # the cells are appended to rosbags' serialization of the rest (one copy of 16 M cells instead of three)
+    import numpy as np
+
+    from app import rosout
+    from app.rostypes import typestore
+
+    data = np.random.default_rng(cells).integers(-1, 101, cells).astype(np.int8)
+    message = rosout.occupancy_grid_message(data, width=cells, height=1 if cells else 0, resolution=0.05,
+                                            origin_xy=(-1.5, 2.25), frame_id="map", stamp={"sec": 7, "nanosec": 9})
+    whole = bytes(typestore().serialize_cdr(message, rosout.OCCUPANCY_GRID))
+    assert rosout.occupancy_grid_cdr(message) == whole
