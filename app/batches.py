@@ -22,6 +22,7 @@ from app.errors import Invalid, TooLarge
 from app.mediatypes import NPY, OCTET_STREAM
 from app.schemas import LaserScanIn, PointCloudIn, Pose2D, Pose3D, ScanBatch
 from fuzzyocc import LaserScan, PointCloud
+from fuzzyocc.maps import scan_parts
 
 Scan = LaserScan | PointCloud
 
@@ -30,7 +31,6 @@ BINARY_TYPES = (OCTET_STREAM, NPY)
 _NPY_MAGIC = b"\x93NUMPY"
 #: The scans/last view draws at most this many beams.
 MAX_VIEW_BEAMS = 4096
-_VIEW_PART = 65_536  # readings made into rays at a time for the view
 
 
 @dataclass(frozen=True)
@@ -409,22 +409,21 @@ class ScanView:
 def scan_view(scan: Scan) -> ScanView:
     """Beam ends of a scan in the map frame, evenly thinned to at most ``MAX_VIEW_BEAMS`` of its rays.
 
-    Made part by part: the rays of a whole scan of millions of beams take about 150 bytes a beam
-    (issue 11).
+    Made part by part (``fuzzyocc.maps.scan_parts``): the rays of a whole scan of millions of beams
+    take about 150 bytes a beam (issue 11).
     """
     n = scan.beam_count
     rays_in_all = scan.usable(slice(0, n)) if isinstance(scan, LaserScan) else n
     step = max(1, math.ceil(rays_in_all / MAX_VIEW_BEAMS))
     ends, hit, seen = [], [], 0
-    origin = scan.to_rays(beams=slice(0, 0)).origin
-    for first in range(0, n, _VIEW_PART):
-        rays = scan.to_rays(beams=slice(first, min(first + _VIEW_PART, n)))
+    for part in scan_parts(scan):
+        rays = scan.to_rays(beams=part)
         start = -seen % step  # this part's first ray to show: every step-th of the scan's rays
         ends.append(rays.endpoints[start::step])
         hit.append(rays.hit[start::step])
         seen += rays.ranges.size
     return ScanView(
-        origin=[float(v) for v in origin],
-        endpoints=np.round(np.concatenate(ends), 4).tolist() if ends else [],
-        hit=np.concatenate(hit).tolist() if hit else [],
+        origin=[float(v) for v in rays.origin],
+        endpoints=np.round(np.concatenate(ends), 4).tolist(),
+        hit=np.concatenate(hit).tolist(),
     )

@@ -239,11 +239,7 @@ def read_map(query: Callable[[str, tuple[Any, ...]], Iterable[Sequence[Any]]], n
     for seq, payload, crc, stamp in query("SELECT seq, payload, crc, updated FROM batches WHERE map = ? AND seq > ? "
                                           "AND seq <= ? ORDER BY seq",
                                           (name, lower, _NO_LIMIT if up_to is None else up_to)):
-        # a row with its own stamp was written since discards became tombstones: nothing below it may be
-        # missing (before, a discarded batch's row was deleted, so an older row may follow a gap)
-        if stamp is not None and seq > previous + 1:
-            stored.damage.append(f"its batches {previous + 1} to {seq - 1} are missing (the log jumps from "
-                                 f"version {previous} to {seq})")
+        _check_gap(stored, previous, seq, stamp)
         previous = seq
         _take_batch(stored, seq, bytes(payload), crc)
         if stamp is not None:
@@ -251,11 +247,20 @@ def read_map(query: Callable[[str, tuple[Any, ...]], Iterable[Sequence[Any]]], n
     if up_to is not None and previous < up_to:  # a gap just below up_to shows only in the row above it
         for seq, stamp in query("SELECT seq, updated FROM batches WHERE map = ? AND seq > ? ORDER BY seq LIMIT 1",
                                 (name, previous)):
-            if stamp is not None and seq > previous + 1:
-                stored.damage.append(f"its batches {previous + 1} to {seq - 1} are missing (the log jumps from "
-                                     f"version {previous} to {seq})")
+            _check_gap(stored, previous, seq, stamp)
     _check_versions(stored, version, snapshot_version, snapshot_row or 0, newest_seq or 0)
     return stored
+
+
+def _check_gap(stored: StoredMap, previous: int, seq: int, stamp: str | None) -> None:
+    """Damage if the row after version ``previous`` is ``seq`` > ``previous + 1``.
+
+    Only before a row with its own stamp, written since discards became tombstones: nothing below
+    it may be missing (before, a discarded batch's row was deleted, so an older row may follow a gap).
+    """
+    if stamp is not None and seq > previous + 1:
+        stored.damage.append(f"its batches {previous + 1} to {seq - 1} are missing (the log jumps from "
+                             f"version {previous} to {seq})")
 
 
 def _take_snapshot(stored: StoredMap, version: int, payload: bytes, crc: int | None) -> None:

@@ -75,6 +75,7 @@ HEAVY_NICE = 10
 
 
 def _yield_cpu() -> None:
-    """Run this thread at a lower priority: a heavy batch then takes the CPU a robot's batch leaves, not a share
-    of it (two 2 M-beam scans at equal priority took two thirds of the 2 cores from every other map's fusion)."""
+    """Run this thread (a heavy batch's, a heavy read's) at a lower priority: it takes the CPU a robot's batch or
+    read leaves, not a share of it (two 2 M-beam scans at equal priority took two thirds of the 2 cores from every
+    other map's fusion)."""
     lifecycle.lower_priority(HEAVY_NICE)

@@ -652,10 +652,9 @@ def _attack_from_afar() -> None:
     taken from the server and the innocent client, which a remote attacker's is not. Niced, they
     take the CPU the server leaves: the pressure on the server is what the server lets through.
     """
-    try:
-        os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), ATTACKER_NICE)
-    except (AttributeError, OSError):
-        print("could not lower the attackers' priority: they share the CPU with the server", flush=True)
+    from app.lifecycle import lower_priority
+
+    lower_priority(ATTACKER_NICE)
 
 
 def main(argv: list[str] | None = None) -> int:

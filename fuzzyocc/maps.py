@@ -51,8 +51,9 @@ CAST_CHUNK_ENTRIES = 16_000_000
 CAST_CHUNK_BEAMS = 65_536
 
 
-def _parts(scan: Scan) -> list[slice]:
-    """``scan``'s readings in consecutive slices of at most ``CAST_CHUNK_BEAMS``."""
+def scan_parts(scan: Scan) -> list[slice]:
+    """``scan``'s readings in consecutive slices of at most ``CAST_CHUNK_BEAMS`` (one empty slice for no reading):
+    the pieces a huge scan is made into rays by, in bounded memory."""
     n = scan.beam_count
     return [slice(a, min(a + CAST_CHUNK_BEAMS, n)) for a in range(0, n, CAST_CHUNK_BEAMS)] or [slice(0, 0)]
 
@@ -74,7 +75,7 @@ def cast_work(spec: GridSpec, scans: Sequence[Scan]) -> int:
     """
     total = 0
     for scan in scans:
-        for part in _parts(scan):  # part by part: a scan of millions of beams is estimated in bounded memory
+        for part in scan_parts(scan):  # part by part: a scan of millions of beams is estimated in bounded memory
             rays = scan.to_rays(beams=part)
             total += traversal_cells(spec, rays.origin, rays.endpoints)
     return total
@@ -261,7 +262,7 @@ class OccupancyMap:
         """
         merged = new_scratch(self.spec, self._grid.block_shift)
         traversed = n_rays = skipped = 0
-        for part in _parts(scan):
+        for part in scan_parts(scan):
             rays = self._rays_of(scan, part)
             n_rays, skipped = n_rays + rays.ranges.size, skipped + rays.skipped
             cast = self._cast([scan], [rays], scratch)
