@@ -16,7 +16,7 @@ from pathlib import Path
 from pydantic import ValidationError
 
 from app.config import Settings
-from app.lifecycle import StartupError, bind, foxglove_sdk_missing, prepare_directories
+from app.lifecycle import GIL_SWITCH_INTERVAL_S, StartupError, bind, foxglove_sdk_missing, prepare_directories
 from app.logs import configure_logging
 
 #: Exit status when the service cannot start (a bad setting, a port in use, an unusable data directory).
@@ -71,6 +71,7 @@ def main(argv: list[str] | None = None) -> None:
         access_log=False,  # one access record per request comes from our middleware
         timeout_graceful_shutdown=settings.graceful_timeout_s,
     ))
+    sys.setswitchinterval(GIL_SWITCH_INTERVAL_S)
     server.run(sockets=[sock])
     if not server.started:  # the lifespan failed (it logged why)
         sys.exit(EXIT_STARTUP_FAILURE)

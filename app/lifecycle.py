@@ -32,6 +32,12 @@ class StartupError(Exception):
     """The service cannot start; the message says why and what to change."""
 
 
+#: How long a thread holding the GIL keeps it while another waits (CPython's default is 5 ms). The event
+#: loop waits for the GIL each time it wakes; with a thread parsing a large body or serializing a grid,
+#: every wake-up cost up to 5 ms, and a request wakes it several times (issue 11, bench abuse rows 1, 9, 10).
+GIL_SWITCH_INTERVAL_S = 0.001
+
+
 def foxglove_sdk_missing(exc: ImportError) -> StartupError:
     """The error when ``FUZZYRISK_FOXGLOVE_PORT`` is set and the Foxglove SDK cannot be imported.
 

@@ -14,13 +14,15 @@ from collections.abc import Callable
 
 import numpy as np
 
-from fuzzyocc import BayesMap, FuzzyMap, GridSpec, LaserScan, PointCloud, SensorModel
+from fuzzyocc import BayesMap, FuzzyMap, GridSpec, LaserScan, PointCloud, SensorModel, cast_work
 
 
 def _fuse_2d(model: type[FuzzyMap] | type[BayesMap]) -> None:
     scan = LaserScan(pose=(1.0, 1.0, 0.0), angle_min=-1.0, angle_increment=0.1, ranges=np.full(21, 0.7),
                      range_min=0.05, range_max=5.0)
-    flat = model(GridSpec(origin=(0.0, 0.0), size=(2.0, 2.0), resolution=0.1), SensorModel())
+    spec = GridSpec(origin=(0.0, 0.0), size=(2.0, 2.0), resolution=0.1)
+    cast_work(spec, [scan])  # the service estimates every batch before it is stored
+    flat = model(spec, SensorModel())
     flat.integrate_batch([scan])
     flat.risk_at(np.array([[1.5, 1.0]]))
     flat.risk()
@@ -28,7 +30,9 @@ def _fuse_2d(model: type[FuzzyMap] | type[BayesMap]) -> None:
 
 def _fuse_3d(model: type[FuzzyMap] | type[BayesMap]) -> None:
     cloud = PointCloud(points=np.array([[1.7, 1.0, 1.0], [1.7, 1.2, 1.1]]), origin=(1.0, 1.0, 1.0), range_max=5.0)
-    solid = model(GridSpec(origin=(0.0, 0.0, 0.0), size=(2.0, 2.0, 2.0), resolution=0.1), SensorModel())
+    spec = GridSpec(origin=(0.0, 0.0, 0.0), size=(2.0, 2.0, 2.0), resolution=0.1)
+    cast_work(spec, [cloud])
+    solid = model(spec, SensorModel())
     solid.integrate_batch([cloud])
     solid.risk_at(np.array([[1.5, 1.0, 1.0]]))
     solid.risk()

@@ -322,29 +322,38 @@ def cast_rays(
     return CastResult(cells=cells, distance_sigmas=dist, scan_offsets=scan_offsets, cells_traversed=traversed)
 
 
+@njit(cache=True, nogil=True)
+def _traversal_kernel(origin, ends, lower, upper, res):  # pragma: no cover - compiled
+    total = 0
+    for i in range(ends.shape[0]):
+        enter, leave, l1 = 0.0, 1.0, 0.0
+        for k in range(ends.shape[1]):
+            o = origin[k]
+            d = ends[i, k] - o
+            l1 += abs(d)
+            if d == 0.0:  # never crosses this axis's slab: all of the segment, or none of it
+                if o < lower[k] or o > upper[k]:
+                    enter, leave = 1.0, 0.0
+                continue
+            t_a, t_b = (lower[k] - o) / d, (upper[k] - o) / d
+            enter = max(enter, min(t_a, t_b))
+            leave = min(leave, max(t_a, t_b))
+        if leave > enter:
+            total += int(np.ceil(l1 * (leave - enter) / res)) + 1
+    return total
+
+
 def traversal_cells(spec: GridSpec, origin: np.ndarray, ends: np.ndarray) -> int:
     """About how many cells a cast walks for the segments ``origin`` -> each of ``ends`` ((N, D), metres).
 
     Each segment is clipped to the map's box (the cast never walks outside it), and walks one
     cell per cell boundary it crosses: its L1 length in cells, plus its first cell. A bound
     known before any cell is touched, for refusing work that is too large (the band a cast
-    walks past a hit adds a few cells a ray, not counted).
+    walks past a hit adds a few cells a ray, not counted). Compiled and without the GIL: the
+    service estimates every batch before it is stored, refused ones too.
     """
-    origin = np.asarray(origin, dtype=np.float64).reshape(1, -1)
-    ends = np.asarray(ends, dtype=np.float64).reshape(-1, origin.shape[1])
-    if ends.size == 0:
-        return 0
+    origin = np.ascontiguousarray(origin, dtype=np.float64).reshape(-1)
+    ends = np.ascontiguousarray(ends, dtype=np.float64).reshape(-1, origin.size)
     lower = np.asarray(spec.origin, dtype=np.float64)
     upper = lower + np.asarray(spec.shape, dtype=np.float64) * spec.resolution
-    d = ends - origin
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t_a, t_b = (lower - origin) / d, (upper - origin) / d
-    parallel = d == 0  # never crosses this axis's slab: all of the segment, or none of it
-    inside = (origin >= lower) & (origin <= upper)
-    t_low = np.where(parallel, np.where(inside, -np.inf, np.inf), np.minimum(t_a, t_b))
-    t_high = np.where(parallel, np.where(inside, np.inf, -np.inf), np.maximum(t_a, t_b))
-    enter = np.maximum(t_low.max(axis=1), 0.0)
-    leave = np.minimum(t_high.min(axis=1), 1.0)
-    span = np.clip(leave - enter, 0.0, None)
-    cells = np.abs(d).sum(axis=1) * span / spec.resolution
-    return int(np.ceil(cells[span > 0]).sum() + np.count_nonzero(span > 0))
+    return int(_traversal_kernel(origin, ends, lower, upper, float(spec.resolution)))

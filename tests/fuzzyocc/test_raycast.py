@@ -5,7 +5,7 @@ import pytest
 
 from fuzzyocc.config import GridSpec
 from fuzzyocc.keys import flat_to_keys
-from fuzzyocc.raycast import NO_RETURN_DISTANCE, cast_rays, new_scratch
+from fuzzyocc.raycast import NO_RETURN_DISTANCE, cast_rays, new_scratch, traversal_cells
 
 
 def _slab(lo: np.ndarray, hi: np.ndarray, o: np.ndarray, d: np.ndarray) -> tuple[float, float]:
@@ -94,6 +94,41 @@ def test_ray_that_misses_the_map_reaches_nothing() -> None:
     res = _one_ray_per_scan(spec, np.array([[-1.0, 2.0, 0.5], [0.5, 0.5, 0.5]]),
                             np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]), np.array([5.0, 0.0]))
     assert res.scan_offsets.tolist() == [0, 0, 0]
+
+
+def test_the_work_estimate_counts_each_segment_clipped_to_the_map() -> None:
+    spec = GridSpec(origin=(0.0, 0.0), size=(1.0, 0.5), resolution=0.1)
+    # from outside, along x through the whole map: 10 cells of length, plus the first cell
+    assert traversal_cells(spec, np.array([-2.0, 0.25]), np.array([[3.0, 0.25]])) == 11
+    # along an axis beside the map (parallel to y, outside x), and a segment ending before it: nothing
+    assert traversal_cells(spec, np.array([-1.0, 0.25]), np.array([[-1.0, 3.0], [-0.5, 0.25]])) == 0
+    # inside, parallel to x: a quarter of the way (2.5 cells -> 3) plus the first cell
+    assert traversal_cells(spec, np.array([0.3, 0.25]), np.array([[0.55, 0.25]])) == 4
+    # a diagonal inside: its L1 length in cells (2 + 2) plus the first cell
+    assert traversal_cells(spec, np.array([0.05, 0.05]), np.array([[0.25, 0.25]])) == 5
+    # segments add up
+    assert traversal_cells(spec, np.array([-2.0, 0.25]), np.array([[3.0, 0.25]] * 3)) == 33
+
+
+@pytest.mark.parametrize("ndim", [2, 3])
+def test_the_work_estimate_is_within_a_few_cells_a_segment_of_what_the_cast_walks(ndim: int) -> None:
+    # sensors inside and outside the box, segments leaving it or missing it, some parallel to an axis: a
+    # segment of L1 length L cells crosses between L - ndim and L cell boundaries; the estimate is L + 1
+    spec = GridSpec(origin=(0.0,) * ndim, size=(2.0,) * ndim, resolution=0.1)
+    rng = np.random.default_rng(7)
+    inside = 0
+    for _ in range(300):
+        origin = rng.uniform(-1.0, 3.0, ndim)
+        direction = rng.normal(size=ndim)
+        direction[0] *= rng.random() < 0.8  # parallel to the first axis's slabs, now and then
+        direction /= np.linalg.norm(direction)
+        length = rng.uniform(0.05, 4.0)
+        estimate = traversal_cells(spec, origin, (origin + direction * length)[None])
+        walked = cast_rays(spec, origin[None], direction[None], t_end=np.array([length]), measured=np.array([length]),
+                           sigma=np.array([0.1]), ray_offsets=np.array([0, 1]), unknown_from=0.0).cells_traversed
+        assert -2 <= estimate - walked <= ndim + 1, (origin, direction, length, estimate, walked)
+        inside += walked > 0
+    assert 50 < inside < 300  # segments in the map and out of it were tried
 
 
 def _two_beams_through_one_cell(measured: np.ndarray, unknown_from: float, offsets: list[int]):
