@@ -129,6 +129,26 @@ def open_storage(settings: Settings) -> Storage:
     return PostgresStorage(settings.database_url.get_secret_value())
 
 
+async def _build_routes(app: FastAPI) -> None:
+    """Have FastAPI build every route's parameters now rather than at the first request that reaches them.
+
+    FastAPI (0.16x) builds an included router's routes, their parameters and models, at its first
+    request: about 140 ms holding the GIL, every other request waiting (issue 11). A request for a
+    path no route takes, sent to the router alone (no middleware, no handler), walks them all.
+    """
+    scope = {"type": "http", "method": "GET", "path": "/maps/-/-/-/-/-/-/-", "raw_path": b"/maps/-/-/-/-/-/-/-",
+             "root_path": "", "query_string": b"", "headers": [], "scheme": "http", "http_version": "1.1",
+             "server": None, "client": None}  # without "app", the router answers 404 itself instead of raising
+
+    async def receive() -> dict[str, Any]:
+        return {"type": "http.disconnect"}
+
+    async def send(message: dict[str, Any]) -> None:
+        pass
+
+    await app.router(scope, receive, send)
+
+
 def create_app(settings: Settings | None = None) -> FastAPI:
     """The FastAPI application; storage is opened and maps loaded in its lifespan."""
     settings = settings or get_settings()
@@ -139,6 +159,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         service = MapService(settings, await asyncio.to_thread(open_storage, settings), metrics)
         await asyncio.to_thread(bag_upload.remove_leftovers, settings.temp_dir)  # a killed run's uploads
         await service.start()
+        await _build_routes(app)
         live = await _start_live_view(settings, service)  # None unless FUZZYRISK_FOXGLOVE_PORT is set
         app.state.service = service
         LOG.info("answering requests: GET /health says alive, GET /ready says ready for traffic",

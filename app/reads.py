@@ -198,7 +198,7 @@ class MapReads:
         self, name: str, *, mode: Literal["trinary", "scale", "probability"], free_thresh: float,
         occupied_thresh: float, z_min: float | None, z_max: float | None,
         encoding: Literal["json", "cdr", "mcap"] = "json",
-    ) -> tuple[bytes, GridSnapshot]:
+    ) -> tuple[bytes | tuple[bytes, memoryview], GridSnapshot]:
         """The map as a ``nav_msgs/OccupancyGrid``: JSON (``OccupancyGrid``), CDR bytes, or an MCAP file.
 
         The stamp and ``map_load_time`` are when the map reached this version (``GridSnapshot.updated``),
@@ -218,7 +218,7 @@ class MapReads:
                 )
         grid = await self.read_grid_of(entry)
 
-        def render() -> bytes:
+        def render() -> bytes | tuple[bytes, memoryview]:
             risk, observed = grid.planar(z_min, z_max)
             data = exports.occupancy_data(risk, observed, mode=mode, free_thresh=free_thresh,
                                           occupied_thresh=occupied_thresh)
@@ -228,10 +228,10 @@ class MapReads:
                     data, width=risk.shape[0], height=risk.shape[1], resolution=grid.spec.resolution,
                     origin_xy=grid.spec.origin[:2], frame_id=grid.frame_id, stamp=stamp,
                 )
-                cdr = rosout.occupancy_grid_cdr(message)
                 if encoding == "cdr":
-                    return cdr
-                return rosout.occupancy_grid_mcap(cdr, log_time_ns=rostypes.ns_of_ros_time(stamp))
+                    return rosout.occupancy_grid_cdr_parts(message)
+                return rosout.occupancy_grid_mcap(rosout.occupancy_grid_cdr(message),
+                                                  log_time_ns=rostypes.ns_of_ros_time(stamp))
             # the small fields through the model (validated), the 4-16 M values by numpy: one pydantic pass over
             # them held the GIL, and so every request, for seconds (issue 11)
             head = OccupancyGrid.model_validate({

@@ -154,17 +154,23 @@ def occupancy_grid_message(
 
 
 def occupancy_grid_cdr(message: Any) -> bytes:
-    """The message as CDR bytes (what ``rclpy.serialization.serialize_message`` writes).
+    """The message as CDR bytes (what ``rclpy.serialization.serialize_message`` writes); see ``occupancy_grid_cdr_parts``."""
+    return b"".join(occupancy_grid_cdr_parts(message))
+
+
+def occupancy_grid_cdr_parts(message: Any) -> tuple[bytes, memoryview]:
+    """The message's CDR bytes in two pieces, the second the cells themselves (no copy of them).
 
     The fields before ``data`` are serialized by rosbags with an empty ``data``, whose length is
-    the message's last 4 bytes; the cells follow that length, int8 needing no alignment. One
-    copy of the cells: rosbags zero-fills a buffer, copies them in, and the buffer was copied
-    again into bytes, about 19 ms of the GIL for 16 M cells while every other request waited
-    (issue 11). Equal to rosbags' serialization of the whole message (tested).
+    the message's last 4 bytes; the cells follow that length, int8 needing no alignment. Each
+    copy of 16 M cells held the GIL while every other request waited (issue 11: rosbags
+    zero-fills a buffer and copies them in, about 19 ms; joining the pieces into one bytes
+    object, a few ms more): the service sends the pieces as they are. Joined, equal to
+    rosbags' serialization of the whole message (tested).
     """
     data = np.ascontiguousarray(message.data, dtype=np.int8)
     head = typestore().serialize_cdr(dataclasses.replace(message, data=data[:0]), OCCUPANCY_GRID)
-    return b"".join((head[:-4], struct.pack("<I", data.size), memoryview(data).cast("B")))
+    return bytes(head[:-4]) + struct.pack("<I", data.size), memoryview(data).cast("B")
 
 
 def occupancy_grid_mcap(cdr: bytes, *, log_time_ns: int, topic: str = MAP_TOPIC) -> bytes:

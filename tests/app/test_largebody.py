@@ -38,3 +38,22 @@ def test_a_big_body_is_sent_in_pieces_whole_and_with_its_length() -> None:
 def test_a_small_body_is_one_write() -> None:
     messages = _sent(bytes_response(b"abc", media_type="text/plain"))
     assert [m.get("body") for m in messages[1:]] == [b"abc"]
+
+
+def test_a_body_in_pieces_is_sent_as_their_bytes_in_order_never_joined_beyond_a_chunk() -> None:
+    import numpy as np
+
+    head, cells = b"head", np.arange(3 * CHUNK_BYTES // 2, dtype=np.int64).astype(np.int8)
+    response = bytes_response((head, b"", memoryview(cells)), media_type="application/octet-stream")
+    messages = _sent(response)
+    bodies = messages[1:]
+    assert dict(messages[0]["headers"])[b"content-length"] == str(len(head) + cells.nbytes).encode()
+    assert [len(m["body"]) for m in bodies] == [len(head), CHUNK_BYTES, cells.nbytes - CHUNK_BYTES]
+    assert [m["more_body"] for m in bodies] == [True, True, False]
+    assert b"".join(m["body"] for m in bodies) == head + cells.tobytes()
+
+
+def test_an_empty_body_in_pieces_is_one_empty_write() -> None:
+    messages = _sent(bytes_response((b"",), media_type="text/plain"))
+    assert dict(messages[0]["headers"])[b"content-length"] == b"0"
+    assert [(m["body"], m["more_body"]) for m in messages[1:]] == [(b"", False)]
