@@ -189,7 +189,8 @@ class WritePath:
         map state). In a parsing thread, or on the event loop for a small body (``INLINE_PARSE_BYTES``).
         """
         scans = self._parse(body, content_type, query, entry.spec.ndim)
-        return scans, batches.encode(scans), self._check_work(entry, scans)
+        work = self._check_work(entry, scans)  # a refused batch is not encoded
+        return scans, batches.encode(scans), work
 
     def _check_work(self, entry: MapEntry, scans: list[batches.Scan]) -> int:
         """413 for a batch whose rays would walk more than ``FUZZYRISK_MAX_BATCH_CELLS`` cells of this map.
