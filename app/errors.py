@@ -100,6 +100,17 @@ class ServiceError(Exception):
         self.details = details
         self.headers = headers
 
+    def __reduce__(self) -> tuple[Any, ...]:
+        # pickled as it was made (a parse process raises these): Exception's own pickling keeps only the message
+        return _rebuild, (type(self), self.message, self.code, self.details, self.headers)
+
+
+def _rebuild(cls: type[ServiceError], message: str, code: str, details: Any,
+             headers: dict[str, str] | None) -> ServiceError:
+    error = cls.__new__(cls)
+    ServiceError.__init__(error, message, code=code, details=details, headers=headers)
+    return error
+
 
 class NotFound(ServiceError):
     status = 404

@@ -51,8 +51,9 @@ T = TypeVar("T")
 
 
 #: Modules the forkserver imports before it forks any worker: first the one that ties its life to the
-#: server's, then the planner stack (``planning.query`` compiles, or loads, numba's kernels as it is imported).
-FORKSERVER_PRELOAD = ["app.forkserver_preload", "app.planworker", "planning.query"]
+#: server's, then the planner stack (``planning.query`` compiles, or loads, numba's kernels as it is imported),
+#: then the parse process's (``app.parseproc``: pydantic and the schemas, a second at its first batch otherwise).
+FORKSERVER_PRELOAD = ["app.forkserver_preload", "app.planworker", "planning.query", "app.scanparse"]
 #: Seconds a worker that is not done when the pool shuts down (an abandoned plan) gets before it is ended.
 SHUTDOWN_GRACE_S = 2.0
 
@@ -61,7 +62,7 @@ SHUTDOWN_GRACE_S = 2.0
 _FORKSERVER_STARTER = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="forkserver-start")
 
 
-def _ensure_forkserver(context: multiprocessing.context.BaseContext) -> None:
+def ensure_forkserver(context: multiprocessing.context.BaseContext) -> None:
     """Start the forkserver (if it is not running) from the long-lived starter thread; blocks."""
     if context.get_start_method() == "forkserver":
         _FORKSERVER_STARTER.submit(multiprocessing.forkserver.ensure_running).result()
@@ -170,7 +171,7 @@ def _plan_on(field: Any, params: dict[str, Any]) -> dict[str, Any]:
     }
 
 
-def _context() -> multiprocessing.context.BaseContext:
+def worker_context() -> multiprocessing.context.BaseContext:
     # fork would copy the server's threads and locks into the child; forkserver forks a clean
     # process that has already imported the planner stack
     method = "forkserver" if "forkserver" in multiprocessing.get_all_start_methods() else "spawn"
@@ -222,7 +223,7 @@ class PlanPool:
         self._free: list[_Worker] = list(self._workers)
         self._waiters: dict[str, collections.deque[asyncio.Future[_Worker]]] = {}
         self._turns: collections.deque[str] = collections.deque()  # maps with waiting plans, in turn order
-        self._context = _context()
+        self._context = worker_context()
         self._warming: asyncio.Task[None] | None = None
         #: pids of the workers warmed up by ``start``
         self.warmed: set[int] = set()
@@ -279,7 +280,7 @@ class PlanPool:
 
     def _submit(self, worker: _Worker, fn: Callable[..., T], *args: Any) -> concurrent.futures.Future[T]:
         """``submit`` to the worker's executor (made here; the forkserver started by the long-lived thread first)."""
-        _ensure_forkserver(self._context)
+        ensure_forkserver(self._context)
         with worker.lock:  # the warm-up and a plan may submit to one worker from two threads at once
             if worker.executor is None:
                 # creating the executor starts no process; submit() does

@@ -47,9 +47,8 @@ import traceback
 from collections.abc import AsyncIterator, Callable, Mapping
 
 from fastapi.exceptions import RequestValidationError
-from pydantic import ValidationError
 
-from app import batches, rosmsgs
+from app import batches, scanparse
 from app.committer import GroupCommitter
 from app.config import Settings
 from app.errors import (
@@ -62,12 +61,13 @@ from app.errors import (
 )
 from app.mapstate import MapEntry, now, npz, replay, restore, shielded
 from app.metrics import Metrics
+from app.parseproc import ParseProcess, wants
 from app.plangrids import PlanGrids
 from app.registry import MapRegistry
-from app.schemas import BatchResult, ScanBatch, ScanQuery
+from app.schemas import BatchResult
 from app.storage import BatchRecord, MapGone, Storage, StorageUnavailable
 from app.workers import Workers
-from fuzzyocc import LaserScan, cast_work
+from fuzzyocc import LaserScan
 
 LOG = logging.getLogger("fuzzyrisk.maps")
 
@@ -95,6 +95,7 @@ class WritePath:
         self._notify = notify
         self._committer = GroupCommitter(storage, metrics)
         self._limits = batches.Limits(max_scans=settings.max_scans_per_batch, max_rays=settings.max_rays_per_scan)
+        self._parse_process = ParseProcess()
 
     @property
     def limits(self) -> batches.Limits:
@@ -113,6 +114,7 @@ class WritePath:
             finally:
                 entry.line.done(ticket)
         self._committer.shutdown()
+        await asyncio.to_thread(self._parse_process.shutdown)
 
     async def snapshot(self, entry: MapEntry) -> None:
         """Store the map's arrays and drop the batches they cover; a failure is logged and counted only.
@@ -155,56 +157,18 @@ class WritePath:
         return entry.version - entry.snapshot_version >= every or logged >= self.settings.snapshot_log_bytes
 
 
-    def _parse(self, body: bytes, content_type: str, query: Mapping[str, str], dims: int) -> list[batches.Scan]:
-        # the query first, as FastAPI checks query parameters before the route reads a body
-        try:
-            params = ScanQuery.model_validate(dict(query)).model_dump()
-        except ValidationError as exc:
-            errors = [{**e, "loc": ("query", *e["loc"])} for e in exc.errors(include_url=False)]
-            raise RequestValidationError(errors) from None
-        media = content_type.split(";")[0].strip().lower()
-        if media in batches.BINARY_TYPES:
-            return batches.from_binary(body, params, dims, self._limits)
-        if media in rosmsgs.MEDIA_TYPES:  # a CDR-serialized LaserScan or PointCloud2, the pose in the query
-            return rosmsgs.from_cdr(body, media, params, dims, self._limits)
-        if media != "application/json":
-            # none at all is refused too: a web page can send a body without one, and without a
-            # CORS preflight (issue 11: a browser's no-cors fetch injected scans)
-            given = f"Content-Type {media!r} is not accepted" if media else "a scan upload needs a Content-Type"
-            raise UnsupportedMediaType(
-                f"{given}: send application/json, or a binary scan as {' or '.join(batches.BINARY_TYPES)}, "
-                f"or a ROS 2 message as {' or '.join(map(rosmsgs.media_type, rosmsgs.MSGTYPES))}"
-            )
-        try:
-            batch = ScanBatch.model_validate_json(body)
-        except ValidationError as exc:
-            errors = [{**e, "loc": ("body", *e["loc"])} for e in exc.errors(include_url=False)]
-            raise RequestValidationError(errors) from None
-        return batches.from_json(batch, dims, self._limits)
-
     def _prepare(
         self, entry: MapEntry, body: bytes, content_type: str, query: Mapping[str, str]
     ) -> tuple[list[batches.Scan], bytes, int]:
         """Parse, validate (query and body) and encode a batch, with its cast work (no lock held: it touches no
         map state). In a parsing thread, or on the event loop for a small body (``INLINE_PARSE_BYTES``).
         """
-        scans = self._parse(body, content_type, query, entry.spec.ndim)
+        scans = scanparse.parse(body, content_type, query, entry.spec.ndim, self._limits)
         work = self._check_work(entry, scans)  # a refused batch is not encoded
         return scans, batches.encode(scans), work
 
     def _check_work(self, entry: MapEntry, scans: list[batches.Scan]) -> int:
-        """413 for a batch whose rays would walk more than ``FUZZYRISK_MAX_BATCH_CELLS`` cells of this map.
-
-        Before it is stored: one small request (12 scans of 16,384 beams reaching past a 16 M-cell
-        map's edges) would otherwise hold a fusion thread for a minute, and every restart replays it.
-        """
-        work = cast_work(entry.spec, scans)
-        if work > self.settings.max_batch_cells:
-            raise TooLarge(
-                f"the batch's rays walk about {work:,} cells of this map, more than FUZZYRISK_MAX_BATCH_CELLS "
-                f"({self.settings.max_batch_cells:,}): send fewer scans per batch, or shorter range_max"
-            )
-        return work
+        return scanparse.check_work(entry.spec, scans, self.settings.max_batch_cells)
 
     def _apply(self, entry: MapEntry, version: int, scans: list[batches.Scan]) -> BatchResult:
         """Fuse a committed batch (in a fusion thread; the caller holds the apply turn and the apply lock)."""
@@ -293,6 +257,9 @@ class WritePath:
         try:
             if len(body) <= INLINE_PARSE_BYTES:
                 scans, payload, work = self._prepare(entry, body, content_type, query)
+            elif wants(body, content_type):
+                scans, payload, work = await self._parse_process.prepare(
+                    body, content_type, query, entry.spec.ndim, self._limits, entry.spec, self.settings.max_batch_cells)
             else:
                 scans, payload, work = await self._workers.run_parser(self._prepare, entry, body, content_type,
                                                                       query)

@@ -1,0 +1,79 @@
+"""Large JSON batches are parsed in a process of their own (issue 11): the same maps and the same errors as in
+the server's threads, and the process ends with the service or is replaced when it dies."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import time
+from typing import Any
+
+import numpy as np
+import psutil
+from fastapi.testclient import TestClient
+
+from app.parseproc import PROCESS_PARSE_BYTES
+from tests.conftest import error_message
+
+
+def _big_batch(kit: Any, scans: int = 60, beams: int = 720) -> dict[str, Any]:
+    batch = {"scans": [kit.laser(x=0.01 * i, beams=beams) for i in range(scans)]}
+    assert len(json.dumps(batch)) > PROCESS_PARSE_BYTES
+    return batch
+
+
+def _parse_processes(client: TestClient) -> list[psutil.Process]:
+    executor = client.app.state.service.writes._parse_process._executor  # type: ignore[attr-defined]
+    return [psutil.Process(p.pid) for p in getattr(executor, "_processes", {}).values()] if executor else []
+
+
+def test_a_large_json_batch_makes_the_same_map_as_the_same_scans_sent_in_small_batches(make_client: Any,
+                                                                                       kit: Any) -> None:
+    client = make_client()
+    batch = _big_batch(kit)
+    for name in ("whole", "parts"):
+        assert client.post("/maps", json={**kit.MAP_2D, "name": name}).status_code == 201
+    whole = client.post("/maps/whole/scans", content=json.dumps(batch), headers={"Content-Type": "application/json"})
+    assert whole.status_code == 200, whole.text
+    assert len(_parse_processes(client)) == 1  # it went through the process
+    for scan in batch["scans"]:  # one scan a batch: small bodies, parsed on the event loop
+        assert client.post("/maps/parts/scans", json={"scans": [scan]}).status_code == 200
+    # a batch fuses its scans one after another, as separate batches do
+    np.testing.assert_array_equal(kit.risk_npy(client, "whole"), kit.risk_npy(client, "parts"))
+
+
+def test_a_large_json_batch_gets_the_same_errors_from_the_process(make_client: Any, kit: Any) -> None:
+    client = make_client(max_batch_cells=10_000)
+    assert client.post("/maps", json=kit.MAP_2D).status_code == 201
+    headers = {"Content-Type": "application/json"}
+    batch = _big_batch(kit)
+    batch["scans"][7]["ranges"][3] = "three"
+    bad = client.post("/maps/lab/scans", content=json.dumps(batch), headers=headers)
+    assert bad.status_code == 422
+    assert any(d["loc"][:3] == ["body", "scans", 7] for d in bad.json()["details"]), bad.json()
+    too_much = client.post("/maps/lab/scans", content=json.dumps(_big_batch(kit)), headers=headers)
+    assert too_much.status_code == 413 and "FUZZYRISK_MAX_BATCH_CELLS" in error_message(too_much)
+    assert len(_parse_processes(client)) == 1
+    assert kit.version(client, "lab") == 0
+
+
+def test_the_parse_process_is_replaced_when_it_dies_and_ends_with_the_service(make_client: Any, kit: Any) -> None:
+    client = make_client()
+    assert client.post("/maps", json=kit.MAP_2D).status_code == 201
+    body, headers = json.dumps(_big_batch(kit)), {"Content-Type": "application/json"}
+    assert client.post("/maps/lab/scans", content=body, headers=headers).status_code == 200
+    (first,) = _parse_processes(client)
+    os.kill(first.pid, signal.SIGKILL)
+    first.wait(10)
+    died = client.post("/maps/lab/scans", content=body, headers=headers)
+    assert died.status_code == 503 and died.headers["Retry-After"] == "1", died.text
+    assert kit.version(client, "lab") == 1  # nothing stored
+    assert client.post("/maps/lab/scans", content=body, headers=headers).status_code == 200
+    (second,) = _parse_processes(client)
+    assert second.pid != first.pid and kit.version(client, "lab") == 2
+    client.__exit__(None, None, None)
+    deadline = time.monotonic() + 10
+    while second.is_running() and second.status() != psutil.STATUS_ZOMBIE and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert not second.is_running() or second.status() == psutil.STATUS_ZOMBIE
