@@ -314,11 +314,11 @@ class MapRegistry:
                 stored = len(names)
             self._check_room(meta, stored)  # before the map's memory is taken
             try:
-                built = await self._workers.run(lambda: build_map(meta, max_cells=self.settings.max_map_cells))
+                built = await self._workers.run_admin(lambda: build_map(meta, max_cells=self.settings.max_map_cells))
             except ValueError as exc:  # the grid was checked by _check_room: the sensor or the engine
                 raise Invalid(str(exc)) from None
             try:
-                await self._workers.run(self.storage.create_map, request.name, meta, created)
+                await self._workers.run_admin(self.storage.create_map, request.name, meta, created)
             except NameTaken:
                 raise Conflict(f"a map named {request.name!r} exists") from None
             stale = self._maps.get(request.name)
@@ -343,12 +343,12 @@ class MapRegistry:
                 self._current_copy(name, head)
                 raise NotFound(f"no map named {name!r}; GET /maps lists them")
             if self._current_copy(name, head) is None:  # not held here: its rows only
-                await self._workers.run(self._delete_rows, name, head.incarnation)
+                await self._workers.run_admin(self._delete_rows, name, head.incarnation)
                 self._quarantined.pop(name, None)
                 self._notify("map_deleted", name)
                 return
         if name in self._quarantined and name not in self._maps:
-            await self._workers.run(self._delete_rows, name, self._quarantined[name].incarnation)
+            await self._workers.run_admin(self._delete_rows, name, self._quarantined[name].incarnation)
             del self._quarantined[name]
             return
         entry = self.entry(name)
@@ -357,7 +357,7 @@ class MapRegistry:
         # and the map still served
         await shielded(self._delete(entry, ticket))
         del entry  # the last reference: the map's memory is free, and can go back to the system
-        await self._workers.run(give_back_freed_memory)
+        await self._workers.run_admin(give_back_freed_memory)
 
     def _delete_rows(self, name: str, incarnation: str | None) -> None:
         """``storage.delete_map``; on a full disk, with the disk reserve given up first (then taken back)."""
@@ -374,7 +374,7 @@ class MapRegistry:
             await entry.line.wait_all(ticket)
             if entry.deleted:
                 raise NotFound(f"no map named {entry.name!r}")
-            await self._workers.run(self._delete_rows, entry.name, entry.incarnation)
+            await self._workers.run_admin(self._delete_rows, entry.name, entry.incarnation)
             self._drop(entry, deleted=True)
         finally:
             entry.line.done(ticket)

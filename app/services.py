@@ -95,7 +95,7 @@ class MapService:
             await asyncio.sleep(min(60.0, self.settings.map_idle_s / 2))
             if dropped := self.maps.evict_idle():
                 LOG.info("idle maps dropped from memory", extra={"fields": {"maps": dropped}})
-                await self._workers.run(give_back_freed_memory)
+                await self._workers.run_admin(give_back_freed_memory)
 
     async def _warm_kernels(self) -> None:
         """Compile the fusion kernels, or load them from numba's cache, in a fusion thread, with progress in the log."""

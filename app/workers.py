@@ -26,6 +26,7 @@ class Workers:
         self._fusion = ThreadPoolExecutor(fusion_threads, thread_name_prefix="fusion")
         self._heavy = ThreadPoolExecutor(fusion_threads, thread_name_prefix="fusion-heavy", initializer=_yield_cpu)
         self._parsers = ThreadPoolExecutor(fusion_threads, thread_name_prefix="parse")
+        self._admin = ThreadPoolExecutor(1, thread_name_prefix="admin")
         self._readers = ThreadPoolExecutor(read_threads, thread_name_prefix="read")
         self._heavy_readers = ThreadPoolExecutor(read_threads, thread_name_prefix="read-heavy",
                                                  initializer=_yield_cpu)
@@ -52,6 +53,11 @@ class Workers:
         started = tuple(self._started.values())  # one C-level copy: the threads add and remove meanwhile
         return time.monotonic() - min(started) if started else 0.0
 
+    async def run_admin(self, fn: Callable[..., T], *args: object) -> T:
+        """Making and deleting maps (their arrays, their rows), giving freed memory back: one thread of its own, so
+        that a client making and deleting maps in a loop never holds the threads other maps' batches fuse in."""
+        return await asyncio.get_running_loop().run_in_executor(self._admin, fn, *args)
+
     async def run_parser(self, fn: Callable[..., T], *args: object) -> T:
         return await asyncio.get_running_loop().run_in_executor(self._parsers, fn, *args)
 
@@ -64,6 +70,7 @@ class Workers:
     def shutdown(self) -> None:
         """Wait for the work under way (grids being written included), then release the threads."""
         self._parsers.shutdown(wait=True)
+        self._admin.shutdown(wait=True)
         self._readers.shutdown(wait=True)
         self._heavy_readers.shutdown(wait=True)
         self._heavy.shutdown(wait=True)

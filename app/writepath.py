@@ -18,7 +18,7 @@ Concurrency: each map has these orderings.
   and never sees a half-applied batch or a version that does not match the arrays.
 
 The CPU work runs off the event loop: parsing and validation of big bodies in
-parsing threads, fusion in the fusion threads (numpy and numba release the GIL), commits in one
+parsing threads (JSON ones above 256 KiB in a parse process, ``app.parseproc``), fusion in the fusion threads (numpy and numba release the GIL), commits in one
 writer thread (``app.committer``: batches queued meanwhile, from any map, share a
 transaction), plans in worker processes. Different maps proceed in parallel.
 
