@@ -159,7 +159,10 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         service = MapService(settings, await asyncio.to_thread(open_storage, settings), metrics)
         await asyncio.to_thread(bag_upload.remove_leftovers, settings.temp_dir)  # a killed run's uploads
         await service.start()
-        await _build_routes(app)
+        try:
+            await _build_routes(app)
+        except Exception:  # noqa: BLE001 - an optimisation of the first requests: never a reason not to start
+            LOG.warning("the routes could not be built ahead of the first requests", exc_info=True)
         live = await _start_live_view(settings, service)  # None unless FUZZYRISK_FOXGLOVE_PORT is set
         app.state.service = service
         LOG.info("answering requests: GET /health says alive, GET /ready says ready for traffic",

@@ -8,7 +8,8 @@ process forked from the planner workers' forkserver, 5 steps of niceness below t
 server only moves their bytes. Binary and CDR bodies, cheap to read, stay in the parsing threads.
 
 The process ends with the server (as the planner workers do) and is replaced at the next batch if
-it dies; a batch it was parsing gets a 503.
+it dies; a batch it was parsing gets a 503. It starts at the first such batch (about 2 s, once): a
+service that never gets one never pays its memory.
 """
 
 from __future__ import annotations
@@ -44,39 +45,55 @@ def wants(body: bytes, content_type: str) -> bool:
 
 
 class ParseProcess:
-    """One parse process, started at its first batch (or ``start``), replaced when it dies."""
+    """One parse process, started at its first batch, replaced when it dies; none after ``shutdown``."""
 
     def __init__(self) -> None:
         self._context = planworker.worker_context()
         self._lock = threading.Lock()
         self._executor: concurrent.futures.ProcessPoolExecutor | None = None
+        self._closed = False
 
     def _pool(self) -> concurrent.futures.ProcessPoolExecutor:
         planworker.ensure_forkserver(self._context)
         with self._lock:
+            if self._closed:
+                raise Unavailable("the service is stopping", headers={"Retry-After": "1"})
             if self._executor is None:
                 self._executor = concurrent.futures.ProcessPoolExecutor(1, mp_context=self._context, initializer=_init)
             return self._executor
 
+    def _forget(self, pool: concurrent.futures.ProcessPoolExecutor) -> None:
+        with self._lock:
+            if self._executor is pool:
+                self._executor = None
+
     async def prepare(self, body: bytes, content_type: str, query: Mapping[str, str], dims: int,
-                      limits: batches.Limits, spec: GridSpec, max_batch_cells: int) -> tuple[list[batches.Scan], bytes, int]:
-        """``scanparse.prepare_encoded`` in the process: the scans (decoded here), their encoding and cast work."""
+                      limits: batches.Limits, spec: GridSpec, max_batch_cells: int) -> tuple[bytes, int]:
+        """``scanparse.prepare_encoded`` in the process: the batch encoded (``batches.decode`` gives the scans)
+        and its cast work; its errors as the parsing threads raise them."""
         loop = asyncio.get_running_loop()
-        pool = await loop.run_in_executor(None, self._pool)  # may start the forkserver: not on the loop
-        try:
-            payload, work = await asyncio.wrap_future(pool.submit(
-                scanparse.prepare_encoded, body, content_type, dict(query), dims, limits, spec, max_batch_cells))
-        except BrokenProcessPool:
-            with self._lock:
-                if self._executor is pool:
-                    self._executor = None
-            LOG.error("the parse process died; a new one takes the next batch")
-            raise Unavailable("the process parsing this batch died (out of memory?); nothing was stored: send it again",
-                              headers={"Retry-After": "1"}) from None
-        return batches.decode(payload), payload, work
+        args = (scanparse.prepare_encoded, body, content_type, dict(query), dims, limits, spec, max_batch_cells)
+        for attempt in (1, 2):
+            pool = await loop.run_in_executor(None, self._pool)  # may start the forkserver: not on the loop
+            try:
+                future = pool.submit(*args)
+            except BrokenProcessPool:  # it died while idle: nothing of this batch was sent, a new one takes it
+                self._forget(pool)
+                if attempt == 2:
+                    raise Unavailable("the parse process cannot start; nothing was stored: send the batch again",
+                                      headers={"Retry-After": "1"}) from None
+                continue
+            try:
+                return await asyncio.wrap_future(future)
+            except BrokenProcessPool:
+                self._forget(pool)
+                LOG.error("the parse process died parsing a batch; a new one takes the next")
+                raise Unavailable("the process parsing this batch died (out of memory?); nothing was stored: "
+                                  "send it again", headers={"Retry-After": "1"}) from None
+        raise AssertionError("unreachable")  # pragma: no cover
 
     def shutdown(self) -> None:
         with self._lock:
-            executor, self._executor = self._executor, None
+            executor, self._executor, self._closed = self._executor, None, True
         if executor is not None:
             executor.shutdown(wait=True, cancel_futures=True)

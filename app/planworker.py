@@ -52,7 +52,7 @@ T = TypeVar("T")
 
 #: Modules the forkserver imports before it forks any worker: first the one that ties its life to the
 #: server's, then the planner stack (``planning.query`` compiles, or loads, numba's kernels as it is imported),
-#: then the parse process's (``app.parseproc``: pydantic and the schemas, a second at its first batch otherwise).
+#: then the parse process's (``app.scanparse``: pydantic and the schemas, a second at its first batch otherwise).
 FORKSERVER_PRELOAD = ["app.forkserver_preload", "app.planworker", "planning.query", "app.scanparse"]
 #: Seconds a worker that is not done when the pool shuts down (an abandoned plan) gets before it is ended.
 SHUTDOWN_GRACE_S = 2.0

@@ -24,8 +24,7 @@ def parse(body: bytes, content_type: str, query: Mapping[str, str], dims: int,
     try:
         params = ScanQuery.model_validate(dict(query)).model_dump()
     except ValidationError as exc:
-        errors = [{**e, "loc": ("query", *e["loc"])} for e in exc.errors(include_url=False)]
-        raise RequestValidationError(errors) from None
+        raise RequestValidationError(_errors(exc, "query")) from None
     media = media_of(content_type)
     if media in batches.BINARY_TYPES:
         return batches.from_binary(body, params, dims, limits)
@@ -42,9 +41,15 @@ def parse(body: bytes, content_type: str, query: Mapping[str, str], dims: int,
     try:
         batch = ScanBatch.model_validate_json(body)
     except ValidationError as exc:
-        errors = [{**e, "loc": ("body", *e["loc"])} for e in exc.errors(include_url=False)]
-        raise RequestValidationError(errors) from None
+        raise RequestValidationError(_errors(exc, "body")) from None
     return batches.from_json(batch, dims, limits)
+
+
+def _errors(exc: ValidationError, where: str) -> list[dict[str, object]]:
+    """pydantic's errors under ``where``, without inputs that are not scalars: a bad scan's input is all of its
+    ranges, which the answer never echoes, and which a parse process would pickle back for nothing."""
+    return [{k: v for k, v in {**e, "loc": (where, *e["loc"])}.items()
+             if k != "input" or not isinstance(v, dict | list | bytes)} for e in exc.errors(include_url=False)]
 
 
 def media_of(content_type: str) -> str:

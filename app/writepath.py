@@ -258,8 +258,9 @@ class WritePath:
             if len(body) <= INLINE_PARSE_BYTES:
                 scans, payload, work = self._prepare(entry, body, content_type, query)
             elif wants(body, content_type):
-                scans, payload, work = await self._parse_process.prepare(
+                payload, work = await self._parse_process.prepare(
                     body, content_type, query, entry.spec.ndim, self._limits, entry.spec, self.settings.max_batch_cells)
+                scans = await self._workers.run_parser(batches.decode, payload)  # 8 x 2 M ranges: 0.2 s
             else:
                 scans, payload, work = await self._workers.run_parser(self._prepare, entry, body, content_type,
                                                                       query)

@@ -322,15 +322,20 @@ def cast_rays(
     return CastResult(cells=cells, distance_sigmas=dist, scan_offsets=scan_offsets, cells_traversed=traversed)
 
 
+#: What ``traversal_cells`` answers for a segment with a NaN or infinite end: more than any budget
+UNBOUNDED_CELLS = 2**62
+
+
 @njit(cache=True, nogil=True)
 def _traversal_kernel(origin, ends, lower, upper, res):  # pragma: no cover - compiled
     total = 0
     for i in range(ends.shape[0]):
-        enter, leave, l1 = 0.0, 1.0, 0.0
+        enter, leave = 0.0, 1.0
         for k in range(ends.shape[1]):
             o = origin[k]
             d = ends[i, k] - o
-            l1 += abs(d)
+            if not np.isfinite(d):  # an end point beyond what floats hold, or NaN
+                return UNBOUNDED_CELLS
             if d == 0.0:  # never crosses this axis's slab: all of the segment, or none of it
                 if o < lower[k] or o > upper[k]:
                     enter, leave = 1.0, 0.0
@@ -338,8 +343,19 @@ def _traversal_kernel(origin, ends, lower, upper, res):  # pragma: no cover - co
             t_a, t_b = (lower[k] - o) / d, (upper[k] - o) / d
             enter = max(enter, min(t_a, t_b))
             leave = min(leave, max(t_a, t_b))
-        if leave > enter:
-            total += int(np.ceil(l1 * (leave - enter) / res)) + 1
+        if not (leave > enter):  # outside the box
+            continue
+        # the L1 length of the part inside the box, axis by axis: each term is at most the box's side, so a
+        # segment of 1e308 m (a finite range_max) cannot overflow it
+        inside = 0.0
+        for k in range(ends.shape[1]):
+            inside += abs(ends[i, k] - origin[k]) * (leave - enter)
+        cells = np.ceil(inside / res)
+        if not (cells < UNBOUNDED_CELLS):  # inf or NaN: an end point beyond what floats hold
+            return UNBOUNDED_CELLS
+        total += int(cells) + 1
+        if total >= UNBOUNDED_CELLS:
+            return UNBOUNDED_CELLS
     return total
 
 

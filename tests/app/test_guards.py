@@ -272,6 +272,28 @@ def test_a_batch_that_would_walk_too_many_cells_is_refused_before_it_is_stored(m
     assert kit.version(client, "lab") == 1
 
 
+def test_a_beam_of_an_enormous_range_max_does_not_let_a_batch_past_its_work_budget(make_client: Any,
+                                                                                    kit: Any) -> None:
+    # issue 11 review: range_max 1.5e308 (finite, accepted) overflowed the compiled estimate to a negative count,
+    # and a batch over FUZZYRISK_MAX_BATCH_CELLS was fused
+    from fuzzyocc import GridSpec, cast_work
+
+    wall = kit.laser(beams=90)
+    spec = GridSpec(origin=tuple(kit.MAP_2D["origin"]), size=tuple(kit.MAP_2D["size"]),
+                    resolution=kit.MAP_2D["resolution"])
+    from app.batches import Limits, from_json
+    from app.schemas import ScanBatch
+
+    work = cast_work(spec, from_json(ScanBatch.model_validate({"scans": [wall]}), 2, Limits(256, 10_000)))
+    client = make_client(max_batch_cells=work - 1)
+    assert client.post("/maps", json=kit.MAP_2D).status_code == 201
+    far = {"pose": {"x": 0.05, "y": 0.05, "theta": 0.785398}, "angle_min": 0.0, "angle_increment": 0.0,
+           "ranges": ["inf"], "range_min": 0.0, "range_max": 1.5e308}
+    refused = client.post("/maps/lab/scans", json={"scans": [wall, far]})
+    assert refused.status_code == 413 and "FUZZYRISK_MAX_BATCH_CELLS" in error_message(refused)
+    assert kit.version(client, "lab") == 0
+
+
 def test_the_cast_work_estimate_follows_what_the_cast_walks() -> None:
     import numpy as np
 

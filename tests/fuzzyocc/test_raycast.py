@@ -252,3 +252,13 @@ def test_block_numbering_reaches_the_same_cells_with_the_same_evidence(spec: Gri
         cast_rays(*args, unknown_from=1.5, block_shift=block_shift, scratch=new_scratch(spec))
     with pytest.raises(ValueError, match="block_shift"):
         cast_rays(*args, unknown_from=1.5, block_shift=(1, 1))
+
+
+def test_the_work_estimate_never_overflows_into_a_small_number() -> None:
+    # issue 11 review: one beam of a range_max near the largest float made the sum of its coordinates inf, and
+    # the compiled estimate wrapped to a negative count that let any batch through its budget
+    spec = GridSpec(origin=(0.0, 0.0), size=(1.0, 1.0), resolution=0.1)
+    far = np.array([[1.5e308 * 0.7, 1.5e308 * 0.7]])
+    assert traversal_cells(spec, np.array([0.05, 0.05]), far) == 20  # inside the box: 9.5 + 9.5 cells, plus the first
+    for bad in ([np.inf, 0.05], [np.nan, 0.5], [-np.inf, np.inf]):  # more than any budget, never less
+        assert traversal_cells(spec, np.array([0.05, 0.05]), np.array([bad])) >= 2**62
