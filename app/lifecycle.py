@@ -191,6 +191,13 @@ def lower_priority(by: int) -> None:
         pass
 
 
+def start_worker_process(nice: int) -> None:
+    """In a worker process forked by the forkserver: end with the server, and run ``nice`` steps below it."""
+    die_with_parent()  # the forkserver, which dies with the server
+    exit_with_parent()  # the server itself: other systems, or the forkserver gone before the line above
+    lower_priority(nice)
+
+
 def give_back_freed_memory() -> None:
     """Return the free pages of every malloc arena to the system (glibc's ``malloc_trim``; a no-op elsewhere).
 

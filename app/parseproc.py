@@ -34,9 +34,7 @@ PARSE_NICE = 5
 
 
 def _init() -> None:
-    lifecycle.die_with_parent()  # the forkserver, which dies with the server
-    lifecycle.exit_with_parent()  # the server itself: other systems, or the forkserver gone before the line above
-    lifecycle.lower_priority(PARSE_NICE)
+    lifecycle.start_worker_process(PARSE_NICE)
 
 
 def wants(body: bytes, content_type: str) -> bool:

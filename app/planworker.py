@@ -81,9 +81,7 @@ def _init_worker(native: bool, field_cache_bytes: int = DEFAULT_FIELD_CACHE_BYTE
     """In each new worker: end with the server, use the compiled planner callbacks (``planning/native.py``)
     or not, and compile or load every kernel now, so that no plan waits for it."""
     global _FIELDS
-    lifecycle.die_with_parent()  # the forkserver, which dies with the server
-    lifecycle.exit_with_parent()  # the server itself: other systems, or the forkserver gone before the line above
-    lifecycle.lower_priority(PLAN_NICE)
+    lifecycle.start_worker_process(PLAN_NICE)
     _FIELDS = FieldCache(field_cache_bytes)
     import planning
     from planning import native as compiled

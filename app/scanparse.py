@@ -71,10 +71,22 @@ def check_work(spec: GridSpec, scans: list[batches.Scan], max_batch_cells: int) 
     return work
 
 
-def prepare_encoded(body: bytes, content_type: str, query: Mapping[str, str], dims: int, limits: batches.Limits,
-                    spec: GridSpec, max_batch_cells: int) -> tuple[bytes, int]:
-    """``parse`` and ``check_work``, the scans encoded for the log (``batches.decode`` gives them back): what a
-    parse process returns (bytes cross a pipe at the cost of a copy; scans would be pickled object by object)."""
-    scans = parse(body, content_type, query, dims, limits)
+def checked_payload(spec: GridSpec, scans: list[batches.Scan], max_batch_cells: int) -> tuple[bytes, int]:
+    """``check_work``, then the scans encoded for the log (a refused batch is not encoded): (payload, work)."""
     work = check_work(spec, scans, max_batch_cells)
     return batches.encode(scans), work
+
+
+def prepare(body: bytes, content_type: str, query: Mapping[str, str], dims: int, limits: batches.Limits,
+            spec: GridSpec, max_batch_cells: int) -> tuple[list[batches.Scan], bytes, int]:
+    """``parse`` and ``checked_payload``: the scans, their encoding and their cast work."""
+    scans = parse(body, content_type, query, dims, limits)
+    return scans, *checked_payload(spec, scans, max_batch_cells)
+
+
+def prepare_encoded(body: bytes, content_type: str, query: Mapping[str, str], dims: int, limits: batches.Limits,
+                    spec: GridSpec, max_batch_cells: int) -> tuple[bytes, int]:
+    """``prepare`` without the scans (``batches.decode`` gives them back): what a parse process returns (bytes
+    cross a pipe at the cost of a copy; scans would be pickled object by object)."""
+    _, payload, work = prepare(body, content_type, query, dims, limits, spec, max_batch_cells)
+    return payload, work

@@ -163,12 +163,8 @@ class WritePath:
         """Parse, validate (query and body) and encode a batch, with its cast work (no lock held: it touches no
         map state). In a parsing thread, or on the event loop for a small body (``INLINE_PARSE_BYTES``).
         """
-        scans = scanparse.parse(body, content_type, query, entry.spec.ndim, self._limits)
-        work = self._check_work(entry, scans)  # a refused batch is not encoded
-        return scans, batches.encode(scans), work
-
-    def _check_work(self, entry: MapEntry, scans: list[batches.Scan]) -> int:
-        return scanparse.check_work(entry.spec, scans, self.settings.max_batch_cells)
+        return scanparse.prepare(body, content_type, query, entry.spec.ndim, self._limits, entry.spec,
+                                 self.settings.max_batch_cells)
 
     def _apply(self, entry: MapEntry, version: int, scans: list[batches.Scan]) -> BatchResult:
         """Fuse a committed batch (in a fusion thread; the caller holds the apply turn and the apply lock)."""
@@ -298,7 +294,7 @@ class WritePath:
         return await shielded(self._write(entry, ticket, scans, payload, work))
 
     def _checked_payload(self, entry: MapEntry, scans: list[batches.Scan]) -> tuple[bytes, int]:
-        return batches.encode(scans), self._check_work(entry, scans)
+        return scanparse.checked_payload(entry.spec, scans, self.settings.max_batch_cells)
 
     async def _write(self, entry: MapEntry, ticket: int, scans: list[batches.Scan], payload: bytes,
                      work: int) -> BatchResult:
