@@ -186,6 +186,13 @@ class MapEntry:
     users: int = 0
     #: reads waiting in the line to apply other replicas' batches (not batches: ``_admit`` leaves them out)
     catching_up: int = 0
+    #: the snapshot being taken beside the line, if any (``WritePath._snapshot_beside``)
+    snapshotting: asyncio.Task[None] | None = None
+
+    async def snapshot_done(self) -> None:
+        """Wait for the snapshot being taken, if any (it logs its own failure; its cancellation is not ours)."""
+        if self.snapshotting is not None:
+            await asyncio.wait([self.snapshotting])
 
     @property
     def batches_in_line(self) -> int:

@@ -372,6 +372,9 @@ class MapRegistry:
     async def _delete(self, entry: MapEntry, ticket: int) -> None:
         try:
             await entry.line.wait_all(ticket)
+            # a snapshot still being written would otherwise land after the rows are gone (or, for a map made
+            # before incarnations, on a new map of the same name)
+            await entry.snapshot_done()
             if entry.deleted:
                 raise NotFound(f"no map named {entry.name!r}")
             await self._workers.run_admin(self._delete_rows, entry.name, entry.incarnation)

@@ -12,8 +12,11 @@ Concurrency: each map has these orderings.
   A batch refused by validation gives its turns up. Delete and the final snapshot
   wait for both stages (every earlier batch committed and applied).
 * ``apply_lock`` (short): held while the map object is used, i.e. while a batch is
-  applied, while a snapshot copies the arrays (compression and the write happen
-  after, holding the apply turn only) and while a reader (risk, query, plan) copies.
+  applied, while a snapshot copies the arrays and while a reader (risk, query, plan)
+  copies. A due snapshot copies the map in its batch's apply turn, then is deflated
+  and stored beside the line (``MapEntry.snapshotting``, in the admin thread): the
+  batch is acknowledged without waiting for the write. Delete and the final
+  snapshot wait for it.
   A reader waits for at most the batch being applied, never behind the queued ones,
   and never sees a half-applied batch or a version that does not match the arrays.
 
@@ -46,6 +49,7 @@ import time
 import traceback
 from collections.abc import AsyncIterator, Callable, Mapping
 
+import numpy as np
 from fastapi.exceptions import RequestValidationError
 
 from app import batches, scanparse
@@ -96,6 +100,8 @@ class WritePath:
         self._committer = GroupCommitter(storage, metrics)
         self._limits = batches.Limits(max_scans=settings.max_scans_per_batch, max_rays=settings.max_rays_per_scan)
         self._parse_process = ParseProcess()
+        #: snapshots taken beside the lines, also of maps no longer held (``stop`` waits for them all)
+        self._snapshots: set[asyncio.Task[None]] = set()
 
     @property
     def limits(self) -> batches.Limits:
@@ -103,12 +109,20 @@ class WritePath:
         ``FUZZYRISK_MAX_RAYS_PER_SCAN``)."""
         return self._limits
 
+    @property
+    def snapshots_being_written(self) -> int:
+        """Snapshots copied and not yet stored (``_snapshot_beside``)."""
+        return len(self._snapshots)
+
     async def stop(self) -> None:
         """Wait for the batches in flight, snapshot every map with unsnapshotted batches, stop the committer."""
+        if self._snapshots:
+            await asyncio.wait(list(self._snapshots))
         for entry in self._registry.held_maps:
             ticket = entry.line.take()
             try:
                 await entry.line.wait_all(ticket)
+                await entry.snapshot_done()
                 if not entry.deleted and entry.version > entry.snapshot_version:
                     await self.snapshot(entry)
             finally:
@@ -119,14 +133,20 @@ class WritePath:
     async def snapshot(self, entry: MapEntry) -> None:
         """Store the map's arrays and drop the batches they cover; a failure is logged and counted only.
 
-        The caller holds the map's apply turn (no batch can change the map meanwhile). Nothing is lost
-        when this fails: the batches since the last snapshot stay in the log and are replayed at start.
+        Nothing is lost when this fails: the batches since the last snapshot stay in the log and are
+        replayed at start.
         """
-        async with entry.apply_lock:  # readers wait for the copy only, not for deflate and fsync
-            version = entry.version
-            arrays = await self._workers.run(entry.map.to_arrays)
+        await self._store_snapshot(entry, *await self._copy(entry))
+
+    async def _copy(self, entry: MapEntry) -> tuple[int, dict[str, np.ndarray]]:
+        """The map's version and a copy of its arrays, taken under the apply lock: one version's map."""
+        async with entry.apply_lock:  # batches and readers wait for the copy only, not for deflate and fsync
+            return entry.version, await self._workers.run(entry.map.to_arrays)
+
+    async def _store_snapshot(self, entry: MapEntry, version: int, arrays: dict[str, np.ndarray]) -> None:
         try:
-            await self._workers.run(
+            # in the admin thread: the fusion threads are for batches
+            await self._workers.run_admin(
                 lambda: self.storage.write_snapshot(entry.name, version, npz(arrays), entry.incarnation))
         except Exception as exc:
             # StorageUnavailable (full, read-only) mostly, but whatever it is, the batch that triggered
@@ -139,9 +159,28 @@ class WritePath:
             )
             return
         entry.snapshot_version = max(entry.snapshot_version, version)
-        # dropped from the log with the snapshot (another replica's batches caught up may sit after ours)
+        # dropped from the log with the snapshot (later batches, and another replica's caught up, stay)
         entry.log = collections.deque(item for item in entry.log if item[0] > version)
         self.metrics.snapshots.inc()
+
+    async def _snapshot_beside(self, entry: MapEntry) -> None:
+        """Copy the map now, then deflate and store the copy without making anyone wait for it.
+
+        The caller holds the map's apply turn, so the snapshot is of its batch's version. Waiting for the
+        whole snapshot cost that batch's client the deflate and an fsync besides the copy (15-60 ms on a
+        420 x 420 map, one scan in every ``FUZZYRISK_SNAPSHOT_EVERY``: a third of an innocent client's
+        slowest scans in ``bench abuse``); the copy alone is 2-3 ms.
+        """
+        version, arrays = await self._copy(entry)
+        task = asyncio.get_running_loop().create_task(self._store_snapshot(entry, version, arrays))
+        entry.snapshotting = task
+        self._snapshots.add(task)
+
+        def forget(_: asyncio.Task[None]) -> None:
+            entry.snapshotting = None
+            self._snapshots.discard(task)
+
+        task.add_done_callback(forget)
 
     def _snapshot_due(self, entry: MapEntry) -> bool:
         """Every ``FUZZYRISK_SNAPSHOT_EVERY`` batches, or once the log holds ``FUZZYRISK_SNAPSHOT_LOG_BYTES``.
@@ -149,6 +188,8 @@ class WritePath:
         The bytes bound the disk a map takes (its snapshot, plus at most that much log and a batch):
         200 batches of 64 MiB would otherwise be 12.5 GiB of log for one map (issue 11).
         """
+        if entry.snapshotting is not None:
+            return False
         every = self.settings.snapshot_every
         # after a failure, wait another ``every`` batches: a full disk should not cost a snapshot per batch
         if entry.snapshot_failed_version > entry.snapshot_version and entry.version - entry.snapshot_failed_version < every:
@@ -356,7 +397,7 @@ class WritePath:
                 self._grids.retire(entry.uid, below=entry.version)  # no plan will ask for an older one
                 self._notify("batch_applied", entry.name, entry.version, entry.last_scan, entry.frame_id)
             if self._snapshot_due(entry):
-                await self.snapshot(entry)
+                await self._snapshot_beside(entry)
             return result
         finally:
             # applied, or not (a failed catch-up leaves it in the log for the next one to apply)

@@ -107,6 +107,15 @@ def version(client: TestClient, name: str) -> int:
     return int(client.get(f"/maps/{name}").json()["version"])
 
 
+def snapshots_stored(client: TestClient, timeout: float = 10.0) -> None:
+    """Wait until the snapshots the service copied are stored (a batch is acknowledged before its snapshot is)."""
+    writes = client.app.state.service.writes  # type: ignore[attr-defined]
+    deadline = time.monotonic() + timeout
+    while writes.snapshots_being_written:
+        assert time.monotonic() < deadline, "a snapshot was not stored in time"
+        time.sleep(0.002)
+
+
 class Kit:
     """The helpers above, handed to tests as the ``kit`` fixture (test modules cannot import conftest)."""
 
@@ -117,6 +126,7 @@ class Kit:
     npy = staticmethod(npy)
     risk_npy = staticmethod(risk_npy)
     version = staticmethod(version)
+    snapshots_stored = staticmethod(snapshots_stored)
 
 
 @pytest.fixture

@@ -107,6 +107,7 @@ def test_a_replica_catches_up_from_a_snapshot_another_replica_wrote(replicas: Re
     assert b.post("/maps/lab/scans", json={"scans": [_scan(kit, 0)]}).status_code == 200  # b holds version 1
     for k in range(1, 9):  # a snapshots at 4 and 8: batches 1-8 leave the log
         assert a.post("/maps/lab/scans", json={"scans": [_scan(kit, k)]}).status_code == 200
+    kit.snapshots_stored(a)
     store = PostgresStorage(replicas.url)  # type: ignore[attr-defined]
     try:
         stored = store.load_map("lab")
@@ -210,6 +211,7 @@ def test_a_batch_already_in_another_replicas_snapshot_is_not_fused_twice(replica
         mine = pool.submit(a.post, "/maps/lab/scans", json={"scans": [_scan(kit, 3)]})
         assert entered.wait(10)  # a's batch is committed as 3, its catch-up held
         assert b.post("/maps/lab/scans", json={"scans": [_scan(kit, 4)]}).json()["version"] == 4
+        kit.snapshots_stored(b)
         gate.set()
         assert mine.result().json()["version"] == 3
     held = a.app.state.service.maps.entry("lab")  # type: ignore[attr-defined]
@@ -418,6 +420,7 @@ def test_an_export_overtaken_by_another_replicas_snapshot_records_from_its_own_v
             overtaken.append(name)
             for k in (2, 3):
                 assert a.post("/maps/lab/scans", json={"scans": [_scan(kit, k)]}).status_code == 200
+            kit.snapshots_stored(a)
         return load_map(name)
 
     monkeypatch.setattr(storage, "load_map", snapshot_meanwhile)

@@ -228,6 +228,7 @@ def test_after_a_snapshot_only_the_later_scans_are_recorded(make_client: Any, ki
     walls = [3.0, 3.5, 4.0]
     for wall in walls:  # versions 1, 2 (then a snapshot at 2), 3
         assert client.post("/maps/lab/scans", json={"scans": [kit.laser(wall=wall)]}).status_code == 200
+    kit.snapshots_stored(client)
     response = export(client, "lab")
     assert response.headers[recording.SINCE_HEADER] == "2" and response.headers["X-Map-Version"] == "3"
     scans = [m for topic, _, _, m in mcap_messages(response.content) if topic == "/scan"]
@@ -236,6 +237,7 @@ def test_after_a_snapshot_only_the_later_scans_are_recorded(make_client: Any, ki
     np.testing.assert_array_equal(scans[0].ranges, expected)
     # the snapshot after the 4th batch empties the log: only the grid, since version 4
     assert client.post("/maps/lab/scans", json={"scans": [kit.laser(wall=5.0)]}).status_code == 200
+    kit.snapshots_stored(client)
     emptied = export(client, "lab")
     assert emptied.headers[recording.SINCE_HEADER] == "4"
     assert [topic for topic, *_ in mcap_messages(emptied.content)] == ["/map"]

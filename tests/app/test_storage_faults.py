@@ -70,6 +70,7 @@ def test_a_failed_snapshot_still_acknowledges_the_batch_and_loses_nothing(
     client.post("/maps", json=kit.MAP_2D)
     versions = [client.post("/maps/lab/scans", json=_batch(kit, k)).json()["version"] for k in range(5)]
     assert versions == [1, 2, 3, 4, 5]
+    kit.snapshots_stored(client)
     metrics = client.get("/metrics").text
     assert "fuzzyrisk_snapshot_failures_total 2.0" in metrics  # at version 2, retried at 4 (not every batch)
     risk = kit.risk_npy(client, "lab")
