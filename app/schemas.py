@@ -28,6 +28,7 @@ from pydantic import (
 from app import engines
 from app.errors import ErrorBody
 from fuzzyocc.presets import PRESETS
+from planning.field import DEFAULT_MAX_RISK
 
 NAME_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$"
 _NAME_RE = re.compile(NAME_PATTERN)
@@ -130,7 +131,7 @@ EXAMPLE_PLAN = {
     "planner": "RRTstar",
     "time_limit": 1.0,
     "robot_radius": 0.2,
-    "max_risk": 0.6,
+    "max_risk": DEFAULT_MAX_RISK,
     "risk_weight": 1.0,
     "allow_unknown": True,
     "seed": 1,
@@ -521,7 +522,8 @@ class RiskGridJSON(BaseModel):
 
 
 class PlanRequest(BaseModel):
-    """A path query on the map's risk; the planner's validity is ``risk <= max_risk`` under the robot."""
+    """A path query on the map's risk; valid: no observed cell under the robot above ``max_risk``, and never-observed
+    cells under it only with ``allow_unknown``."""
 
     model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [EXAMPLE_PLAN]})
 
@@ -533,9 +535,14 @@ class PlanRequest(BaseModel):
         1.0, description="seconds; at most FUZZYRISK_MAX_PLAN_TIME_S. A seeded plan is ended by an iteration budget "
         "that fits this on an idle machine, so that it repeats; its clock bound is 3 x time_limit")
     robot_radius: NonNegativeFinite = 0.2
-    max_risk: Annotated[float, Field(ge=0.0, le=1.0, allow_inf_nan=False)] = 0.6
+    max_risk: Annotated[float, Field(
+        ge=0.0, le=1.0, allow_inf_nan=False,
+        description="the most risk an observed cell under the robot may have; default 0.45 (the exports' free "
+        "threshold): cells with net free evidence. An observed cell at 0.5 (a surface hit, then seen through as "
+        "often) is not free")] = DEFAULT_MAX_RISK
     risk_weight: NonNegativeFinite = 1.0
-    allow_unknown: bool = True
+    allow_unknown: bool = Field(True, description="the robot may overlap never-observed cells (and leave the map), "
+                                "whatever max_risk; false: it may not")
     seed: Annotated[int, Field(ge=0, lt=2**32)] | None = None
     turning_radius: PositiveFinite | None = Field(None, description="metres; required by Dubins and ReedsShepp")
     goal_tolerance: PositiveFinite | None = Field(None, description="reach the goal within this; default one cell")

@@ -2,12 +2,12 @@
 
 Pairs of poses the robot really drove (the laser poses of the log), far apart: ``PAIRS`` starts
 spread evenly over the log, each the first pose from its spread position whose footprint is
-valid on our map (dilated risk <= ``max_risk``, what ``plan`` asks of a start), and as goal the
+valid on our map (``RiskField.valid_mask``, what ``plan`` asks of a start), and as goal the
 first pose after it in log order (wrapping around) that is valid too and at least ``MIN_APART``
 of the map's diagonal away. Both the grid planner (the optimum on the 8-connected cell graph,
 then shortcut) and RRTstar (1 s, seeded with the pair's number) plan on our map's risk, with the
-planner library's defaults: robot radius 0.2 m, ``max_risk`` 0.6, risk weight 1, unknown space
-allowed.
+planner library's defaults: robot radius 0.2 m, ``max_risk`` 0.45 (``DEFAULT_MAX_RISK``: observed
+cells with net free evidence), risk weight 1, never-observed space allowed.
 
 Every returned path (exact or approximate: a robot would drive either) is densified to half a
 cell, and its clearance is the least distance from the cell of a path point to an OctoMap-occupied
@@ -23,11 +23,11 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
-from bench._logmaps import OCCUPIED
 from fuzzyocc import GridSpec
+from planning.field import DEFAULT_MAX_RISK
 
 ROBOT_RADIUS = 0.2  # planning.plan's default (and bench_planning's)
-MAX_RISK = OCCUPIED
+MAX_RISK = DEFAULT_MAX_RISK
 TIME_LIMIT = 1.0
 PAIRS = 5
 MIN_APART = 0.3  # of the map's diagonal

@@ -4,7 +4,7 @@ A map per shared CARMEN log (``bench/_logmaps.py``): every scan of the log fused
 batches of 32 (what ``app.import_log`` posts), into ``FuzzyMap(spec)`` (the default preset and
 sensor model, as the service builds a new map), 0.05 m cells. Queries: ``_plan_audit.pick_pairs``,
 pairs of laser poses the robot drove, at least 30 % of the map's diagonal apart, both valid starts
-(robot radius 0.2 m, ``max_risk`` 0.6: ``plan``'s defaults).
+(robot radius 0.2 m, ``max_risk`` 0.45: ``plan``'s defaults).
 
 Three measurements, each a function here:
 
@@ -47,7 +47,7 @@ from bench import _logmaps, _plan_audit
 from fuzzyocc import FuzzyMap, GridSpec
 
 ROBOT_RADIUS = _plan_audit.ROBOT_RADIUS  # 0.2 m, plan's default
-MAX_RISK = _plan_audit.MAX_RISK  # 0.6, plan's default
+MAX_RISK = _plan_audit.MAX_RISK  # 0.45, plan's default
 OCCUPIED = _logmaps.OCCUPIED  # clearance is measured to cells at or above this risk
 RISK_WEIGHT = 1.0
 TIME_LIMIT = 1.0

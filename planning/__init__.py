@@ -3,7 +3,7 @@
 ```python
 from planning import RiskField, plan, PlanError, PlanResult, available_planners
 field = RiskField(risk, resolution=0.05, origin=(0.0, 0.0), observed=mask)
-result = plan(field, start=(x, y), goal=(x, y), planner="RRTstar", robot_radius=0.2, max_risk=0.6)
+result = plan(field, start=(x, y), goal=(x, y), planner="RRTstar", robot_radius=0.2, max_risk=0.45)
 ```
 
 Knows nothing of fuzzy labels or HTTP: a risk grid in, a path out.
@@ -20,7 +20,7 @@ import importlib
 from typing import TYPE_CHECKING, Any
 
 from planning.budget import wall_clock_limit
-from planning.field import RiskField
+from planning.field import DEFAULT_MAX_RISK, RiskField
 from planning.planners import STATE_SPACE_NAMES, available_planners
 from planning.result import PLAN_ERROR_CODES, PlanError, PlanResult
 
@@ -29,6 +29,7 @@ if TYPE_CHECKING:
     from planning.spaces import STATE_SPACES
 
 __all__ = [
+    "DEFAULT_MAX_RISK",
     "PLAN_ERROR_CODES",
     "STATE_SPACES",
     "STATE_SPACE_NAMES",

@@ -24,6 +24,8 @@ from typing import Any
 import numpy as np
 
 UNKNOWN_RISK = 0.5  # risk of never-observed space (and of space outside the map)
+#: ``plan``'s and the service's default ``max_risk``: the exports' free threshold (cells with net free evidence)
+DEFAULT_MAX_RISK = 0.45
 
 
 def footprint(robot_radius: float, resolution: float, ndim: int) -> np.ndarray:
@@ -303,6 +305,8 @@ class RiskField:
             fp = footprint(radius, self._resolution, self.ndim)
             if kind == "risk":
                 hit = _dilate_max(self._risk, fp, UNKNOWN_RISK)
+            elif kind == "observed_risk":  # never-observed cells (and the outside) are allow_unknown's to bound
+                hit = _dilate_max(np.where(self._observed, self._risk, np.float32(0.0)), fp, 0.0)
             else:
                 hit = _dilate_max((~self._observed).view(np.uint8), fp, 1).view(bool)  # 0 or 1
             hit.setflags(write=False)
@@ -323,9 +327,18 @@ class RiskField:
         """Cells from which the footprint can overlap never-observed space or leave the map."""
         return self._dilated("unknown", robot_radius)
 
+    def dilated_observed_risk(self, robot_radius: float) -> np.ndarray:
+        """Worst risk of the observed cells under the footprint (never-observed cells count 0)."""
+        return self._dilated("observed_risk", robot_radius)
+
     def valid_mask(self, robot_radius: float, max_risk: float, allow_unknown: bool = True) -> np.ndarray:
-        """Cells where every position is valid: dilated risk <= max_risk, and, unless
-        ``allow_unknown``, a footprint that cannot overlap never-observed space.
+        """Cells where every position is valid: no observed cell under the footprint above ``max_risk``,
+        and, unless ``allow_unknown``, no never-observed cell (nor the outside of the map) under it.
+
+        ``max_risk`` bounds what the sensor saw, ``allow_unknown`` what it never saw: an observed cell at
+        risk 0.5 is evidence for and against a surface that cancels out (a surface hit once and seen
+        through twice), not the absence of evidence, and the default ``max_risk`` 0.45 keeps the robot
+        off it while unknown space stays open (docs/DESIGN.md section 5).
 
         Raises
         ------
@@ -336,7 +349,7 @@ class RiskField:
         if not (0.0 <= limit <= 1.0):
             raise ValueError(f"max_risk: must lie in [0, 1], got {max_risk!r}")
         # compared in float64, as the planners report it, so a reported max_risk never exceeds it
-        valid = self.dilated_risk(robot_radius).astype(np.float64) <= limit
+        valid = self.dilated_observed_risk(robot_radius).astype(np.float64) <= limit
         if not allow_unknown:
             valid &= ~self.dilated_unknown(robot_radius)
         return valid

@@ -69,6 +69,7 @@ class PackedGrid:
         self.origin = field.origin
         self.shape = field.shape
         self.risk_weight = float(risk_weight)
+        self.robot_radius = float(robot_radius)
         self.risk = field.dilated_risk(robot_radius)
         self.valid = field.valid_mask(robot_radius, max_risk, allow_unknown)
         self.unknown = None if allow_unknown else field.dilated_unknown(robot_radius)

@@ -42,7 +42,7 @@ from ompl import geometric as og
 from ompl import util as ou
 
 from planning.budget import SEEDED_CLOCK_FACTOR, wall_clock_limit
-from planning.field import RiskField
+from planning.field import DEFAULT_MAX_RISK, RiskField
 from planning.grid_search import grid_path
 from planning.packed import PackedGrid
 from planning.planners import GRID, PlannerSpec, planner_spec
@@ -156,9 +156,10 @@ def _check_endpoint(grid: PackedGrid, point: tuple[float, ...], which: str, max_
     if grid.valid.reshape(-1)[index]:
         return
     code = START_OCCUPIED if which == "start" else GOAL_OCCUPIED
-    risk = float(grid.risk.reshape(-1)[index])
+    risk = float(grid.field.dilated_observed_risk(grid.robot_radius).reshape(-1)[index])
     if risk > max_risk:
-        raise PlanError(code, f"{which} {position}: risk under the robot's footprint {risk:.3f} > max_risk {max_risk:g}")
+        raise PlanError(code, f"{which} {position}: risk of the observed cells under the robot's footprint {risk:.3f} > "
+                              f"max_risk {max_risk:g}")
     assert grid.unknown is not None  # only unknown space is left to make the cell invalid
     raise PlanError(
         code,
@@ -281,7 +282,7 @@ def plan(
     state_space: str | None = None,
     time_limit: float = 1.0,
     robot_radius: float = 0.2,
-    max_risk: float = 0.6,
+    max_risk: float = DEFAULT_MAX_RISK,
     risk_weight: float = 1.0,
     allow_unknown: bool = True,
     seed: int | None = None,
@@ -310,12 +311,14 @@ def plan(
         Metres, >= 0, at most half the map's diagonal and what a dilation of
         ``MAX_DILATION_WORK`` cell-radii allows on this map (``_max_robot_radius``).
     max_risk : float
-        In [0, 1]: a position is valid when the dilated risk there is at most this.
+        In [0, 1]: a position is valid when no observed cell under the footprint has a higher risk
+        (never-observed cells are ``allow_unknown``'s). The default, 0.45, is the exports' free
+        threshold: the robot drives on cells with net free evidence, or on unknown ones.
     risk_weight : float
         In [0, ``MAX_RISK_WEIGHT``]: cost is ``length + risk_weight * integral of dilated risk`` (metres x risk).
     allow_unknown : bool
-        False forbids positions whose footprint overlaps never-observed cells, whatever
-        ``max_risk`` says.
+        True allows positions whose footprint overlaps never-observed cells (or leaves the map),
+        whatever ``max_risk`` says; False forbids them.
     seed : int or None
         In [0, 2**32): seeds OMPL and bounds the solve by iterations (see the module
         docstring) so the same seed gives the same path.

@@ -36,10 +36,12 @@ async def planners() -> Planners:
     },
 )
 async def plan(name: MapNamePath, body: PlanRequest, service: ServiceDep, response: Response) -> PlanResult:
-    """A path from ``start`` to ``goal`` whose risk stays at or below ``max_risk`` under the robot.
+    """A path from ``start`` to ``goal`` whose observed cells under the robot stay at or below ``max_risk``
+    (default 0.45: cells with net free evidence); never-observed cells are allowed unless ``allow_unknown``
+    is false, whatever ``max_risk`` says.
 
-    Cost = length + ``risk_weight`` * integral of risk along the path. ``allow_unknown: false``
-    forbids never-observed cells whatever ``max_risk`` says. Runs in a worker process.
+    Cost = length + ``risk_weight`` * integral of risk along the path (never-observed cells count 0.5).
+    Runs in a worker process.
     """
     result = await service.plans.plan(name, body)
     response.headers[conditional.VERSION_HEADER] = str(result.version)

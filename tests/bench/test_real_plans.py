@@ -3,9 +3,11 @@
 One small real map, orebro's first 120 scans fused with the default engine (as
 ``tests/bench/test_map_quality.py`` takes them), 3 queries between far-apart poses the robot drove
 (``bench/_plan_audit.pick_pairs``). The grid planner and RRTstar (seeded, on a fixed iteration count
-with a time limit it never reaches, so the plans repeat on any machine; as ``plan`` runs it by default,
-and on its own without the grid planner's path as a seed) must reach the goal and keep the robot
-radius less one cell from our map's occupied cells (risk >= 0.6). The same cost grid searched by
+with a time limit it never reaches, so the plans repeat on any machine; as ``plan`` runs it by default)
+must reach the goal, and with RRTstar on its own (without the grid planner's path as a seed) keep the
+robot radius less one cell from our map's occupied cells (risk >= 0.6); on its own it may stop short
+(since the default ``max_risk`` 0.45, one of the three queries passes a door it misses in 25,000
+iterations). The same cost grid searched by
 scikit-image (Dijkstra) must cost what our A* found, and pyastar2d must find every query too. No
 times are asserted: they are the benchmark's to print.
 """
@@ -54,12 +56,15 @@ def test_grid_and_rrtstar_are_exact_and_clear_of_occupied_cells(plans: list[_rea
     labels = {"grid", "RRTstar", *(["RRTstar (alone)"] if _real_plans.can_plan_alone() else [])}
     assert {r.label for r in plans} == labels and len(plans) == len(labels) * PAIRS
     for r in plans:
-        assert r.exact, (r.planner, r.pair, r.status, r.message)
+        # what a user gets (the grid planner, RRTstar as plan() runs it) reaches the goal; the sampler on its own
+        # need not (issue 13: it misses doors the cell graph finds, why plan() seeds it), but it keeps clear
+        assert r.exact or (r.alone and r.status == "approximate"), (r.planner, r.pair, r.status, r.message)
         assert r.clearance >= CLEAR, (r.planner, r.pair, r.clearance)
         assert math.isfinite(r.cost) and r.cost >= r.length > 0
     for label in labels - {"grid"}:
         ratios = _real_plans.cost_ratios(plans, label)
-        assert len(ratios) == PAIRS and all(math.isfinite(x) and x > 0 for x in ratios)
+        assert all(math.isfinite(x) and x > 0 for x in ratios)
+        assert len(ratios) == PAIRS if label == "RRTstar" else len(ratios) >= 1
 
 
 def test_a_seeded_plan_on_a_fixed_budget_repeats(small_map: _real_plans.RealMap,

@@ -10,7 +10,7 @@ import pytest
 from scipy import ndimage
 
 from planning import RiskField
-from planning.field import footprint
+from planning.field import DEFAULT_MAX_RISK, footprint
 
 RES = 0.05
 
@@ -93,6 +93,26 @@ def test_valid_mask_combines_max_risk_and_unknown_space() -> None:
     assert not allow[5, 5] and allow[20, 20]
     assert not forbid[5, 5] and not forbid[20, 20]
     assert field.valid_mask(0.0, 0.7)[5, 5]
+
+
+def test_max_risk_bounds_what_was_observed_and_allow_unknown_what_was_not() -> None:
+    # issue 10: a surface hit once and seen through twice is an observed cell at 0.5; with max_risk 0.6 the
+    # planner drove past it 0.10 m away (infinite-corridor), where OctoMap holds it occupied
+    risk = np.full((30, 30), 0.4, np.float32)  # one net level of free evidence
+    risk[10, 10] = 0.5  # observed: evidence for and against that cancels out
+    risk[20, 20] = 0.5  # never observed
+    observed = np.ones((30, 30), dtype=bool)
+    observed[20, 20] = False
+    field = RiskField(risk, RES, (0.0, 0.0), observed=observed)
+    default = field.valid_mask(0.0, DEFAULT_MAX_RISK)
+    assert DEFAULT_MAX_RISK == 0.45 and default[5, 5] and not default[10, 10] and default[20, 20]
+    assert not field.valid_mask(0.0, DEFAULT_MAX_RISK, allow_unknown=False)[20, 20]
+    # allow_unknown decides never-observed space whatever max_risk: before, max_risk below 0.5 shut it too
+    strict = field.valid_mask(0.0, 0.3)
+    assert not strict[5, 5] and strict[20, 20]
+    # the footprint carries both: a robot 2 cells away from the observed 0.5 cell is not valid at 0.1 m
+    dilated = field.valid_mask(0.1, DEFAULT_MAX_RISK)
+    assert not dilated[12, 10] and dilated[13, 10] and dilated[22, 20]
 
 
 @pytest.mark.parametrize(

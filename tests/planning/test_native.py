@@ -117,8 +117,11 @@ def test_a_failed_check_falls_back_to_python_with_one_warning(monkeypatch, caplo
     monkeypatch.setattr(native, "_state_layout_ok", lambda space, si: False)
     field = _field(2)
     with caplog.at_level(logging.WARNING, logger="planning.native"):
-        first = plan(field, (0.0, 3.0), (2.7, 5.2), planner="RRTstar", time_limit=0.2, robot_radius=0.05, seed=2)
-        second = plan(field, (0.0, 3.0), (2.7, 5.2), planner="RRTstar", time_limit=0.2, robot_radius=0.05, seed=2)
+        # max_risk 0.6: the field's risks run up to 0.5 (the default would block parts of it)
+        first = plan(field, (0.0, 3.0), (2.7, 5.2), planner="RRTstar", time_limit=0.2, robot_radius=0.05, seed=2,
+                     max_risk=0.6)
+        second = plan(field, (0.0, 3.0), (2.7, 5.2), planner="RRTstar", time_limit=0.2, robot_radius=0.05, seed=2,
+                      max_risk=0.6)
     assert first.status == second.status == "exact"
     assert all("not laid out as expected" in native.status()[f"{kind} R2"] for kind in native.KINDS)
     warnings = [r for r in caplog.records if r.name == "planning.native"]
@@ -168,7 +171,7 @@ def test_a_seeded_plan_repeats_on_a_machine_that_runs_it_slower() -> None:
     # The Python objective runs RRTstar about half as fast as the compiled one, as a loaded
     # machine would; the default budget of a seeded plan (no max_iterations) must still end both.
     field = _field(2)
-    kw = dict(planner="RRTstar", time_limit=0.3, robot_radius=0.05, seed=4, grid_seed=False)
+    kw = dict(planner="RRTstar", time_limit=0.3, robot_radius=0.05, seed=4, grid_seed=False, max_risk=0.6)
     fast = plan(field, (0.0, 3.0), (2.7, 5.2), **kw)
     native.set_enabled(False)
     try:
