@@ -328,7 +328,7 @@ class _Field:
 
     @property
     def nbytes(self) -> int:
-        per_radius = self.field.risk.nbytes
+        per_radius = 2 * self.field.risk.nbytes  # the dilated risk (cost) and that of the observed cells (validity)
         unknown = self.field.observed.nbytes
         radii = {radius for radius, _ in self.dilations}
         masks = {radius for radius, with_unknown in self.dilations if with_unknown}

@@ -196,7 +196,8 @@ def test_a_worker_keeps_a_grids_field_and_its_dilations_for_the_next_plans(tmp_p
     assert statuses == ["exact"] * 3
     assert [s["loads"] for s in seen] == [1, 1, 1, 2]  # read from its files once per version
     base = risk.nbytes + observed.nbytes
-    assert [s["bytes"] for s in seen[:3]] == [base + risk.nbytes, base + risk.nbytes, base + 2 * risk.nbytes]
+    per_radius = 2 * risk.nbytes  # the dilated risk, and the dilated risk of the observed cells
+    assert [s["bytes"] for s in seen[:3]] == [base + per_radius, base + per_radius, base + 2 * per_radius]
     assert len(seen[3]["paths"]) == 1 and seen[3]["paths"][0].endswith("m7-v2.risk.npy")
     assert not (tmp_path / "plan-grids").exists()
 
