@@ -348,7 +348,8 @@ class RiskField:
         limit = float(max_risk)
         if not (0.0 <= limit <= 1.0):
             raise ValueError(f"max_risk: must lie in [0, 1], got {max_risk!r}")
-        # compared in float64, as the planners report it, so a reported max_risk never exceeds it
+        # compared in float64, as the planners report risk, so a path's reported risk over observed cells never
+        # exceeds it
         valid = self.dilated_observed_risk(robot_radius).astype(np.float64) <= limit
         if not allow_unknown:
             valid &= ~self.dilated_unknown(robot_radius)

@@ -61,7 +61,8 @@ class PlanResult:
     length : float
         Length of the path's position trace, metres.
     max_risk : float
-        Largest dilated risk along the path (the quantity bounded by ``max_risk``).
+        Largest dilated risk along the path: at most the ``max_risk`` asked for where the footprint
+        covers observed cells only; never-observed cells count 0.5 (``allow_unknown`` bounds them).
     mean_risk : float
         Risk integral divided by the length (the dilated risk at the start for a
         zero-length path).

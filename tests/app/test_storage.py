@@ -102,10 +102,8 @@ def test_snapshots_drop_the_batches_they_cover_and_replay_the_rest(make_client: 
         assert kit.risk_npy(replayed, "lab").tobytes() == risk.tobytes()
 
 
-def test_a_batch_is_acknowledged_before_its_snapshot_is_written_and_a_delete_waits_for_it(
-        make_client: Any, make_settings: Any, kit: Any, monkeypatch: pytest.MonkeyPatch) -> None:
-    # issue 11: the batch that made a snapshot due waited for its deflate and fsync (one scan in every 200 was
-    # an innocent client's slowest in bench abuse)
+def _hold_snapshot_writes(monkeypatch: pytest.MonkeyPatch) -> tuple[threading.Event, threading.Event]:
+    """Snapshot writes wait for the second event (the first is set when one starts)."""
     original, writing, release = SqliteStorage.write_snapshot, threading.Event(), threading.Event()
 
     def held(self: SqliteStorage, *args: Any) -> None:
@@ -114,6 +112,14 @@ def test_a_batch_is_acknowledged_before_its_snapshot_is_written_and_a_delete_wai
         original(self, *args)
 
     monkeypatch.setattr(SqliteStorage, "write_snapshot", held)
+    return writing, release
+
+
+def test_a_batch_is_acknowledged_before_its_snapshot_is_written_and_a_delete_waits_for_it(
+        make_client: Any, make_settings: Any, kit: Any, monkeypatch: pytest.MonkeyPatch) -> None:
+    # issue 11: the batch that made a snapshot due waited for its deflate and fsync (one scan in every 200 was
+    # an innocent client's slowest in bench abuse)
+    writing, release = _hold_snapshot_writes(monkeypatch)
     client = make_client(snapshot_every=2)
     data_dir = make_settings().data_dir
     client.post("/maps", json=kit.MAP_2D)
@@ -133,13 +139,7 @@ def test_a_batch_is_acknowledged_before_its_snapshot_is_written_and_a_delete_wai
 
 def test_a_snapshot_is_of_the_version_that_made_it_due(make_client: Any, make_settings: Any, kit: Any,
                                                        monkeypatch: pytest.MonkeyPatch) -> None:
-    original, release = SqliteStorage.write_snapshot, threading.Event()
-
-    def held(self: SqliteStorage, *args: Any) -> None:
-        assert release.wait(10)
-        original(self, *args)
-
-    monkeypatch.setattr(SqliteStorage, "write_snapshot", held)
+    _, release = _hold_snapshot_writes(monkeypatch)
     client = make_client(snapshot_every=2)
     data_dir = make_settings().data_dir
     client.post("/maps", json=kit.MAP_2D)
