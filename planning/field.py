@@ -336,9 +336,10 @@ class RiskField:
         and, unless ``allow_unknown``, no never-observed cell (nor the outside of the map) under it.
 
         ``max_risk`` bounds what the sensor saw, ``allow_unknown`` what it never saw: an observed cell at
-        risk 0.5 is evidence for and against a surface that cancels out (a surface hit once and seen
-        through twice), not the absence of evidence, and the default ``max_risk`` 0.45 keeps the robot
-        off it while unknown space stays open (docs/DESIGN.md section 5).
+        risk 0.5 is mostly evidence for and against a surface that cancels out (a surface hit once and
+        seen through twice), otherwise a cell just behind a surface, not the absence of evidence; the
+        default ``max_risk`` 0.45 keeps the robot off it while unknown space stays open (docs/DESIGN.md
+        section 5).
 
         Raises
         ------
