@@ -37,6 +37,9 @@ __all__ = [
     "even_output_mfs",
 ]
 
+#: What :meth:`FuzzyEngine.fuzzifier` returns: ``(xs, ys, counts, rows, bounds)``.
+Fuzzifier = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]
+
 #: Labels of the paper in risk order (state and output order).
 PAPER_LABELS: tuple[str, ...] = ("EMP", "MPE", "PE", "UNK", "PO", "MPO", "OCC")
 
@@ -198,9 +201,7 @@ class FuzzyEngine:
     no_return_neighbours: int = 0
     _rule_index: np.ndarray = field(init=False, repr=False, compare=False)
     _input_breakpoints: tuple[np.ndarray, np.ndarray, np.ndarray] = field(init=False, repr=False, compare=False)
-    _input_ends: tuple[float, np.ndarray, float, np.ndarray, float, float, np.ndarray] = field(
-        init=False, repr=False, compare=False
-    )
+    _input_ends: tuple[np.ndarray, np.ndarray] = field(init=False, repr=False, compare=False)
     _occupied_extent: float = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
@@ -346,7 +347,7 @@ class FuzzyEngine:
         if d.ndim != 1:
             raise ValueError(f"distance_sigmas must be 1-D (N,), got shape {d.shape}")
         out = np.empty((d.shape[0], self.num_labels), dtype=np.uint8)
-        if _fuzzify_kernel(d, *self._input_breakpoints, *self._input_ends, out) >= 0:
+        if _fuzzify_kernel(d, *self.fuzzifier(), out) >= 0:
             bad = int(np.flatnonzero(np.isnan(d))[0])
             raise ValueError(f"distance_sigmas must not contain NaN (first at index {bad})")
         return out
@@ -425,6 +426,16 @@ class FuzzyEngine:
         else:
             product, probsum = self.and_op == "product", self.or_op == "probsum"
             _fuse_float_at(state, rows, evidence, self._rule_index, product, probsum, bool(self.normalize))
+
+    def fuzzifier(self) -> Fuzzifier:
+        """``(xs, ys, counts, rows, bounds)``: what :func:`fuzzify_into` and :func:`evidence_class` take.
+
+        For storage that fuzzifies in its own compiled loop (``fuzzyocc.grid.BlockGrid``), with
+        the very arithmetic of :meth:`fuzzify`: ``xs, ys, counts`` are the input functions'
+        breakpoints, ``rows`` (3, L) the constant rows of classes 0-2 and ``bounds`` their
+        limits (see :func:`evidence_class`).
+        """
+        return (*self._input_breakpoints, *self._input_ends)
 
     def row_fusion(self) -> tuple[np.ndarray, tuple[bool, bool, bool] | None]:
         """``(rules, float_ops)``: the arguments :func:`fuse_row` takes for this engine.
@@ -650,89 +661,97 @@ def _defuzzify_direct(engine: FuzzyEngine, state: np.ndarray, out: np.ndarray, c
 
 # -------------------------------------------------------------------- compiled kernels
 # nogil: maps fuse in a service's thread pool, and these loops touch no Python object.
+#: Classes of a distance that :func:`evidence_class` gives: every input function constant.
+BELOW, ABOVE, FLAT = 0, 1, 2
+#: The class of a distance where some input function slopes: fuzzified by :func:`fuzzify_into`.
+SLOPED = 3
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def evidence_class(v: float, bounds: np.ndarray) -> int:  # pragma: no cover - compiled
+    """Which row a distance fuzzifies to: ``rows[BELOW]`` below every function's first breakpoint,
+    ``rows[ABOVE]`` past every last one, ``rows[FLAT]`` on the widest interval where every
+    function is flat, else ``SLOPED`` (NaN too: callers reject it first).
+
+    Most cells of a beam lie far in front of its surface, where the row is a constant.
+    """
+    if v < bounds[0]:
+        return BELOW
+    if v > bounds[1]:
+        return ABOVE
+    if bounds[2] < v < bounds[3]:
+        return FLAT
+    return SLOPED
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def fuzzify_into(
+    v: float, xs: np.ndarray, ys: np.ndarray, counts: np.ndarray, out: np.ndarray, r: int
+) -> None:  # pragma: no cover - compiled
+    """``out[r]`` = the activations of every label at distance ``v`` (piecewise-linear interpolation)."""
+    for k in range(xs.shape[0]):
+        c = counts[k]
+        if v <= xs[k, 0]:
+            mu = ys[k, 0]
+        elif v >= xs[k, c - 1]:
+            mu = ys[k, c - 1]
+        else:
+            s = 1
+            while xs[k, s] < v:
+                s += 1
+            x0 = xs[k, s - 1]
+            t = (v - x0) / (xs[k, s] - x0)
+            mu = ys[k, s - 1] + t * (ys[k, s] - ys[k, s - 1])
+        out[r, k] = np.uint8(mu * 255.0 + 0.5)
+
+
 @numba.njit(cache=True, nogil=True)
 def _fuzzify_kernel(
-    d: np.ndarray,
-    xs: np.ndarray,
-    ys: np.ndarray,
-    counts: np.ndarray,
-    low: float,
-    low_row: np.ndarray,
-    high: float,
-    high_row: np.ndarray,
-    flat_lo: float,
-    flat_hi: float,
-    flat_row: np.ndarray,
+    d: np.ndarray, xs: np.ndarray, ys: np.ndarray, counts: np.ndarray, rows: np.ndarray, bounds: np.ndarray,
     out: np.ndarray,
 ) -> int:
-    """Piecewise-linear interpolation of every label at every distance; index of a NaN, or -1.
-
-    ``v < low`` (before every function's first breakpoint), ``v > high`` (past
-    every last one) and ``flat_lo < v < flat_hi`` (an interval where every function
-    is flat) take the precomputed rows of :func:`_constant_rows`.
-    """
+    """Every distance's activations into ``out``; the index of a NaN, or -1."""
     n_labels = xs.shape[0]
     for n in range(d.shape[0]):
         v = d[n]
         if v != v:
             return n
-        if v < low:
+        cls = evidence_class(v, bounds)
+        if cls == SLOPED:
+            fuzzify_into(v, xs, ys, counts, out, n)
+        else:
             for k in range(n_labels):
-                out[n, k] = low_row[k]
-            continue
-        if v > high:
-            for k in range(n_labels):
-                out[n, k] = high_row[k]
-            continue
-        if flat_lo < v < flat_hi:
-            for k in range(n_labels):
-                out[n, k] = flat_row[k]
-            continue
-        for k in range(n_labels):
-            c = counts[k]
-            if v <= xs[k, 0]:
-                mu = ys[k, 0]
-            elif v >= xs[k, c - 1]:
-                mu = ys[k, c - 1]
-            else:
-                s = 1
-                while xs[k, s] < v:
-                    s += 1
-                x0 = xs[k, s - 1]
-                t = (v - x0) / (xs[k, s] - x0)
-                mu = ys[k, s - 1] + t * (ys[k, s] - ys[k, s - 1])
-            out[n, k] = np.uint8(mu * 255.0 + 0.5)
+                out[n, k] = rows[cls, k]
     return -1
 
 
-def _constant_rows(
-    xs: np.ndarray, ys: np.ndarray, counts: np.ndarray
-) -> tuple[float, np.ndarray, float, np.ndarray, float, float, np.ndarray]:
-    """``(low, row at -inf, high, row at +inf, flat_lo, flat_hi, flat row)`` for :func:`_fuzzify_kernel`.
+def _constant_rows(xs: np.ndarray, ys: np.ndarray, counts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(rows, bounds)`` for :func:`evidence_class`: the rows at -inf, at +inf and on the flat interval.
 
-    Strictly below ``low`` every function is at its first breakpoint's value and
-    strictly above ``high`` at its last one's; on ``(flat_lo, flat_hi)``, the widest
-    gap between consecutive breakpoints (of all functions) over which every function
-    is constant, they hold the flat row (most cells of a beam lie in front of its
-    surface, on such a plateau when it is not below ``low``). The rows are computed by
-    the kernel itself with the fast paths off, so the rounding is the same.
+    Strictly below ``bounds[0]`` every function is at its first breakpoint's value and
+    strictly above ``bounds[1]`` at its last one's; on ``(bounds[2], bounds[3])``, the widest
+    gap between consecutive breakpoints (of all functions) over which every function is
+    constant, they hold the flat row (``bounds[2] > bounds[3]``: there is none). The rows
+    are computed by the kernel itself with every distance sloped, so the rounding is the same.
     """
     low = float(xs[:, 0].min())
     high = float(max(xs[k, c - 1] for k, c in enumerate(counts)))
     points = np.unique(np.concatenate([xs[k, :c] for k, c in enumerate(counts)]))
     samples = np.concatenate([[-np.inf, np.inf], points])
-    unused = np.empty(0, dtype=np.uint8)
-    unused.flags.writeable = False  # the type the real rows have: one compiled specialisation
-    no_flat = (np.inf, -np.inf, unused)
-    rows = np.empty((samples.size, xs.shape[0]), dtype=np.uint8)
-    _fuzzify_kernel(samples, xs, ys, counts, -np.inf, unused, np.inf, unused, *no_flat, rows)
-    flat_lo, flat_hi, flat_row = no_flat
+    every_sloped = np.array([-np.inf, np.inf, np.inf, -np.inf])
+    unused = np.zeros((3, xs.shape[0]), dtype=np.uint8)
+    at = np.empty((samples.size, xs.shape[0]), dtype=np.uint8)
+    _fuzzify_kernel(samples, xs, ys, counts, unused, every_sloped, at)
+    flat_lo, flat_hi, flat_row = np.inf, -np.inf, unused[0]
     exact = [np.array([np.interp(x, xs[k, :c], ys[k, :c]) for k, c in enumerate(counts)]) for x in points]
     for i in range(points.size - 1):  # between consecutive breakpoints every function is linear
         if np.array_equal(exact[i], exact[i + 1]) and points[i + 1] - points[i] > flat_hi - flat_lo:
-            flat_lo, flat_hi, flat_row = float(points[i]), float(points[i + 1]), rows[2 + i]
-    rows.flags.writeable = False
-    return low, rows[0], high, rows[1], flat_lo, flat_hi, flat_row
+            flat_lo, flat_hi, flat_row = float(points[i]), float(points[i + 1]), at[2 + i]
+    rows = np.stack([at[0], at[1], flat_row])
+    bounds = np.array([low, high, flat_lo, flat_hi])
+    for a in (rows, bounds):
+        a.flags.writeable = False
+    return rows, bounds
 
 
 @numba.njit(cache=True, nogil=True)

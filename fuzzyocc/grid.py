@@ -27,7 +27,7 @@ import numpy as np
 from numba import njit
 
 from fuzzyocc.config import GridSpec
-from fuzzyocc.engine import fuse_row
+from fuzzyocc.engine import SLOPED, Fuzzifier, evidence_class, fuse_row, fuzzify_into
 
 RiskFn = Callable[[np.ndarray], np.ndarray]
 #: What :meth:`fuzzyocc.engine.FuzzyEngine.row_fusion` returns.
@@ -317,25 +317,28 @@ class BlockGrid:
         _expand_rows(self._shape, self._shift, self._nblk, self._ref, self._urow, self._pool, out)
         return out
 
-    def fuse(self, cells: np.ndarray, evidence: np.ndarray, row_fusion: RowFusion) -> None:
-        """Fuse ``evidence`` ((n, L) uint8) into the rows of ``cells`` (block ids, unique, increasing).
+    def fuse(self, cells: np.ndarray, distance_sigmas: np.ndarray, fuzzifier: Fuzzifier,
+             row_fusion: RowFusion) -> None:
+        """Fuse the evidence at ``distance_sigmas`` ((n,) float, no NaN) into the rows of ``cells``
+        (block ids, unique, increasing).
 
-        ``row_fusion`` is :meth:`fuzzyocc.engine.FuzzyEngine.row_fusion`: each row becomes
-        what ``engine.fuse`` gives for it, computed in place. Uniform blocks a changed cell
-        lies in are expanded first; changed blocks that came out uniform are collapsed after.
+        ``fuzzifier`` is :meth:`fuzzyocc.engine.FuzzyEngine.fuzzifier` and ``row_fusion``
+        :meth:`fuzzyocc.engine.FuzzyEngine.row_fusion`: each row becomes what
+        ``engine.fuse(row, engine.fuzzify(distance))`` gives for it, computed in place without
+        an (n, L) evidence array. Uniform blocks a changed cell lies in are expanded first;
+        changed blocks that came out uniform are collapsed after.
         """
         if cells.size == 0:
             return
         keys = np.ascontiguousarray(cells, dtype=np.int64)
-        evidence = np.ascontiguousarray(evidence, dtype=np.uint8)
-        if evidence.shape != (keys.size, self._width):
-            raise ValueError(f"evidence must have shape ({keys.size}, {self._width}), got {evidence.shape}")
+        if distance_sigmas.shape != keys.shape:
+            raise ValueError(f"distance_sigmas must have shape {keys.shape}, got {distance_sigmas.shape}")
         rules, float_ops = row_fusion
         touched = np.empty(keys.size, dtype=np.int64)
         start = n_touched = 0
         while True:  # the pool grows only when a uniform block must be expanded and no slot is left
             start, self._n_dense, n_touched = _fuse_write(
-                keys, self._bits, evidence, rules, float_ops, start, touched,
+                keys, self._bits, distance_sigmas, *fuzzifier, rules, float_ops, start, touched,
                 n_touched, self._ref, self._urow, self._urisk, self._pool.reshape(-1, self._width), self._prisk,
                 self._owner, self._n_dense)
             if start == keys.size:
@@ -443,8 +446,8 @@ def _gather_codes(blk, off, ref, urisk, prisk):  # pragma: no cover - compiled
 
 
 @njit(cache=True, nogil=True)
-def _fuse_write(keys, bits, evidence, rules, float_ops, start, touched, n_touched,
-                ref, urow, urisk, rows, prisk, owner, n_dense):  # pragma: no cover - compiled
+def _fuse_write(keys, bits, distances, xs, ys, counts, const_rows, bounds, rules, float_ops, start, touched,
+                n_touched, ref, urow, urisk, rows, prisk, owner, n_dense):  # pragma: no cover - compiled
     """Fuse from cell ``start`` on, writing the rows that change and expanding their uniform blocks.
 
     ``rows`` is the pool as (slots * block cells, L). Fused cells of dense blocks and changed
@@ -460,33 +463,38 @@ def _fuse_write(keys, bits, evidence, rules, float_ops, start, touched, n_touche
     out = np.empty(width, np.uint8)
     acc = np.zeros(width)
     active = np.empty(width, np.int64)
-    # A uniform block's cells come one after another (keys rise) and most carry the same evidence
-    # (free space far in front of the surface): once a row left the block's row unchanged, the
-    # next cell of that block with the same evidence row is skipped without fusing it again.
+    # The evidence rows: the engine's constant ones by class, and the sloped one, fuzzified here
+    # (an (n, L) array of them cost more to write and read back than the fusion itself).
+    evidence = np.empty((SLOPED + 1, width), np.uint8)
+    for c in range(SLOPED):
+        for k in range(width):
+            evidence[c, k] = const_rows[c, k]
+    # A uniform block's cells come one after another (keys rise) and most carry the same constant
+    # evidence (free space far in front of the surface): once a row left the block's row
+    # unchanged, the next cell of that block in the same class is skipped without fusing it again.
     noop_block = -1
-    noop_cell = 0
+    noop_class = -1
     for n in range(start, keys.shape[0]):
+        v = distances[n]
+        e = evidence_class(v, bounds)
+        if e == SLOPED:
+            fuzzify_into(v, xs, ys, counts, evidence, e)
         b = keys[n] >> bits
         o = keys[n] & mask
         s = ref[b]
         if s < 0:
-            if b == noop_block:
-                same = True
-                for k in range(width):
-                    if evidence[n, k] != evidence[noop_cell, k]:
-                        same = False
-                        break
-                if same:
-                    continue
-            fuse_row(urow, b, evidence, n, rules, float_ops, out, acc, active)
+            if b == noop_block and e == noop_class:
+                continue
+            fuse_row(urow, b, evidence, e, rules, float_ops, out, acc, active)
             same = True
             for k in range(width):
                 if out[k] != urow[b, k]:
                     same = False
                     break
             if same:
-                noop_block = b
-                noop_cell = n
+                if e != SLOPED:  # a sloped row differs from cell to cell
+                    noop_block = b
+                    noop_class = e
                 continue
             if n_dense == capacity:
                 return n, n_dense, n_touched
@@ -501,7 +509,7 @@ def _fuse_write(keys, bits, evidence, rules, float_ops, start, touched, n_touche
                 prisk[s, q] = urisk[b]
         else:
             # Written back whether it changed or not: a compare here mispredicts more than it saves.
-            fuse_row(rows, s * block_cells + o, evidence, n, rules, float_ops, out, acc, active)
+            fuse_row(rows, s * block_cells + o, evidence, e, rules, float_ops, out, acc, active)
         c = s * block_cells + o
         for k in range(width):
             rows[c, k] = out[k]

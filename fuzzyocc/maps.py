@@ -482,7 +482,9 @@ class FuzzyMap(OccupancyMap):
         return rays
 
     def _update(self, cells: np.ndarray, distance_sigmas: np.ndarray) -> int:
-        self._blocks.fuse(cells, self.engine.fuzzify(distance_sigmas), self.engine.row_fusion())
+        if np.isnan(distance_sigmas).any():  # the cast never gives one: a NaN here is a bug upstream
+            raise ValueError("distance_sigmas must not contain NaN")
+        self._blocks.fuse(cells, distance_sigmas, self.engine.fuzzifier(), self.engine.row_fusion())
         return int(cells.size)
 
     def _risk_fn(self) -> Callable[[np.ndarray], np.ndarray]:
