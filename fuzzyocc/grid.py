@@ -452,7 +452,8 @@ def _fuse_write(keys, bits, distances, xs, ys, counts, const_rows, bounds, rules
 
     ``rows`` is the pool as (slots * block cells, L). Fused cells of dense blocks and changed
     cells of uniform ones are written, their risk goes stale and their blocks are appended
-    to ``touched`` once each (keys rise). Stops early, returning the cell
+    to ``touched`` once each (keys rise). A uniform block all of whose cells come with the
+    same constant evidence is fused once, as a block, and stays uniform. Stops early, returning the cell
     to resume from, when a block needs a slot and the pool is full; nothing of that cell is
     written then. Returns ``(next cell, dense blocks, touched blocks)``.
     """
@@ -474,7 +475,9 @@ def _fuse_write(keys, bits, distances, xs, ys, counts, const_rows, bounds, rules
     # unchanged, the next cell of that block in the same class is skipped without fusing it again.
     noop_block = -1
     noop_class = -1
-    for n in range(start, keys.shape[0]):
+    n = start - 1
+    while n + 1 < keys.shape[0]:
+        n += 1
         v = distances[n]
         e = evidence_class(v, bounds)
         if e == SLOPED:
@@ -485,6 +488,28 @@ def _fuse_write(keys, bits, distances, xs, ys, counts, const_rows, bounds, rules
         if s < 0:
             if b == noop_block and e == noop_class:
                 continue
+            if e != SLOPED and n + block_cells <= keys.shape[0] and keys[n + block_cells - 1] >> bits == b:
+                # Every cell of the block is here (keys are unique and rise). If all take this constant
+                # evidence the block stays uniform, with the fused row: it is neither expanded, fused
+                # cell by cell, nor collapsed (in front of a robot whole blocks step from one free
+                # level to the next together).
+                whole = True
+                for q in range(n + 1, n + block_cells):
+                    if evidence_class(distances[q], bounds) != e:
+                        whole = False
+                        break
+                if whole:
+                    fuse_row(urow, b, evidence, e, rules, float_ops, out, acc, active)
+                    for k in range(width):
+                        if out[k] != urow[b, k]:
+                            for q in range(width):
+                                urow[b, q] = out[q]
+                            urisk[b] = _STALE
+                            touched[n_touched] = b  # read by nothing but the stale flag: collapse skips it
+                            n_touched += 1
+                            break
+                    n += block_cells - 1
+                    continue
             fuse_row(urow, b, evidence, e, rules, float_ops, out, acc, active)
             same = True
             for k in range(width):

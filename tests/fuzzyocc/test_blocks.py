@@ -53,20 +53,22 @@ def _clouds(spec: GridSpec, rng: np.random.Generator, n_scans: int) -> list[Poin
     return out
 
 
-def _clearing(spec: GridSpec) -> PointCloud:
-    """No-returns from the middle of the map through every cell centre: the whole map seen free."""
+def _clearing(spec: GridSpec, range_max: float = 10.0) -> PointCloud:
+    """No-returns from the middle of the map through every cell centre: the map seen free up to ``range_max``."""
     keys = flat_to_keys(spec, np.arange(spec.num_cells))
     centres = np.asarray(spec.origin) + (keys + 0.5) * spec.resolution
     middle = 0.5 * (np.asarray(spec.origin) + np.asarray(spec.upper)) + 0.013  # off the cell faces
     away = centres - middle
     far = middle + 20.0 * away / np.linalg.norm(away, axis=1, keepdims=True)
-    return PointCloud(points=far, origin=tuple(middle), range_max=10.0)
+    return PointCloud(points=far, origin=tuple(middle), range_max=range_max)
 
 
 def _history(spec: GridSpec, seed: int) -> list[PointCloud]:
-    """Mixed scans, then the map cleared several times (blocks collapse), then mixed again."""
+    """A ball around the middle seen free (every cell of the blocks inside it, unknown until then, takes
+    the same evidence: they stay uniform), mixed scans, the map cleared several times (blocks
+    collapse), then mixed again."""
     clouds = _clouds(spec, np.random.default_rng(seed), 6)
-    return clouds[:3] + [_clearing(spec)] * 4 + clouds[3:] + [_clearing(spec)] * 3
+    return [_clearing(spec, range_max=1.0)] + clouds[:3] + [_clearing(spec)] * 4 + clouds[3:] + [_clearing(spec)] * 3
 
 
 @pytest.mark.parametrize("spec", [SPEC_3D, SPEC_2D, SPEC_THIN], ids=["3d", "2d", "thin-3d"])
