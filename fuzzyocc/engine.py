@@ -661,6 +661,7 @@ def _defuzzify_direct(engine: FuzzyEngine, state: np.ndarray, out: np.ndarray, c
 
 # -------------------------------------------------------------------- compiled kernels
 # nogil: maps fuse in a service's thread pool, and these loops touch no Python object.
+
 #: Classes of a distance that :func:`evidence_class` gives: every input function constant.
 BELOW, ABOVE, FLAT = 0, 1, 2
 #: The class of a distance where some input function slopes: fuzzified by :func:`fuzzify_into`.
