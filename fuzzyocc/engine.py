@@ -741,6 +741,8 @@ def _constant_rows(xs: np.ndarray, ys: np.ndarray, counts: np.ndarray) -> tuple[
     samples = np.concatenate([[-np.inf, np.inf], points])
     every_sloped = np.array([-np.inf, np.inf, np.inf, -np.inf])
     unused = np.zeros((3, xs.shape[0]), dtype=np.uint8)
+    for a in (every_sloped, unused):
+        a.flags.writeable = False  # the type the real ones have: one compiled specialisation, not two
     at = np.empty((samples.size, xs.shape[0]), dtype=np.uint8)
     _fuzzify_kernel(samples, xs, ys, counts, unused, every_sloped, at)
     flat_lo, flat_hi, flat_row = np.inf, -np.inf, unused[0]

@@ -156,7 +156,7 @@ def _cast_kernel(origins, dirs, t_end, slope, offset, ray_offsets, lower, shape,
                 else:
                     ax = 0 if tmx <= tmy else 1
                     t_out = tmx if ax == 0 else tmy
-                    c = ((ix >> hx) * nby + (iy >> hy)) << bits | (ix & mx) << hy | (iy & my)
+                    c = (((ix >> hx) * nby + (iy >> hy)) * nbz) << bits | ((ix & mx) << hy | (iy & my)) << hz
                 visits += 1
                 v = a_ * (0.5 * (t_in + t_out)) + b_
                 if v >= unknown_from:

@@ -215,8 +215,10 @@ def test_each_scan_of_a_batch_gets_the_union_of_its_beams_with_their_largest_evi
         (GridSpec(origin=(0.0, 0.0, 0.0), size=(3.3, 2.9, 1.3), resolution=0.1), (2, 2, 2)),  # sparse: sorted
         (GridSpec(origin=(0.0, 0.0, 0.0), size=(1.3, 0.9, 0.5), resolution=0.1), (2, 1, 3)),  # dense: swept
         (GridSpec(origin=(0.0, 0.0), size=(3.7, 2.1), resolution=0.1), (3, 3, 0)),
+        # a z shift on a 2-D grid: padding along z, which the planar traversal must number like any other
+        (GridSpec(origin=(0.0, 0.0), size=(1.6, 1.6), resolution=0.1), (2, 2, 2)),
     ],
-    ids=["sparse-3d", "dense-3d", "2d"],
+    ids=["sparse-3d", "dense-3d", "2d", "2d-z-shift"],
 )
 def test_block_numbering_reaches_the_same_cells_with_the_same_evidence(spec: GridSpec, block_shift) -> None:
     rng = np.random.default_rng(11)
