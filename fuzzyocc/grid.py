@@ -445,6 +445,15 @@ def _gather_codes(blk, off, ref, urisk, prisk):  # pragma: no cover - compiled
     return out
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _same_row(row, table, i):  # pragma: no cover - compiled
+    """Whether ``row`` equals ``table[i]`` byte for byte."""
+    for k in range(row.shape[0]):
+        if row[k] != table[i, k]:
+            return False
+    return True
+
+
 @njit(cache=True, nogil=True)
 def _fuse_write(keys, bits, distances, xs, ys, counts, const_rows, bounds, rules, float_ops, start, touched,
                 n_touched, ref, urow, urisk, rows, prisk, owner, n_dense):  # pragma: no cover - compiled
@@ -500,23 +509,16 @@ def _fuse_write(keys, bits, distances, xs, ys, counts, const_rows, bounds, rules
                         break
                 if whole:
                     fuse_row(urow, b, evidence, e, rules, float_ops, out, acc, active)
-                    for k in range(width):
-                        if out[k] != urow[b, k]:
-                            for q in range(width):
-                                urow[b, q] = out[q]
-                            urisk[b] = _STALE
-                            touched[n_touched] = b  # read by nothing but the stale flag: collapse skips it
-                            n_touched += 1
-                            break
+                    if not _same_row(out, urow, b):
+                        for k in range(width):
+                            urow[b, k] = out[k]
+                        urisk[b] = _STALE
+                        touched[n_touched] = b  # read by nothing but the stale flag: collapse skips it
+                        n_touched += 1
                     n += block_cells - 1
                     continue
             fuse_row(urow, b, evidence, e, rules, float_ops, out, acc, active)
-            same = True
-            for k in range(width):
-                if out[k] != urow[b, k]:
-                    same = False
-                    break
-            if same:
+            if _same_row(out, urow, b):
                 if e != SLOPED:  # a sloped row differs from cell to cell
                     noop_block = b
                     noop_class = e
