@@ -94,6 +94,11 @@ class Settings(BaseSettings):
     max_query_points: int = Field(100_000, ge=1, description="Most points in one risk query.")
     max_plan_time_s: float = Field(30.0, gt=0.0, le=3600.0, description="Largest plan time_limit, seconds.")
     plan_workers: int = Field(2, ge=1, le=64, description="Planner worker processes.")
+    plan_workers_per_map: int | None = Field(
+        None, ge=1, le=64,
+        description="Planner workers one map's plans may hold at once; unset: all but one (at least one), so "
+        "that a map flooded with plans leaves a worker to the others and a core to scans and reads.",
+    )
     plan_queue: int = Field(8, ge=1, description="Plans waiting for a worker before 503 answers (one map: half).")
     plan_warmup: bool = Field(True, description="Start the planner processes at startup, not at the first plan.")
     native_planning: bool = Field(
@@ -117,6 +122,12 @@ class Settings(BaseSettings):
         description="Threads that read and encode grids (risk, exports, queries): apart from fusion's, so that a "
         "read of one map never waits behind the fusion of others.",
     )
+    heavy_read_share: float = Field(
+        0.5, gt=0.0, le=1.0,
+        description="Share of one core that reads of big maps (more than 4 M cells) take together: they take "
+        "turns, one at a time, and after each the next waits (1 / share - 1) times as long as it took.",
+    )
+    heavy_read_queue: int = Field(8, ge=1, description="Reads of big maps waiting for their turn before 503.")
     snapshot_every: int = Field(200, ge=1, description="Snapshot a map after this many batches since the last.")
     disk_reserve_bytes: int = Field(
         16 * 2**20, ge=0,
@@ -155,7 +166,7 @@ class Settings(BaseSettings):
         "blocks, each its cells' largest risk.",
     )
 
-    @field_validator("api_key", "foxglove_port", "database_url", mode="before")
+    @field_validator("api_key", "foxglove_port", "database_url", "plan_workers_per_map", mode="before")
     @classmethod
     def _empty_key_is_none(cls, value: object) -> object:
         # FUZZYRISK_API_KEY= (empty) in a compose file means "no key", not "the empty key" (and

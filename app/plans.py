@@ -54,12 +54,13 @@ class MapPlans:
         grid: GridSnapshot | None = None
         try:
             if lease is None:
-                grid = await self._reads.read_grid_of(entry)
-                source, version = "published", grid.version
-                lease = await self._grids.publish(
-                    entry.uid, grid.version, grid.risk, grid.observed, grid.spec.resolution, grid.spec.origin,
-                    current=functools.partial(is_current, entry, grid.version),
-                )
+                async with self._reads.big_read(entry.spec):  # a big map's copy takes its turn as big reads do
+                    grid = await self._reads.read_grid_of(entry)
+                    source, version = "published", grid.version
+                    lease = await self._grids.publish(
+                        entry.uid, grid.version, grid.risk, grid.observed, grid.spec.resolution, grid.spec.origin,
+                        current=functools.partial(is_current, entry, grid.version),
+                    )
             self.metrics.plan_grids.labels("shipped" if lease is None else source).inc()
             if lease is not None:
                 answer = await self._plans.run(run_shared_plan, timeout, lease.ref, params, key=name)

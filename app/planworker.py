@@ -204,17 +204,28 @@ class _Worker:
         executor.shutdown(wait=False, cancel_futures=True)
 
 
-class PlanPool:
-    """At most ``workers`` plans run at once, each in a worker process of its own; up to ``queue`` more
-    wait, each map at most half of them (at least one); beyond that, 503.
+def default_per_map(workers: int) -> int:
+    """Workers one map's plans may hold at once when not configured: all but one (at least one)."""
+    return max(1, workers - 1)
 
+
+class PlanPool:
+    """At most ``workers`` plans run at once, each in a worker process of its own, one map's on at most
+    ``per_map`` of them; up to ``queue`` more wait, each map at most half of them (at least one); beyond
+    that, 503.
+
+    ``per_map`` (default ``default_per_map``): a map flooded with plans leaves a worker to the other maps,
+    whose plans then wait for no solve of it, and leaves a core to the service's scans and reads (issue 11,
+    bench abuse row 9: with both cores solving one map's plans, an innocent map's scan p99 was 2.1x).
     ``field_cache_bytes``: what each worker may keep of the fields of published grids (``run_shared_plan``).
     """
 
-    def __init__(self, *, workers: int, queue: int, native: bool = True,
+    def __init__(self, *, workers: int, queue: int, per_map: int | None = None, native: bool = True,
                  field_cache_bytes: int = DEFAULT_FIELD_CACHE_BYTES) -> None:
         self._queue = queue
         self._per_key_queue = max(1, queue // 2)
+        self._per_key_running = min(workers, per_map or default_per_map(workers))
+        self._running: collections.Counter[str] = collections.Counter()  # map -> workers its plans hold
         self._native = native
         self._field_cache_bytes = field_cache_bytes
         self._workers = [_Worker(i) for i in range(workers)]
@@ -289,16 +300,21 @@ class PlanPool:
             return worker.executor.submit(fn, *args)
 
     async def _acquire(self, key: str) -> _Worker:
-        """A free worker (the one that last planned on ``key`` if it is free), or wait for this map's turn."""
-        if self._free:
+        """A free worker (the one that last planned on ``key`` if it is free) if this map holds fewer than
+        ``per_map``, or wait for this map's turn."""
+        if self._free and self._running[key] < self._per_key_running:
             worker = next((w for w in self._free if w.last_key == key), self._free[0])
             self._free.remove(worker)
+            self._running[key] += 1
             return worker
         mine = len(self._waiters.get(key, ()))
         if mine >= self._per_key_queue or self.waiting >= self._queue:
+            running = sum(self._running.values())
             raise Unavailable(
-                f"{len(self._workers)} plans are running and {self.waiting} waiting ({mine} of them on "
-                "this map); retry shortly (FUZZYRISK_PLAN_WORKERS, FUZZYRISK_PLAN_QUEUE)",
+                f"{running} plans are running ({self._running[key]} of them on this map, which may hold "
+                f"{self._per_key_running} of the {len(self._workers)} workers) and {self.waiting} waiting "
+                f"({mine} of them on this map); retry shortly (FUZZYRISK_PLAN_WORKERS, "
+                "FUZZYRISK_PLAN_WORKERS_PER_MAP, FUZZYRISK_PLAN_QUEUE)",
                 headers={"Retry-After": "1"},
             )
         waiting = self._waiters.setdefault(key, collections.deque())
@@ -310,7 +326,7 @@ class PlanPool:
             return await turn
         except asyncio.CancelledError:
             if turn.done() and not turn.cancelled():
-                self._release(turn.result())  # handed over as the request went away: pass it on
+                self._release(turn.result(), key)  # handed over as the request went away: pass it on
             elif turn in waiting:  # else a release has already dropped it (it skips cancelled turns)
                 waiting.remove(turn)
                 if not waiting and self._waiters.get(key) is waiting:
@@ -318,19 +334,31 @@ class PlanPool:
                     self._turns.remove(key)
             raise
 
-    def _release(self, worker: _Worker) -> None:
-        """Hand the worker to the map whose turn it is (round robin over maps with waiting plans), or free it."""
-        while self._turns:
-            key = self._turns.popleft()
-            waiting = self._waiters[key]
+    def _release(self, worker: _Worker, key: str) -> None:
+        """``key``'s plan is done with the worker: hand it to the next map in turn (round robin over the maps
+        with waiting plans that hold fewer than ``per_map`` workers), or free it."""
+        self._running[key] -= 1
+        if not self._running[key]:
+            del self._running[key]
+        for _ in range(len(self._turns)):
+            turn_key = self._turns.popleft()
+            if self._running[turn_key] >= self._per_key_running:
+                self._turns.append(turn_key)  # at its share: its turn comes when one of its plans ends
+                continue
+            waiting = self._waiters[turn_key]
+            while waiting and waiting[0].done():  # cancelled while waiting
+                waiting.popleft()
+            if not waiting:
+                del self._waiters[turn_key]
+                continue
             turn = waiting.popleft()
             if waiting:
-                self._turns.append(key)  # its next plan waits for the other maps' turns
+                self._turns.append(turn_key)  # its next plan waits for the other maps' turns
             else:
-                del self._waiters[key]
-            if not turn.done():
-                turn.set_result(worker)
-                return
+                del self._waiters[turn_key]
+            self._running[turn_key] += 1
+            turn.set_result(worker)
+            return
         self._free.append(worker)
 
     async def run(self, fn: Callable[..., T], timeout_s: float, *args: Any, key: str = "") -> T:
@@ -368,9 +396,9 @@ class PlanPool:
             if future is not None and not future.done() and worker.executor is not None:
                 # the request went away (cancelled) while its worker still solves: the worker is free only
                 # when that solve ends, or the next plan would wait behind it on the next plan's clock
-                future.add_done_callback(lambda _: loop.call_soon_threadsafe(self._release, worker))
+                future.add_done_callback(lambda _: loop.call_soon_threadsafe(self._release, worker, key))
             else:
-                self._release(worker)
+                self._release(worker, key)
 
     def shutdown(self) -> None:
         """Stop the workers: idle ones at once, one still busy (a plan whose request the graceful shutdown

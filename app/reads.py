@@ -4,7 +4,8 @@ OccupancyGrid, MCAP); copies under the map's apply lock, encodings in the read t
 from __future__ import annotations
 
 import logging
-from collections.abc import Awaitable, Callable, Mapping
+import contextlib
+from collections.abc import AsyncIterator, Awaitable, Callable, Mapping
 from typing import Any, Literal, TypeVar
 
 import numpy as np
@@ -13,6 +14,7 @@ from app import batches, conditional, exports, rosout, rostypes
 from app.config import Settings
 from app.errors import Invalid, NotFound, TooLarge, Unavailable
 from app.mapstate import GridSnapshot, MapEntry
+from app.readlane import ReadLane
 from app.schemas import LastScan, MapInfo, OccupancyGrid, RiskGridJSON, RiskValues
 from app.storage import Storage, StoredMap
 from app.workers import Workers
@@ -23,9 +25,10 @@ T = TypeVar("T")
 
 #: Above this many cells the JSON risk grid is refused (use format=npy or png).
 MAX_JSON_CELLS = 4_000_000
-#: Reads of maps with more cells run in threads of their own (``Workers.run_read(heavy=True)``): two readers of a
-#: 16 M-cell map's OccupancyGrid (16 MB of CDR, about 0.3 s each) held both read threads, and another map's
-#: 176,000-cell reads waited (issue 11, bench abuse row 10: p99 13 -> 232 ms)
+#: Reads of maps with more cells take turns in the big reads' lane (``app.readlane``), in a thread of their own
+#: (``Workers.run_read(heavy=True)``): two readers of a 16 M-cell map's OccupancyGrid (16 MB of CDR, about 0.3 s
+#: each) held both read threads, and another map's 176,000-cell reads waited (issue 11, bench abuse row 10:
+#: p99 13 -> 232 ms)
 HEAVY_READ_CELLS = 4_000_000
 #: Most pixels of one PNG.
 MAX_PNG_PIXELS = 64_000_000
@@ -40,6 +43,17 @@ class MapReads:
         self.storage = storage
         self._workers = workers
         self._current = current  # ``WritePath.current``: the map with every acknowledged batch applied
+        self._lane = ReadLane(share=settings.heavy_read_share, queue=settings.heavy_read_queue)
+
+    @contextlib.asynccontextmanager
+    async def big_read(self, spec: GridSpec) -> AsyncIterator[None]:
+        """A turn in the big reads' lane for a read of a map of more than ``HEAVY_READ_CELLS`` (its copy and its
+        render, or a plan's copy and publication); nothing for a smaller map."""
+        if _heavy(spec):
+            async with self._lane.turn():
+                yield
+        else:
+            yield
 
     async def map_info(self, name: str) -> MapInfo:
         """What ``GET /maps/{name}`` shows."""
@@ -70,9 +84,12 @@ class MapReads:
 
         ``risk()`` and ``observed()`` already hand out new read-only arrays, so no copy is needed.
         """
-        return await self.read_grid_of(await self._current(name))
+        entry = await self._current(name)
+        async with self.big_read(entry.spec):
+            return await self.read_grid_of(entry)
 
     async def read_grid_of(self, entry: MapEntry) -> GridSnapshot:
+        """``read_grid`` of a map already looked up; a caller of a big map holds its ``big_read`` turn."""
         async with entry.apply_lock:
             risk, observed = await self._workers.run_read(lambda: (entry.map.risk(), entry.map.observed()),
                                                           heavy=_heavy(entry.spec))
@@ -89,8 +106,15 @@ class MapReads:
         committed but not applied yet are left out. ``render`` runs once the lock is released
         (``app.recording``); ``stored.snapshot`` is dropped, the arrays are not needed.
         """
-        for _ in range(3):
-            entry = await self._current(name)
+        entry = await self._current(name)
+        async with self.big_read(entry.spec):
+            return await self._render_log(name, entry, render)
+
+    async def _render_log(self, name: str, entry: MapEntry, render: Callable[[GridSnapshot, StoredMap], T]) -> T:
+        """``render_log`` of a map looked up (looked up again when another replica's snapshot is newer)."""
+        for attempt in range(3):
+            if attempt:
+                entry = await self._current(name)
             async with entry.apply_lock:
                 risk, observed, stored = await self._workers.run_read(
                     lambda e=entry: (e.map.risk(), e.map.observed(), self.storage.load_map(e.name)),
@@ -132,12 +156,13 @@ class MapReads:
 
     async def risk_json(self, name: str) -> tuple[bytes, GridSnapshot]:
         """The grid as ``RiskGridJSON``, serialised (off the event loop: big maps make big documents)."""
-        grid = await self.read_grid(name)
-        if grid.spec.num_cells > MAX_JSON_CELLS:
+        entry = await self._current(name)
+        if entry.spec.num_cells > MAX_JSON_CELLS:
             raise Invalid(
-                f"the map has {grid.spec.num_cells} cells, too many for JSON (at most {MAX_JSON_CELLS}); "
+                f"the map has {entry.spec.num_cells} cells, too many for JSON (at most {MAX_JSON_CELLS}); "
                 "ask for format=npy or format=png"
             )
+        grid = await self.read_grid_of(entry)  # not a big map: no turn in the lane
 
         def encode() -> bytes:
             return RiskGridJSON(
@@ -150,18 +175,27 @@ class MapReads:
 
     async def risk_npy(self, name: str, layer: Literal["risk", "observed"] = "risk") -> tuple[bytes, GridSnapshot]:
         """The risk (float32) or the observed mask (bool) as ``.npy``, of one version."""
-        grid = await self.read_grid(name)
-        return await self._workers.run_read(exports.npy_bytes, grid.risk if layer == "risk" else grid.observed,
-                                            heavy=_heavy(grid.spec)), grid
+        entry = await self._current(name)
+        async with self.big_read(entry.spec):
+            grid = await self.read_grid_of(entry)
+            return await self._workers.run_read(exports.npy_bytes, grid.risk if layer == "risk" else grid.observed,
+                                                heavy=_heavy(grid.spec)), grid
 
     async def risk_png(self, name: str, *, scale: int, z_min: float | None, z_max: float | None) -> tuple[bytes, GridSnapshot]:
         _check_band(z_min, z_max)
-        grid = await self.read_grid(name)
-        nx, ny = grid.spec.shape[:2]
+        entry = await self._current(name)
+        nx, ny = entry.spec.shape[:2]
         if nx * ny * scale * scale > MAX_PNG_PIXELS:
             raise Invalid(f"scale {scale} would make a {nx * scale} x {ny * scale} image; use a smaller scale")
+        async with self.big_read(entry.spec):
+            return await self._risk_png(entry, scale=scale, z_min=z_min, z_max=z_max)
+
+    async def _risk_png(self, entry: MapEntry, *, scale: int, z_min: float | None,
+                        z_max: float | None) -> tuple[bytes, GridSnapshot]:
+        """``risk_png`` of a map looked up and checked."""
+        grid = await self.read_grid_of(entry)
         text = {
-            "map": name, "version": str(grid.version), "frame_id": grid.frame_id,
+            "map": entry.name, "version": str(grid.version), "frame_id": grid.frame_id,
             "resolution": repr(grid.spec.resolution), "origin": repr(list(grid.spec.origin)),
         }
 
@@ -182,7 +216,17 @@ class MapReads:
             exports.check_nav2_format(mode, image_format)
         except ValueError as exc:
             raise Invalid(str(exc)) from None
-        grid = await self.read_grid(name)
+        entry = await self._current(name)
+        async with self.big_read(entry.spec):
+            grid = await self.read_grid_of(entry)
+            return await self._nav2_zip(grid, mode=mode, image_format=image_format, free_thresh=free_thresh,
+                                        occupied_thresh=occupied_thresh, z_min=z_min, z_max=z_max)
+
+    async def _nav2_zip(
+        self, grid: GridSnapshot, *, mode: Literal["trinary", "scale", "raw"], image_format: Literal["pgm", "png"],
+        free_thresh: float, occupied_thresh: float, z_min: float | None, z_max: float | None,
+    ) -> tuple[bytes, GridSnapshot]:
+        """``nav2_zip`` of a grid read."""
 
         def render() -> bytes:
             risk, observed = grid.planar(z_min, z_max)
@@ -216,7 +260,16 @@ class MapReads:
                     f"the map's OccupancyGrid has {cells:,} cells, too many for JSON (at most {MAX_JSON_CELLS:,}): "
                     f"ask for GET /maps/{name}/occupancy_grid.cdr or .mcap (the same message as ROS 2 bytes)"
                 )
-        grid = await self.read_grid_of(entry)
+        async with self.big_read(entry.spec):
+            return await self._occupancy_grid(await self.read_grid_of(entry), mode=mode, free_thresh=free_thresh,
+                                              occupied_thresh=occupied_thresh, z_min=z_min, z_max=z_max,
+                                              encoding=encoding)
+
+    async def _occupancy_grid(
+        self, grid: GridSnapshot, *, mode: Literal["trinary", "scale", "probability"], free_thresh: float,
+        occupied_thresh: float, z_min: float | None, z_max: float | None, encoding: Literal["json", "cdr", "mcap"],
+    ) -> tuple[bytes | tuple[bytes, memoryview], GridSnapshot]:
+        """``occupancy_grid`` of a grid read."""
 
         def render() -> bytes | tuple[bytes, memoryview]:
             risk, observed = grid.planar(z_min, z_max)

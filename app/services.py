@@ -48,7 +48,8 @@ class MapService:
         self.metrics = metrics
         self._workers = Workers(fusion_threads=settings.fusion_threads, read_threads=settings.read_threads)
         self._pool = PlanPool(
-            workers=settings.plan_workers, queue=settings.plan_queue, native=settings.native_planning,
+            workers=settings.plan_workers, queue=settings.plan_queue, per_map=settings.plan_workers_per_map,
+            native=settings.native_planning,
             field_cache_bytes=settings.plan_cache_bytes,
         )
         # map versions published for the planner workers, so that a plan does not copy its map's grid

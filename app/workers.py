@@ -28,8 +28,8 @@ class Workers:
         self._parsers = ThreadPoolExecutor(fusion_threads, thread_name_prefix="parse")
         self._admin = ThreadPoolExecutor(1, thread_name_prefix="admin")
         self._readers = ThreadPoolExecutor(read_threads, thread_name_prefix="read")
-        self._heavy_readers = ThreadPoolExecutor(read_threads, thread_name_prefix="read-heavy",
-                                                 initializer=_yield_cpu)
+        # one: big reads take turns (``app.readlane``)
+        self._heavy_readers = ThreadPoolExecutor(1, thread_name_prefix="read-heavy", initializer=_yield_cpu)
         self._started: dict[int, float] = {}  # fusion jobs running: id -> time.monotonic() at their start
         self._ids = itertools.count()
 

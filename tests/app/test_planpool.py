@@ -161,6 +161,56 @@ def test_one_map_holds_at_most_half_the_queue() -> None:
     asyncio.run(scenario())
 
 
+def test_a_map_flooded_with_plans_leaves_a_worker_to_the_others() -> None:
+    # issue 11 (bench abuse row 9): ten clients' plans on one map held both workers, so another map's plan
+    # waited for one of its solves, and both cores solved while the innocent's scans waited for CPU
+    async def scenario() -> None:
+        pool = PlanPool(workers=2, queue=8)
+        try:
+            flood = [asyncio.ensure_future(pool.run(_sleep_then_pid, 30.0, 0.6, key="a")) for _ in range(3)]
+            await asyncio.sleep(0.3)
+            started = time.monotonic()
+            other = await pool.run(os.getpid, 30.0, key="b")
+            assert time.monotonic() - started < 0.3  # a free worker, not the end of one of a's solves
+            pids = await asyncio.gather(*flood)
+            assert other not in pids  # a's three plans ran one after the other on one worker
+            assert len(set(pids)) == 1
+        finally:
+            pool.shutdown()
+
+    asyncio.run(scenario())
+
+
+def test_a_map_may_hold_every_worker_when_configured() -> None:
+    async def scenario() -> float:
+        pool = PlanPool(workers=2, queue=8, per_map=2)
+        try:
+            await asyncio.gather(*(pool.run(os.getpid, 30.0, key="a") for _ in range(2)))  # both started
+            started = time.monotonic()
+            await asyncio.gather(*(pool.run(time.sleep, 30.0, 0.5, key="a") for _ in range(2)))
+            return time.monotonic() - started
+        finally:
+            pool.shutdown()
+
+    assert asyncio.run(scenario()) < 0.9  # side by side, not one after the other
+
+
+def test_a_refusal_names_the_per_map_setting() -> None:
+    async def scenario() -> None:
+        pool = PlanPool(workers=2, queue=2)
+        try:
+            busy = [asyncio.ensure_future(pool.run(time.sleep, 30.0, 0.4, key="a")) for _ in range(2)]
+            await asyncio.sleep(0.1)  # one running, one waiting (its share of the queue)
+            with pytest.raises(Unavailable, match="may hold 1 of the 2 workers") as refused:
+                await pool.run(math.sqrt, 30.0, 1.0, key="a")
+            assert "FUZZYRISK_PLAN_WORKERS_PER_MAP" in str(refused.value)
+            await asyncio.gather(*busy)
+        finally:
+            pool.shutdown()
+
+    asyncio.run(scenario())
+
+
 @pytest.mark.parametrize("native", [True, False])
 def test_workers_use_the_compiled_planner_callbacks_unless_configured_not_to(native: bool) -> None:
     from planning import native as compiled

@@ -618,6 +618,46 @@ def test_a_read_of_a_small_map_does_not_wait_behind_big_reads(make_client: Any, 
     assert waited < 10.0  # before: until the big read ended (here: never, release came after)
 
 
+def test_big_reads_take_turns_and_those_beyond_the_queue_are_refused(make_client: Any, kit: Any,
+                                                                   monkeypatch: pytest.MonkeyPatch) -> None:
+    # issue 11 (bench abuse row 10): big reads side by side each held a copy of the grid while they waited for
+    # their render, and took both cores from the other clients; now one at a time, and a bounded queue
+    from app import exports, reads
+
+    client = make_client(heavy_read_queue=1, heavy_read_share=1.0)
+    assert client.post("/maps", json={**kit.MAP_2D, "name": "big"}).status_code == 201  # 10,000 cells
+    small = {**kit.MAP_2D, "name": "small", "size": [2.0, 2.0], "origin": [-1.0, -1.0]}  # 400 cells
+    assert client.post("/maps", json=small).status_code == 201
+    monkeypatch.setattr(reads, "HEAVY_READ_CELLS", 5_000)
+    held, release = threading.Event(), threading.Event()
+    rendered: list[int] = []
+    npy_bytes = exports.npy_bytes
+
+    def slow_npy(array: Any) -> bytes:
+        if array.size == 10_000:
+            rendered.append(array.size)
+            held.set()
+            release.wait(60)
+        return npy_bytes(array)
+
+    monkeypatch.setattr(exports, "npy_bytes", slow_npy)
+    service = client.app.state.service  # type: ignore[attr-defined]
+    with ThreadPoolExecutor(2) as pool:
+        first = pool.submit(client.get, "/maps/big/risk.npy")
+        assert held.wait(30)
+        second = pool.submit(client.get, "/maps/big/occupancy_grid.cdr")
+        deadline = time.monotonic() + 30
+        while service.reads._lane.waiting < 1 and time.monotonic() < deadline:
+            time.sleep(0.01)
+        refused = client.get("/maps/big/risk", params={"format": "png"})
+        assert refused.status_code == 503 and "FUZZYRISK_HEAVY_READ_QUEUE" in error_message(refused)
+        assert refused.headers["Retry-After"] == "1"
+        assert client.get("/maps/small/risk.npy").status_code == 200  # a small map's read is not in the lane
+        assert rendered == [10_000] and not second.done()  # the second waits its turn, before its copy
+        release.set()
+        assert first.result(60).status_code == 200 and second.result(60).status_code == 200
+
+
 def test_uploads_still_arriving_count_against_their_maps_line(make_client: Any, kit: Any) -> None:
     # issue 11: bodies read side by side all passed a check that counted only batches already in line
     client = make_client(max_pending_batches=2)

@@ -1,0 +1,88 @@
+"""The big reads' lane (issue 11, bench abuse row 10): one at a time, a rest after each, a bounded queue."""
+
+from __future__ import annotations
+
+import asyncio
+import time
+
+import pytest
+
+from app.errors import Unavailable
+from app.readlane import ReadLane
+
+
+def test_the_next_big_read_starts_after_a_rest_in_proportion_to_the_last() -> None:
+    async def scenario() -> tuple[float, float, float]:
+        lane = ReadLane(share=0.25, queue=4)  # rest: 3 x the work
+        starts: list[float] = []
+
+        async def read(seconds: float) -> None:
+            async with lane.turn():
+                starts.append(time.monotonic())
+                await asyncio.sleep(seconds)
+
+        began = time.monotonic()
+        await read(0.1)  # alone: not delayed
+        ended = time.monotonic()
+        await asyncio.gather(read(0.1), read(0.0))
+        return starts[0] - began, starts[1] - ended, starts[2] - starts[1]
+
+    first_wait, second_wait, third_wait = asyncio.run(scenario())
+    assert first_wait < 0.05
+    assert second_wait >= 0.29  # 3 x 0.1 s of rest after the first read
+    assert third_wait >= 0.1 + 0.29  # the second's work, then its rest
+
+
+def test_reads_beyond_the_queue_are_refused_and_name_the_setting() -> None:
+    async def scenario() -> None:
+        lane = ReadLane(share=1.0, queue=1)
+        release = asyncio.Event()
+
+        async def read() -> None:
+            async with lane.turn():
+                await release.wait()
+
+        holder = asyncio.ensure_future(read())
+        await asyncio.sleep(0.01)
+        waiter = asyncio.ensure_future(read())
+        await asyncio.sleep(0.01)
+        assert lane.waiting == 1
+        with pytest.raises(Unavailable, match="FUZZYRISK_HEAVY_READ_QUEUE") as refused:
+            async with lane.turn():
+                pass
+        assert refused.value.headers == {"Retry-After": "1"}
+        release.set()
+        await asyncio.gather(holder, waiter)
+        assert lane.waiting == 0
+
+    asyncio.run(scenario())
+
+
+def test_a_cancelled_wait_gives_its_place_back() -> None:
+    async def scenario() -> None:
+        lane = ReadLane(share=1.0, queue=1)
+        release = asyncio.Event()
+
+        async def read() -> None:
+            async with lane.turn():
+                await release.wait()
+
+        holder = asyncio.ensure_future(read())
+        await asyncio.sleep(0.01)
+        gone = asyncio.ensure_future(read())
+        await asyncio.sleep(0.01)
+        gone.cancel()  # the client went away while it waited
+        await asyncio.sleep(0.01)
+        assert lane.waiting == 0
+        release.set()
+        await holder
+        async with lane.turn():  # the lane is free again (share 1: no rest)
+            pass
+
+    asyncio.run(scenario())
+
+
+@pytest.mark.parametrize("share", [0.0, -0.5, 1.5])
+def test_a_share_outside_zero_to_one_is_refused(share: float) -> None:
+    with pytest.raises(ValueError, match="share"):
+        ReadLane(share=share, queue=1)
