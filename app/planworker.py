@@ -71,6 +71,11 @@ def ensure_forkserver(context: multiprocessing.context.BaseContext) -> None:
 #: How much nicer than the server the planner workers run: a plan (seconds of CPU) takes what scans and reads leave (issue 11: a
 #: 30 s plan, and ten clients' plans on both cores, made an innocent client's map reads 2.6x slower)
 PLAN_NICE = 5
+#: Seconds a plan that finds its share of the queue full waits for room before the 503 (its ``Retry-After``).
+#: A client that ignores ``Retry-After`` and asks again at once is paced by it: ten clients asking back to
+#: back for plans on one map made 90 requests a second, each refusal about 0.7 ms of the event loop, and an
+#: innocent client's reads of another map 3.2x slower at the 99th percentile (issue 11, bench abuse row 9).
+ROOM_WAIT_S = 1.0
 #: Bytes of fields a worker keeps when its pool is not told (``PlanPool(field_cache_bytes=...)``).
 DEFAULT_FIELD_CACHE_BYTES = 256 * 2**20
 #: In a worker: the fields of the published grids it planned on (``run_shared_plan``).
@@ -211,8 +216,8 @@ def default_per_map(workers: int) -> int:
 
 class PlanPool:
     """At most ``workers`` plans run at once, each in a worker process of its own, one map's on at most
-    ``per_map`` of them; up to ``queue`` more wait, each map at most half of them (at least one); beyond
-    that, 503.
+    ``per_map`` of them; up to ``queue`` more wait, each map at most half of them (at least one); a plan
+    beyond that waits up to ``ROOM_WAIT_S`` for room, then 503.
 
     ``per_map`` (default ``default_per_map``): a map flooded with plans leaves a worker to the other maps,
     whose plans then wait for no solve of it, and leaves a core to the service's scans and reads (issue 11,
@@ -232,6 +237,7 @@ class PlanPool:
         self._free: list[_Worker] = list(self._workers)
         self._waiters: dict[str, collections.deque[asyncio.Future[_Worker]]] = {}
         self._turns: collections.deque[str] = collections.deque()  # maps with waiting plans, in turn order
+        self._room: list[asyncio.Future[None]] = []  # plans waiting for room in the queue (``ROOM_WAIT_S``)
         self._context = worker_context()
         self._warming: asyncio.Task[None] | None = None
         #: pids of the workers warmed up by ``start``
@@ -299,24 +305,32 @@ class PlanPool:
                 )
             return worker.executor.submit(fn, *args)
 
-    async def _acquire(self, key: str) -> _Worker:
+    def _take_free(self, key: str) -> _Worker | None:
         """A free worker (the one that last planned on ``key`` if it is free) if this map holds fewer than
-        ``per_map``, or wait for this map's turn."""
-        if self._free and self._running[key] < self._per_key_running:
-            worker = next((w for w in self._free if w.last_key == key), self._free[0])
-            self._free.remove(worker)
-            self._running[key] += 1
+        ``per_map``."""
+        if not self._free or self._running[key] >= self._per_key_running:
+            return None
+        worker = next((w for w in self._free if w.last_key == key), self._free[0])
+        self._free.remove(worker)
+        self._running[key] += 1
+        return worker
+
+    async def _acquire(self, key: str) -> _Worker:
+        """A free worker, or wait for this map's turn (when the queue has room, or comes to have it soon)."""
+        if (worker := self._take_free(key)) is not None:
             return worker
-        mine = len(self._waiters.get(key, ()))
-        if mine >= self._per_key_queue or self.waiting >= self._queue:
+        if not await self._room_for(key):
+            mine = len(self._waiters.get(key, ()))
             running = sum(self._running.values())
             raise Unavailable(
                 f"{running} plans are running ({self._running[key]} of them on this map, which may hold "
                 f"{self._per_key_running} of the {len(self._workers)} workers) and {self.waiting} waiting "
                 f"({mine} of them on this map); retry shortly (FUZZYRISK_PLAN_WORKERS, "
                 "FUZZYRISK_PLAN_WORKERS_PER_MAP, FUZZYRISK_PLAN_QUEUE)",
-                headers={"Retry-After": "1"},
+                headers={"Retry-After": f"{ROOM_WAIT_S:g}"},
             )
+        if (worker := self._take_free(key)) is not None:  # came free while this plan waited for room
+            return worker
         waiting = self._waiters.setdefault(key, collections.deque())
         turn: asyncio.Future[_Worker] = asyncio.get_running_loop().create_future()
         waiting.append(turn)
@@ -332,7 +346,37 @@ class PlanPool:
                 if not waiting and self._waiters.get(key) is waiting:
                     del self._waiters[key]
                     self._turns.remove(key)
+                self._made_room()
             raise
+
+    def _full(self, key: str) -> bool:
+        return len(self._waiters.get(key, ())) >= self._per_key_queue or self.waiting >= self._queue
+
+    async def _room_for(self, key: str) -> bool:
+        """Whether ``key``'s plan may wait in the queue: at once, or after up to ``ROOM_WAIT_S`` for room."""
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + ROOM_WAIT_S
+        while self._full(key):
+            remaining = deadline - loop.time()
+            if remaining <= 0:
+                return False
+            room: asyncio.Future[None] = loop.create_future()
+            self._room.append(room)
+            try:
+                await asyncio.wait_for(room, remaining)
+            except TimeoutError:
+                return not self._full(key)
+            finally:
+                if room in self._room:
+                    self._room.remove(room)
+        return True
+
+    def _made_room(self) -> None:
+        """A waiting plan left the queue: those waiting for room look again."""
+        room, self._room = self._room, []
+        for future in room:
+            if not future.done():
+                future.set_result(None)
 
     def _release(self, worker: _Worker, key: str) -> None:
         """``key``'s plan is done with the worker: hand it to the next map in turn (round robin over the maps
@@ -358,8 +402,10 @@ class PlanPool:
                 del self._waiters[turn_key]
             self._running[turn_key] += 1
             turn.set_result(worker)
+            self._made_room()
             return
         self._free.append(worker)
+        self._made_room()
 
     async def run(self, fn: Callable[..., T], timeout_s: float, *args: Any, key: str = "") -> T:
         """``fn(*args)`` in a worker (``run_plan`` in the service) for map ``key``; ``Unavailable`` when too
