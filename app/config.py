@@ -123,9 +123,10 @@ class Settings(BaseSettings):
         "read of one map never waits behind the fusion of others.",
     )
     heavy_read_share: float = Field(
-        0.5, gt=0.0, le=1.0,
-        description="Share of one core that reads of big maps (more than 4 M cells) take together: they take "
-        "turns, one at a time, and after each the next waits (1 / share - 1) times as long as it took.",
+        0.25, gt=0.0, le=1.0,
+        description="Share of the time that reads of big maps (more than 4 M cells) take together, from their "
+        "copy to their last byte sent: they take turns, one at a time, and after each the next waits "
+        "(1 / share - 1) times as long as it took.",
     )
     heavy_read_queue: int = Field(8, ge=1, description="Reads of big maps waiting for their turn before 503.")
     snapshot_every: int = Field(200, ge=1, description="Snapshot a map after this many batches since the last.")

@@ -7,6 +7,7 @@ the top row, x to the right, as a Nav2 PGM does.
 
 from __future__ import annotations
 
+import functools
 import io
 import time
 import zipfile
@@ -15,6 +16,8 @@ from typing import Literal
 import numpy as np
 import yaml
 from PIL import Image, PngImagePlugin
+
+from fuzzyocc.grid import RISK_CODES, RISK_STEP
 
 #: Thresholds of every occupancy export (Nav2 YAML and image, OccupancyGrid) unless asked otherwise.
 #: Occupied above 0.6, the planner's default ``max_risk``: what a default plan refuses to enter,
@@ -183,6 +186,18 @@ def map_server_scale(grey: np.ndarray, *, free_thresh: float, occupied_thresh: f
     scaled = (occ[between] - free) / span * np.float32(100.0)
     values[between] = _round_half_away(scaled).astype(np.int8)
     return values
+
+
+@functools.lru_cache(maxsize=32)
+def occupancy_lut(mode: Literal["trinary", "scale", "probability"] = "trinary",
+                  free_thresh: float = NAV2_FREE_THRESH, occupied_thresh: float = NAV2_OCCUPIED_THRESH) -> np.ndarray:
+    """``occupancy_data`` of every risk code: entry ``k`` is the value of an observed cell of risk
+    ``k * RISK_STEP`` (``OccupancyMap.plane_lookup``'s table; read-only, kept per mode and thresholds)."""
+    risk = np.arange(RISK_CODES, dtype=np.float32) * np.float32(RISK_STEP)
+    lut = occupancy_data(risk, np.ones(RISK_CODES, dtype=np.bool_), mode=mode, free_thresh=free_thresh,
+                         occupied_thresh=occupied_thresh)
+    lut.flags.writeable = False
+    return lut
 
 
 def occupancy_data(

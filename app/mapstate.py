@@ -223,6 +223,10 @@ class MapEntry:
         """Tells this map apart from another of the same name, across restarts (``conditional.map_seed``)."""
         return conditional.map_seed(self.meta)
 
+    def stamp(self) -> GridStamp:
+        """This version's ``GridStamp`` (read it under ``apply_lock``, with the cells it stamps)."""
+        return GridStamp(self.spec, self.version, self.frame_id, self.updated, self.etag_seed)
+
     @functools.cached_property
     def engine_info(self) -> EngineInfo | None:
         """The fuzzy engine as ``MapInfo`` shows it (once: a map's engine never changes)."""
@@ -265,6 +269,23 @@ def stored_info(head: MapHead) -> MapInfo:
 
 
 @dataclass(frozen=True)
+class GridStamp:
+    """What a read of one version of a map carries besides its cells: the version, its frame, time and ETag."""
+
+    spec: GridSpec
+    version: int
+    frame_id: str = DEFAULT_FRAME_ID
+    #: when the map reached this version (its last batch's ``updated``; its creation at version 0), ISO 8601
+    updated: str = ""
+    #: ``MapEntry.etag_seed``
+    etag_seed: str = ""
+
+    def etag(self, variant: Mapping[str, Any]) -> str:
+        """The strong ETag of one representation of this version (``conditional.entity_tag``)."""
+        return conditional.entity_tag(self.etag_seed, self.version, variant)
+
+
+@dataclass(frozen=True)
 class GridSnapshot:
     """Copies of a map's risk and observed arrays at one version, with what its outputs carry."""
 
@@ -281,6 +302,10 @@ class GridSnapshot:
     def etag(self, variant: Mapping[str, Any]) -> str:
         """The strong ETag of one representation of this version (``conditional.entity_tag``)."""
         return conditional.entity_tag(self.etag_seed, self.version, variant)
+
+    def stamp(self) -> GridStamp:
+        """The ``GridStamp`` of the version these arrays are of."""
+        return GridStamp(self.spec, self.version, self.frame_id, self.updated, self.etag_seed)
 
     def planar(self, z_min: float | None, z_max: float | None) -> tuple[np.ndarray, np.ndarray]:
         """2-D risk and observed: the map itself, or a 3-D map projected over ``[z_min, z_max]``."""

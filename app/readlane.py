@@ -1,13 +1,13 @@
 """Reads of big grids take turns in one lane, which rests after each in proportion to its work.
 
-A read of a big map (``reads.HEAVY_READ_CELLS``) copies the grid (a 16 M-cell map: 80 MB of risk and
-observed mask) and renders it (about 0.16 s of a core for an OccupancyGrid). Read side by side, such
-reads held a copy each while they waited for their render, and took both cores from every other
-client: two readers of a 16 M-cell OccupancyGrid, back to back, made an innocent client's scans 2.6x
-slower at the 99th percentile (issue 11, bench abuse row 10). In the lane a big read holds its turn from
-its copy to the end of its render; the lane then stays closed ``busy x (1 / share - 1)`` seconds, so that
-big reads together take at most ``share`` of one core and hold one copy. A read alone is not delayed
-(the rest comes after it); reads waiting beyond ``queue`` are refused with 503.
+A read of a big map (``reads.HEAVY_READ_CELLS``) copies or renders the grid and sends a body of up to
+tens of MB. Read side by side, such reads held a copy each while they waited for their render, and
+took both cores from every other client: two readers of a 16 M-cell OccupancyGrid, back to back, made
+an innocent client's scans 2.6x slower at the 99th percentile (issue 11, bench abuse row 10). In the
+lane a big read holds its turn from its copy until its last byte is sent (``Turn.hand_over``: the
+response ends it); the lane then stays closed ``busy x (1 / share - 1)`` seconds, so that big reads
+together take at most ``share`` of the time and hold one copy. A read alone is not delayed (the rest
+comes after it); reads waiting beyond ``queue`` are refused with 503.
 """
 
 from __future__ import annotations
@@ -15,9 +15,35 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import time
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Callable
 
 from app.errors import Unavailable
+
+#: Longest a turn handed over to a response is held (a response that never ends it, a client reading a body for
+#: minutes): then the lane goes on regardless.
+MAX_HELD_S = 120.0
+
+
+class Turn:
+    """A big read's turn in the lane: ended once (``end``), by the read or, handed over, by its response."""
+
+    def __init__(self, lane: ReadLane) -> None:
+        self._lane = lane
+        self._started = time.monotonic()
+        self._ended = False
+        self._handed_over = False
+
+    def hand_over(self) -> Callable[[], None]:
+        """Leave the end to the caller (a response, once its last byte is sent): the function that ends it."""
+        self._handed_over = True
+        asyncio.get_running_loop().call_later(MAX_HELD_S, self.end)
+        return self.end
+
+    def end(self) -> None:
+        """End the turn (again: nothing); the lane rests in proportion to how long it was held."""
+        if not self._ended:
+            self._ended = True
+            self._lane._rest((time.monotonic() - self._started) * self._lane.rest_per_busy)
 
 
 class ReadLane:
@@ -26,7 +52,7 @@ class ReadLane:
     def __init__(self, *, share: float, queue: int) -> None:
         if not 0.0 < share <= 1.0:
             raise ValueError(f"share must be in (0, 1], got {share}")
-        self._rest_per_busy = 1.0 / share - 1.0
+        self.rest_per_busy = 1.0 / share - 1.0
         self._queue = queue
         self._lock = asyncio.Lock()  # FIFO: turns are taken in arrival order
         self._waiting = 0
@@ -37,8 +63,8 @@ class ReadLane:
         return self._waiting
 
     @contextlib.asynccontextmanager
-    async def turn(self) -> AsyncIterator[None]:
-        """Hold the lane for the block; its rest starts when the block ends (this caller does not wait for it)."""
+    async def turn(self) -> AsyncIterator[Turn]:
+        """Hold the lane for the block, or longer when the block hands the turn over (``Turn.hand_over``)."""
         if self._waiting >= self._queue:
             raise Unavailable(
                 f"{self._waiting} reads of big maps are waiting for their turn already; retry shortly "
@@ -50,9 +76,14 @@ class ReadLane:
             await self._lock.acquire()
         finally:
             self._waiting -= 1
-        started = time.monotonic()
+        held = Turn(self)
         try:
-            yield
-        finally:
-            rest = (time.monotonic() - started) * self._rest_per_busy
-            asyncio.get_running_loop().call_later(rest, self._lock.release)
+            yield held
+        except BaseException:
+            held.end()
+            raise
+        if not held._handed_over:
+            held.end()
+
+    def _rest(self, seconds: float) -> None:
+        asyncio.get_running_loop().call_later(seconds, self._lock.release)

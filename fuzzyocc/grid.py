@@ -35,6 +35,8 @@ RowFusion = tuple[np.ndarray, tuple[bool, bool, bool] | None]
 
 #: Resolution of the cached risk: risk is read back as a multiple of this (2**-16).
 RISK_STEP = 2.0**-16
+#: Entries of a table indexed by risk code (``OccupancyMap.plane_lookup``): every uint16 value.
+RISK_CODES = 1 << 16
 _STALE = 0xFFFF  # a risk code no risk quantizes to: "recompute this cell"
 _LARGEST_CODE = _STALE - 1
 
@@ -137,6 +139,15 @@ class CellGrid:
         """(num_cells,) float32 risk, a new array; the cache is refreshed first where cells changed."""
         self._refresh()
         return dequantize_risk(self._risk)
+
+    def plane_lookup(self, lut: np.ndarray, unobserved: int) -> np.ndarray:
+        """A 2-D grid's cells as (ny, nx) int8: ``lut[code]`` of each cell's risk code, ``unobserved`` where no beam
+        reached; rows along y (an image's, or ``nav_msgs/OccupancyGrid``'s, order). One pass, no float copy."""
+        self._refresh()
+        nx, ny = self.spec.shape[:2]
+        out = np.empty((ny, nx), dtype=np.int8)
+        _lookup_flat(nx, ny, self._risk, self._observed, _check_lut(lut), np.int8(unobserved), out)
+        return out
 
     def risk_of(self, cells: np.ndarray) -> np.ndarray:
         """(len(cells),) float32 risk of ``cells`` (flat ids), as :meth:`risk` gives it."""
@@ -381,6 +392,15 @@ class BlockGrid:
         self._refresh()
         out = np.empty(self.spec.num_cells, dtype=np.float32)
         _expand_risk(self._shape, self._shift, self._nblk, self._ref, self._urisk, self._prisk, out)
+        return out
+
+    def plane_lookup(self, lut: np.ndarray, unobserved: int) -> np.ndarray:
+        """As :meth:`CellGrid.plane_lookup`."""
+        self._refresh()
+        nx, ny = self.spec.shape[:2]
+        out = np.empty((ny, nx), dtype=np.int8)
+        _lookup_blocks(self._shape, self._shift, self._nblk, self._ref, self._urisk, self._prisk, self._observed,
+                       _check_lut(lut), np.int8(unobserved), out)
         return out
 
     def risk_of(self, cells: np.ndarray) -> np.ndarray:
@@ -710,6 +730,38 @@ def _expand_risk(shape, shift, nblk, ref, urisk, prisk, out):  # pragma: no cove
                 code = urisk[b] if s < 0 else prisk[s, oij | (k & mz)]
                 out[c] = np.float32(code) * step
                 c += 1
+
+
+def _check_lut(lut: np.ndarray) -> np.ndarray:
+    lut = np.ascontiguousarray(lut, dtype=np.int8)
+    if lut.shape != (RISK_CODES,):
+        raise ValueError(f"lut must have {RISK_CODES} entries (one a risk code), got shape {lut.shape}")
+    return lut
+
+
+@njit(cache=True, nogil=True)
+def _lookup_flat(nx, ny, codes, bits, lut, unobserved, out):  # pragma: no cover - compiled
+    for j in range(ny):
+        for i in range(nx):
+            c = i * ny + j
+            out[j, i] = lut[codes[c]] if (bits[c >> 3] >> (c & 7)) & 1 else unobserved
+
+
+@njit(cache=True, nogil=True)
+def _lookup_blocks(shape, shift, nblk, ref, urisk, prisk, bits, lut, unobserved, out):  # pragma: no cover
+    sx, sy, sz = shift[0], shift[1], shift[2]
+    mx, my = (1 << sx) - 1, (1 << sy) - 1
+    nb = sx + sy + sz
+    for j in range(shape[1]):
+        for i in range(shape[0]):
+            b = ((i >> sx) * nblk[1] + (j >> sy)) * nblk[2]
+            o = ((i & mx) << sy | (j & my)) << sz
+            key = (b << nb) | o
+            if (bits[key >> 3] >> (key & 7)) & 1:
+                s = ref[b]
+                out[j, i] = lut[urisk[b] if s < 0 else prisk[s, o]]
+            else:
+                out[j, i] = unobserved
 
 
 @njit(cache=True, nogil=True)

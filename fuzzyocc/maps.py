@@ -342,6 +342,18 @@ class OccupancyMap:
         out.flags.writeable = False
         return out
 
+    def plane_lookup(self, lut: np.ndarray, unobserved: int) -> np.ndarray:
+        """A 2-D map's cells through a table of its risk codes: (ny, nx) int8, rows along y.
+
+        ``lut`` has an entry for each of the 65,536 risk codes (``lut[k]`` for risk
+        ``k * RISK_STEP``, the values :meth:`risk` gives); cells no beam reached are
+        ``unobserved``. One pass over the map, with no float copy: an OccupancyGrid or an
+        image of a 16 M-cell map without its 64 MB of risk.
+        """
+        if self.spec.ndim != 2:
+            raise ValueError("plane_lookup is for 2-D maps; project a 3-D map's risk() instead")
+        return self._grid.plane_lookup(lut, unobserved)
+
     def risk_at(self, points: object) -> np.ndarray:
         """Risk of the cells containing ``points`` ((M, D) map frame) -> (M,) float32 (a copy).
 

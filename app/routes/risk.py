@@ -14,7 +14,7 @@ from app.largebody import bytes_response
 from app.exports import NAV2_FREE_THRESH, NAV2_OCCUPIED_THRESH
 from app.mediatypes import MCAP, OCTET_STREAM
 from app.schemas import OccupancyGrid, RiskQuery, RiskValues
-from app.mapstate import GridSnapshot
+from app.mapstate import GridSnapshot, GridStamp
 from app.services import MapService
 
 router = APIRouter(prefix="/maps", tags=["risk"])
@@ -39,7 +39,7 @@ _NOT_MODIFIED = {304: {"description": "If-None-Match names the current ETag: the
                        "(no body)", "headers": _GRID_HEADERS}}
 
 
-def _grid_headers(name: str, grid: GridSnapshot, variant: dict[str, object]) -> dict[str, str]:
+def _grid_headers(name: str, grid: GridSnapshot | GridStamp, variant: dict[str, object]) -> dict[str, str]:
     return {
         "ETag": grid.etag(variant),
         "X-Map-Name": name,
@@ -139,10 +139,10 @@ async def _risk_npy(name: str, service: MapService, layer: str, if_none_match: s
                                   "z_max": None, "media_type": media_type}
     if (unchanged := await _unchanged(service, name, variant, if_none_match)) is not None:
         return unchanged
-    data, grid = await service.reads.risk_npy(name, layer)
+    data, grid, sent = await service.reads.risk_npy(name, layer)
     headers = _grid_headers(name, grid, variant)
     headers["Content-Disposition"] = f'attachment; filename="{name}-{layer}-v{grid.version}.npy"'
-    return bytes_response(data, media_type=media_type, headers=headers)
+    return bytes_response(data, media_type=media_type, headers=headers, on_sent=sent)
 
 
 async def _risk_png(name: str, service: MapService, scale: int, z_min: float | None, z_max: float | None,
@@ -151,8 +151,8 @@ async def _risk_png(name: str, service: MapService, scale: int, z_min: float | N
                                   "z_max": z_max, "media_type": media_type}
     if (unchanged := await _unchanged(service, name, variant, if_none_match)) is not None:
         return unchanged
-    data, grid = await service.reads.risk_png(name, scale=scale, z_min=z_min, z_max=z_max)
-    return bytes_response(data, media_type=media_type, headers=_grid_headers(name, grid, variant))
+    data, grid, sent = await service.reads.risk_png(name, scale=scale, z_min=z_min, z_max=z_max)
+    return bytes_response(data, media_type=media_type, headers=_grid_headers(name, grid, variant), on_sent=sent)
 
 
 @router.get(
@@ -221,13 +221,13 @@ async def _occupancy_grid(name: str, service: MapService, format: str, mode: str
                                   "z_max": z_max, "media_type": media_type}
     if (unchanged := await _unchanged(service, name, variant, if_none_match)) is not None:
         return unchanged
-    data, grid = await service.reads.occupancy_grid(name, mode=mode, free_thresh=free_thresh,
+    data, grid, sent = await service.reads.occupancy_grid(name, mode=mode, free_thresh=free_thresh,
                                               occupied_thresh=occupied_thresh, z_min=z_min, z_max=z_max,
                                               encoding=format)
     headers = _grid_headers(name, grid, variant)
     if format == "mcap":
         headers["Content-Disposition"] = f'attachment; filename="{name}-v{grid.version}.mcap"'
-    return bytes_response(data, media_type=media_type, headers=headers)
+    return bytes_response(data, media_type=media_type, headers=headers, on_sent=sent)
 
 
 @router.get(
@@ -336,11 +336,11 @@ async def export_nav2(
                                   "media_type": media_type}
     if (unchanged := await _unchanged(service, name, variant, if_none_match)) is not None:
         return unchanged
-    data, grid = await service.reads.nav2_zip(
+    data, grid, sent = await service.reads.nav2_zip(
         name, mode=mode, image_format=format, free_thresh=free_thresh, occupied_thresh=occupied_thresh,
         z_min=z_min, z_max=z_max,
     )
     headers = _grid_headers(name, grid, variant)
     headers["Content-Disposition"] = f'attachment; filename="{name}-nav2.zip"'
-    return bytes_response(data, media_type=media_type, headers=headers)
+    return bytes_response(data, media_type=media_type, headers=headers, on_sent=sent)
 

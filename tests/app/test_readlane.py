@@ -86,3 +86,30 @@ def test_a_cancelled_wait_gives_its_place_back() -> None:
 def test_a_share_outside_zero_to_one_is_refused(share: float) -> None:
     with pytest.raises(ValueError, match="share"):
         ReadLane(share=share, queue=1)
+
+
+def test_a_turn_handed_over_lasts_until_its_body_is_sent(monkeypatch: pytest.MonkeyPatch) -> None:
+    # the body of a big read (16 MB of OccupancyGrid) is part of its work: with renders four times faster and the
+    # turn ending at the render, the lane let four times as many bodies out (bench abuse row 10)
+    from app import readlane
+
+    monkeypatch.setattr(readlane, "MAX_HELD_S", 0.5)
+
+    async def scenario() -> tuple[float, float]:
+        lane = ReadLane(share=1.0, queue=4)
+        async with lane.turn() as turn:
+            sent = turn.hand_over()
+        began = time.monotonic()
+        loop = asyncio.get_running_loop()
+        loop.call_later(0.2, sent)  # the response's last byte, 0.2 s later
+        async with lane.turn() as second:
+            waited = time.monotonic() - began
+            second.hand_over()  # and never sent: the lane goes on after MAX_HELD_S
+        began = time.monotonic()
+        async with lane.turn():
+            waited_for_lost = time.monotonic() - began
+        return waited, waited_for_lost
+
+    waited, waited_for_lost = asyncio.run(scenario())
+    assert 0.18 <= waited < 0.4
+    assert 0.45 <= waited_for_lost < 1.0
