@@ -389,7 +389,12 @@ def attach(service: Any, *, host: str, port: int, interval_s: float, max_cells: 
 
     def read_grid(name: str) -> Any:
         # from the publisher thread: the read runs on the event loop (the map's apply lock is an asyncio lock)
-        return asyncio.run_coroutine_threadsafe(service.reads.read_grid(name), loop).result(READ_TIMEOUT_S)
+        future = asyncio.run_coroutine_threadsafe(service.reads.read_grid(name), loop)
+        try:
+            return future.result(READ_TIMEOUT_S)
+        except TimeoutError:
+            future.cancel()  # a read given up on must not hold its place in a map's line or the big reads' lane
+            raise
 
     view = LiveView(host=host, port=port, interval_s=interval_s, read_grid=read_grid, max_cells=max_cells)
     view.start({entry.name: entry.frame_id for entry in service.maps.held_maps})

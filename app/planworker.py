@@ -327,7 +327,7 @@ class PlanPool:
                 f"{self._per_key_running} of the {len(self._workers)} workers) and {self.waiting} waiting "
                 f"({mine} of them on this map); retry shortly (FUZZYRISK_PLAN_WORKERS, "
                 "FUZZYRISK_PLAN_WORKERS_PER_MAP, FUZZYRISK_PLAN_QUEUE)",
-                headers={"Retry-After": f"{ROOM_WAIT_S:g}"},
+                headers={"Retry-After": str(math.ceil(ROOM_WAIT_S))},
             )
         if (worker := self._take_free(key)) is not None:  # came free while this plan waited for room
             return worker

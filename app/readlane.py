@@ -5,8 +5,10 @@ tens of MB. Read side by side, such reads held a copy each while they waited for
 took both cores from every other client: two readers of a 16 M-cell OccupancyGrid, back to back, made
 an innocent client's scans 2.6x slower at the 99th percentile (issue 11, bench abuse row 10). In the
 lane a big read holds its turn from its copy until its last byte is sent (``Turn.hand_over``: the
-response ends it); the lane then stays closed ``busy x (1 / share - 1)`` seconds, so that big reads
-together take at most ``share`` of the time and hold one copy. A read alone is not delayed (the rest
+response ends it), at most ``MAX_SEND_HELD_S`` of the sending; the lane then stays closed
+``busy x (1 / share - 1)`` seconds, at most ``MAX_REST_S``, so that big reads together take about
+``share`` of the time and hold one copy. The bounds keep a slow client, or a read that waited for its
+map's batch, from closing the lane for long. A read that finds the lane idle is not delayed (the rest
 comes after it); reads waiting beyond ``queue`` are refused with 503.
 """
 
@@ -19,9 +21,11 @@ from collections.abc import AsyncIterator, Callable
 
 from app.errors import Unavailable
 
-#: Longest a turn handed over to a response is held (a response that never ends it, a client reading a body for
-#: minutes): then the lane goes on regardless.
-MAX_HELD_S = 120.0
+#: Longest a turn handed over to a response is held while its body is sent: sending costs the server (and a client
+#: on the same computer) as much as the render, but a client reading slowly must not hold the lane.
+MAX_SEND_HELD_S = 0.5
+#: Longest rest after a turn (a read that waited seconds for its map's batch before its copy counts that time).
+MAX_REST_S = 2.0
 
 
 class Turn:
@@ -32,18 +36,23 @@ class Turn:
         self._started = time.monotonic()
         self._ended = False
         self._handed_over = False
+        self._timer: asyncio.TimerHandle | None = None
 
     def hand_over(self) -> Callable[[], None]:
-        """Leave the end to the caller (a response, once its last byte is sent): the function that ends it."""
+        """Leave the end to the caller (a response, once its last byte is sent; ``MAX_SEND_HELD_S`` at most): the
+        function that ends it."""
         self._handed_over = True
-        asyncio.get_running_loop().call_later(MAX_HELD_S, self.end)
+        self._timer = asyncio.get_running_loop().call_later(MAX_SEND_HELD_S, self.end)
         return self.end
 
     def end(self) -> None:
         """End the turn (again: nothing); the lane rests in proportion to how long it was held."""
-        if not self._ended:
-            self._ended = True
-            self._lane._rest((time.monotonic() - self._started) * self._lane.rest_per_busy)
+        if self._ended:
+            return
+        self._ended = True
+        if self._timer is not None:
+            self._timer.cancel()
+        self._lane.rest(min(MAX_REST_S, (time.monotonic() - self._started) * self._lane.rest_per_busy))
 
 
 class ReadLane:
@@ -67,8 +76,8 @@ class ReadLane:
         """Hold the lane for the block, or longer when the block hands the turn over (``Turn.hand_over``)."""
         if self._waiting >= self._queue:
             raise Unavailable(
-                f"{self._waiting} reads of big maps are waiting for their turn already; retry shortly "
-                "(FUZZYRISK_HEAVY_READ_QUEUE, FUZZYRISK_HEAVY_READ_SHARE)",
+                f"{self._waiting} reads of big maps (their grids, or copies of them for plans) are waiting for "
+                "their turn already; retry shortly (FUZZYRISK_HEAVY_READ_QUEUE, FUZZYRISK_HEAVY_READ_SHARE)",
                 headers={"Retry-After": "1"},
             )
         self._waiting += 1
@@ -85,5 +94,6 @@ class ReadLane:
         if not held._handed_over:
             held.end()
 
-    def _rest(self, seconds: float) -> None:
+    def rest(self, seconds: float) -> None:
+        """Open the lane to the next turn in ``seconds``."""
         asyncio.get_running_loop().call_later(seconds, self._lock.release)

@@ -14,8 +14,8 @@ from collections.abc import Callable
 
 import numpy as np
 
+from app import exports
 from fuzzyocc import BayesMap, FuzzyMap, GridSpec, LaserScan, PointCloud, SensorModel, cast_work
-from fuzzyocc.grid import RISK_CODES
 
 
 def _fuse_2d(model: type[FuzzyMap] | type[BayesMap]) -> None:
@@ -28,7 +28,7 @@ def _fuse_2d(model: type[FuzzyMap] | type[BayesMap]) -> None:
     flat.risk_at(np.array([[1.5, 1.0]]))
     flat.risk()
     flat.observed()  # every grid read asks for it: loaded from the cache at the first, 0.2 s of the GIL
-    flat.plane_lookup(np.zeros(RISK_CODES, np.int8), -1)  # a 2-D map's OccupancyGrid
+    flat.plane_lookup(exports.occupancy_lut(), -1)  # a 2-D map's OccupancyGrid (a read-only table, as served)
     # a map's first snapshot copies it: compiled there, 0.3-0.7 s of the GIL that every request waited for
     model.from_arrays(spec, SensorModel(), flat.to_arrays())
 

@@ -93,7 +93,7 @@ def test_a_turn_handed_over_lasts_until_its_body_is_sent(monkeypatch: pytest.Mon
     # turn ending at the render, the lane let four times as many bodies out (bench abuse row 10)
     from app import readlane
 
-    monkeypatch.setattr(readlane, "MAX_HELD_S", 0.5)
+    monkeypatch.setattr(readlane, "MAX_SEND_HELD_S", 0.5)
 
     async def scenario() -> tuple[float, float]:
         lane = ReadLane(share=1.0, queue=4)
@@ -104,7 +104,7 @@ def test_a_turn_handed_over_lasts_until_its_body_is_sent(monkeypatch: pytest.Mon
         loop.call_later(0.2, sent)  # the response's last byte, 0.2 s later
         async with lane.turn() as second:
             waited = time.monotonic() - began
-            second.hand_over()  # and never sent: the lane goes on after MAX_HELD_S
+            second.hand_over()  # and never sent (a client reading slowly): the lane goes on after MAX_SEND_HELD_S
         began = time.monotonic()
         async with lane.turn():
             waited_for_lost = time.monotonic() - began
@@ -113,3 +113,20 @@ def test_a_turn_handed_over_lasts_until_its_body_is_sent(monkeypatch: pytest.Mon
     waited, waited_for_lost = asyncio.run(scenario())
     assert 0.18 <= waited < 0.4
     assert 0.45 <= waited_for_lost < 1.0
+
+
+def test_the_rest_after_a_long_turn_is_bounded(monkeypatch: pytest.MonkeyPatch) -> None:
+    # a read that waited seconds for its map's batch before its copy must not close the lane for three times that
+    from app import readlane
+
+    monkeypatch.setattr(readlane, "MAX_REST_S", 0.3)
+
+    async def scenario() -> float:
+        lane = ReadLane(share=0.25, queue=4)
+        async with lane.turn():
+            await asyncio.sleep(0.4)  # rest 3 x 0.4 s, bounded to 0.3 s
+        began = time.monotonic()
+        async with lane.turn():
+            return time.monotonic() - began
+
+    assert 0.28 <= asyncio.run(scenario()) < 0.6
