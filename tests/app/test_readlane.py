@@ -33,19 +33,25 @@ def test_the_next_big_read_starts_after_a_rest_in_proportion_to_the_last() -> No
     assert third_wait >= 0.1 + 0.29  # the second's work, then its rest
 
 
+async def _one_holding_one_waiting(lane: ReadLane, release: asyncio.Event) -> tuple[asyncio.Future[None], ...]:
+    """A read holding the lane until ``release``, and one waiting for its turn."""
+
+    async def read() -> None:
+        async with lane.turn():
+            await release.wait()
+
+    holder = asyncio.ensure_future(read())
+    await asyncio.sleep(0.01)
+    waiter = asyncio.ensure_future(read())
+    await asyncio.sleep(0.01)
+    return holder, waiter
+
+
 def test_reads_beyond_the_queue_are_refused_and_name_the_setting() -> None:
     async def scenario() -> None:
         lane = ReadLane(share=1.0, queue=1)
         release = asyncio.Event()
-
-        async def read() -> None:
-            async with lane.turn():
-                await release.wait()
-
-        holder = asyncio.ensure_future(read())
-        await asyncio.sleep(0.01)
-        waiter = asyncio.ensure_future(read())
-        await asyncio.sleep(0.01)
+        holder, waiter = await _one_holding_one_waiting(lane, release)
         assert lane.waiting == 1
         with pytest.raises(Unavailable, match="FUZZYRISK_HEAVY_READ_QUEUE") as refused:
             async with lane.turn():
@@ -62,15 +68,7 @@ def test_a_cancelled_wait_gives_its_place_back() -> None:
     async def scenario() -> None:
         lane = ReadLane(share=1.0, queue=1)
         release = asyncio.Event()
-
-        async def read() -> None:
-            async with lane.turn():
-                await release.wait()
-
-        holder = asyncio.ensure_future(read())
-        await asyncio.sleep(0.01)
-        gone = asyncio.ensure_future(read())
-        await asyncio.sleep(0.01)
+        holder, gone = await _one_holding_one_waiting(lane, release)
         gone.cancel()  # the client went away while it waited
         await asyncio.sleep(0.01)
         assert lane.waiting == 0
