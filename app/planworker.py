@@ -305,10 +305,13 @@ class PlanPool:
                 )
             return worker.executor.submit(fn, *args)
 
+    def _can_take(self, key: str) -> bool:
+        return bool(self._free) and self._running[key] < self._per_key_running
+
     def _take_free(self, key: str) -> _Worker | None:
         """A free worker (the one that last planned on ``key`` if it is free) if this map holds fewer than
         ``per_map``."""
-        if not self._free or self._running[key] >= self._per_key_running:
+        if not self._can_take(key):
             return None
         worker = next((w for w in self._free if w.last_key == key), self._free[0])
         self._free.remove(worker)
@@ -349,14 +352,16 @@ class PlanPool:
                 self._made_room()
             raise
 
-    def _full(self, key: str) -> bool:
-        return len(self._waiters.get(key, ())) >= self._per_key_queue or self.waiting >= self._queue
+    def _admissible(self, key: str) -> bool:
+        """A worker is free for ``key``'s plan, or its map's share of the queue has room."""
+        full = len(self._waiters.get(key, ())) >= self._per_key_queue or self.waiting >= self._queue
+        return self._can_take(key) or not full
 
     async def _room_for(self, key: str) -> bool:
-        """Whether ``key``'s plan may wait in the queue: at once, or after up to ``ROOM_WAIT_S`` for room."""
+        """Whether ``key``'s plan may take a worker or wait in the queue: at once, or after up to ``ROOM_WAIT_S``."""
         loop = asyncio.get_running_loop()
         deadline = loop.time() + ROOM_WAIT_S
-        while self._full(key):
+        while not self._admissible(key):
             remaining = deadline - loop.time()
             if remaining <= 0:
                 return False
@@ -365,14 +370,14 @@ class PlanPool:
             try:
                 await asyncio.wait_for(room, remaining)
             except TimeoutError:
-                return not self._full(key)
+                return self._admissible(key)
             finally:
                 if room in self._room:
                     self._room.remove(room)
         return True
 
     def _made_room(self) -> None:
-        """A waiting plan left the queue: those waiting for room look again."""
+        """A waiting plan left the queue, or a worker came free: those waiting for room look again."""
         room, self._room = self._room, []
         for future in room:
             if not future.done():

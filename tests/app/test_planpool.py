@@ -213,6 +213,28 @@ def test_a_map_flooded_with_plans_leaves_a_worker_to_the_others() -> None:
     asyncio.run(scenario())
 
 
+def test_a_plan_waiting_for_room_takes_a_worker_that_comes_free_for_it() -> None:
+    # the queue stays full (map a's plan waits, a at its share of the workers); a worker freed by map b is c's
+    async def scenario() -> float:
+        pool = PlanPool(workers=2, queue=1)
+        try:
+            await asyncio.gather(pool.run(os.getpid, 30.0, key="a"), pool.run(os.getpid, 30.0, key="b"))  # both up
+            a_running = asyncio.ensure_future(pool.run(time.sleep, 30.0, 2.0, key="a"))
+            b_running = asyncio.ensure_future(pool.run(time.sleep, 30.0, 0.3, key="b"))
+            await asyncio.sleep(0.1)
+            a_waiting = asyncio.ensure_future(pool.run(math.sqrt, 30.0, 1.0, key="a"))  # the whole queue
+            await asyncio.sleep(0.05)
+            started = time.monotonic()
+            assert await pool.run(math.sqrt, 30.0, 4.0, key="c") == 2.0  # before: 503 after ROOM_WAIT_S
+            took = time.monotonic() - started
+            await asyncio.gather(a_running, b_running, a_waiting)
+            return took
+        finally:
+            pool.shutdown()
+
+    assert asyncio.run(scenario()) < planworker.ROOM_WAIT_S
+
+
 def test_a_map_may_hold_every_worker_when_configured() -> None:
     async def scenario() -> float:
         pool = PlanPool(workers=2, queue=8, per_map=2)
