@@ -300,8 +300,8 @@ class GridSnapshot:
     etag_seed: str = ""
 
     def etag(self, variant: Mapping[str, Any]) -> str:
-        """The strong ETag of one representation of this version (``conditional.entity_tag``)."""
-        return conditional.entity_tag(self.etag_seed, self.version, variant)
+        """``GridStamp.etag`` of this version."""
+        return self.stamp().etag(variant)
 
     def stamp(self) -> GridStamp:
         """The ``GridStamp`` of the version these arrays are of."""

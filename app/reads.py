@@ -3,8 +3,8 @@ OccupancyGrid, MCAP); copies under the map's apply lock, encodings in the read t
 
 from __future__ import annotations
 
-import logging
 import contextlib
+import logging
 from collections.abc import AsyncIterator, Awaitable, Callable, Mapping
 from typing import Any, Literal, TypeVar
 
@@ -174,15 +174,18 @@ class MapReads:
 
         return await self._workers.run_read(encode, heavy=_heavy(grid.spec)), grid
 
+    async def _rendered(self, entry: MapEntry, render: Callable[[GridSnapshot], T]) -> tuple[T, GridSnapshot, Sent]:
+        """``render(grid)`` of the map's grid at one version, in a read thread: for a big map in its turn in the lane,
+        handed over to the response (``Sent``)."""
+        async with self.big_read(entry.spec) as turn:
+            grid = await self.read_grid_of(entry)
+            return await self._workers.run_read(render, grid, heavy=_heavy(entry.spec)), grid, _hand_over(turn)
+
     async def risk_npy(self, name: str,
                        layer: Literal["risk", "observed"] = "risk") -> tuple[bytes, GridSnapshot, Sent]:
         """The risk (float32) or the observed mask (bool) as ``.npy``, of one version (and ``Sent``)."""
-        entry = await self._current(name)
-        async with self.big_read(entry.spec) as turn:
-            grid = await self.read_grid_of(entry)
-            data = await self._workers.run_read(exports.npy_bytes, grid.risk if layer == "risk" else grid.observed,
-                                                heavy=_heavy(grid.spec))
-            return data, grid, _hand_over(turn)
+        return await self._rendered(await self._current(name),
+                                    lambda grid: exports.npy_bytes(grid.risk if layer == "risk" else grid.observed))
 
     async def risk_png(self, name: str, *, scale: int, z_min: float | None,
                        z_max: float | None) -> tuple[bytes, GridSnapshot, Sent]:
@@ -191,24 +194,16 @@ class MapReads:
         nx, ny = entry.spec.shape[:2]
         if nx * ny * scale * scale > MAX_PNG_PIXELS:
             raise Invalid(f"scale {scale} would make a {nx * scale} x {ny * scale} image; use a smaller scale")
-        async with self.big_read(entry.spec) as turn:
-            data, grid = await self._risk_png(entry, scale=scale, z_min=z_min, z_max=z_max)
-            return data, grid, _hand_over(turn)
 
-    async def _risk_png(self, entry: MapEntry, *, scale: int, z_min: float | None,
-                        z_max: float | None) -> tuple[bytes, GridSnapshot]:
-        """``risk_png`` of a map looked up and checked."""
-        grid = await self.read_grid_of(entry)
-        text = {
-            "map": entry.name, "version": str(grid.version), "frame_id": grid.frame_id,
-            "resolution": repr(grid.spec.resolution), "origin": repr(list(grid.spec.origin)),
-        }
-
-        def render() -> bytes:
+        def render(grid: GridSnapshot) -> bytes:
+            text = {
+                "map": name, "version": str(grid.version), "frame_id": grid.frame_id,
+                "resolution": repr(grid.spec.resolution), "origin": repr(list(grid.spec.origin)),
+            }
             risk, observed = grid.planar(z_min, z_max)
             return exports.risk_png(risk, observed, scale=scale, text=text)
 
-        return await self._workers.run_read(render, heavy=_heavy(grid.spec)), grid
+        return await self._rendered(entry, render)
 
     async def nav2_zip(
         self, name: str, *, mode: Literal["trinary", "scale", "raw"], image_format: Literal["pgm", "png"],
@@ -221,20 +216,8 @@ class MapReads:
             exports.check_nav2_format(mode, image_format)
         except ValueError as exc:
             raise Invalid(str(exc)) from None
-        entry = await self._current(name)
-        async with self.big_read(entry.spec) as turn:
-            grid = await self.read_grid_of(entry)
-            data, grid = await self._nav2_zip(grid, mode=mode, image_format=image_format, free_thresh=free_thresh,
-                                              occupied_thresh=occupied_thresh, z_min=z_min, z_max=z_max)
-            return data, grid, _hand_over(turn)
 
-    async def _nav2_zip(
-        self, grid: GridSnapshot, *, mode: Literal["trinary", "scale", "raw"], image_format: Literal["pgm", "png"],
-        free_thresh: float, occupied_thresh: float, z_min: float | None, z_max: float | None,
-    ) -> tuple[bytes, GridSnapshot]:
-        """``nav2_zip`` of a grid read."""
-
-        def render() -> bytes:
+        def render(grid: GridSnapshot) -> bytes:
             risk, observed = grid.planar(z_min, z_max)
             return exports.nav2_zip(
                 risk, observed, resolution=grid.spec.resolution, origin_xy=grid.spec.origin[:2], mode=mode,
@@ -242,7 +225,7 @@ class MapReads:
                 frame_id=grid.frame_id, date_time=rosout.zip_date_time(grid.updated),
             )
 
-        return await self._workers.run_read(render, heavy=_heavy(grid.spec)), grid
+        return await self._rendered(await self._current(name), render)
 
     async def occupancy_grid(
         self, name: str, *, mode: Literal["trinary", "scale", "probability"], free_thresh: float,
@@ -271,9 +254,11 @@ class MapReads:
             if entry.spec.ndim == 2:
                 # the values straight from the map's risk codes, in one pass (a 16 M-cell map: 45 ms against 160,
                 # without the 80 MB copy of its risk and observed mask)
-                lut = exports.occupancy_lut(mode, free_thresh, occupied_thresh)
+                def lookup() -> np.ndarray:  # the table too is built here, not on the event loop (cached)
+                    return entry.map.plane_lookup(exports.occupancy_lut(mode, free_thresh, occupied_thresh), -1)
+
                 async with entry.apply_lock:
-                    values = await self._workers.run_read(entry.map.plane_lookup, lut, -1, heavy=heavy)
+                    values = await self._workers.run_read(lookup, heavy=heavy)
                     stamp = entry.stamp()  # the version the values are of: it changes under this lock only
             else:
                 grid = await self.read_grid_of(entry)
