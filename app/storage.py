@@ -25,7 +25,15 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, NamedTuple, Protocol, TypeVar
 
+from app.payloadfiles import PayloadFiles
+
 T = TypeVar("T")
+
+#: The SQLite store writes payloads (batches, snapshots) larger than this to files beside the database
+#: (``app.payloadfiles``), before the transaction and outside its lock: a commit of 8 MB held the other
+#: maps' commits for 35-134 ms (issue 11). The group committer commits such batches alone, on a thread
+#: of their own, for the same reason.
+INLINE_BYTES = 256 * 1024
 
 
 class NameTaken(Exception):
@@ -175,6 +183,7 @@ CREATE TABLE IF NOT EXISTS batches (
     crc INTEGER,
     scans INTEGER,
     updated TEXT,
+    file TEXT,
     PRIMARY KEY (map, seq)
 );
 CREATE TABLE IF NOT EXISTS snapshots (
@@ -182,7 +191,8 @@ CREATE TABLE IF NOT EXISTS snapshots (
     version INTEGER NOT NULL,
     payload BLOB NOT NULL,
     crc INTEGER,
-    updated TEXT
+    updated TEXT,
+    file TEXT
 );
 """
 
@@ -190,8 +200,8 @@ CREATE TABLE IF NOT EXISTS snapshots (
 _ADDED_COLUMNS = {
     "maps": {"version": "INTEGER", "snapshot_version": "INTEGER", "incarnation": "TEXT",
              "scans": "INTEGER NOT NULL DEFAULT 0"},
-    "batches": {"crc": "INTEGER", "scans": "INTEGER", "updated": "TEXT"},
-    "snapshots": {"crc": "INTEGER", "updated": "TEXT"},
+    "batches": {"crc": "INTEGER", "scans": "INTEGER", "updated": "TEXT", "file": "TEXT"},
+    "snapshots": {"crc": "INTEGER", "updated": "TEXT", "file": "TEXT"},
 }
 
 # A database from before the maps kept their versions has NULL there: its newest is read off its rows.
@@ -218,9 +228,11 @@ def head_of(row: Sequence[Any]) -> MapHead:
 
 
 def read_map(query: Callable[[str, tuple[Any, ...]], Iterable[Sequence[Any]]], name: str, after: int | None,
-             up_to: int | None) -> StoredMap | None:
+             up_to: int | None, files: PayloadFiles | None = None) -> StoredMap | None:
     """``load_map`` (``after`` None) or ``load_since`` on a consistent view of a store: ``query(sql, args)``
-    runs one statement of either dialect (``?`` placeholders) and yields its rows."""
+    runs one statement of either dialect (``?`` placeholders) and yields its rows. ``files``: where the
+    store keeps its big payloads (rows with a ``file`` column), if it does."""
+    file_column = "file" if files is not None else "NULL"
     row = next(iter(query(_LOAD_HEAD, (name,))), None)
     if row is None:
         return None
@@ -229,19 +241,24 @@ def read_map(query: Callable[[str, tuple[Any, ...]], Iterable[Sequence[Any]]], n
     stored = StoredMap(name, json.loads(meta), updated, snapshot_version=snapshot_row or 0,
                        incarnation=incarnation, version=newest if version is None else version)
     if snapshot_row is not None and (after is None or snapshot_row > after):
-        for snapshot in query("SELECT version, payload, crc, updated FROM snapshots WHERE map = ?", (name,)):
-            _take_snapshot(stored, snapshot[0], bytes(snapshot[1]), snapshot[2])
+        for snapshot in query(f"SELECT version, payload, crc, updated, {file_column} FROM snapshots WHERE map = ?",
+                              (name,)):
+            payload = _payload(stored, f"its snapshot (version {snapshot[0]})", snapshot[1], snapshot[4], files)
+            if payload is not None:
+                _take_snapshot(stored, snapshot[0], payload, snapshot[2])
             if snapshot[3] is not None:
                 stored.stamps[snapshot[0]] = snapshot[3]
     lower = -_NO_LIMIT if after is None else max(after, snapshot_row or 0)
     # (a recorded snapshot whose row is gone is reported as such below, not again as the batches it held)
     previous = max(after or 0, snapshot_row or 0, snapshot_version or 0)
-    for seq, payload, crc, stamp in query("SELECT seq, payload, crc, updated FROM batches WHERE map = ? AND seq > ? "
-                                          "AND seq <= ? ORDER BY seq",
-                                          (name, lower, _NO_LIMIT if up_to is None else up_to)):
+    for seq, stored_payload, crc, stamp, file in query(
+            f"SELECT seq, payload, crc, updated, {file_column} FROM batches WHERE map = ? AND seq > ? AND seq <= ? "
+            "ORDER BY seq", (name, lower, _NO_LIMIT if up_to is None else up_to)):
         _check_gap(stored, previous, seq, stamp)
         previous = seq
-        _take_batch(stored, seq, bytes(payload), crc)
+        payload = _payload(stored, f"its stored batch {seq}", stored_payload, file, files)
+        if payload is not None:
+            _take_batch(stored, seq, payload, crc)
         if stamp is not None:
             stored.stamps[seq] = stamp
     if up_to is not None and previous < up_to:  # a gap just below up_to shows only in the row above it
@@ -250,6 +267,17 @@ def read_map(query: Callable[[str, tuple[Any, ...]], Iterable[Sequence[Any]]], n
             _check_gap(stored, previous, seq, stamp)
     _check_versions(stored, version, snapshot_version, snapshot_row or 0, newest_seq or 0)
     return stored
+
+
+def _payload(stored: StoredMap, what: str, payload: bytes, file: str | None,
+             files: PayloadFiles | None) -> bytes | None:
+    """A row's payload: its own bytes, or its file's; None (and damage) when the file is missing."""
+    if file is None or files is None:
+        return bytes(payload)
+    content = files.read(file)
+    if content is None:
+        stored.damage.append(f"{what} lacks its payload file {file} (in {files.directory})")
+    return content
 
 
 def _check_gap(stored: StoredMap, previous: int, seq: int, stamp: str | None) -> None:
@@ -294,16 +322,23 @@ def _check_versions(stored: StoredMap, version: int | None, snapshot_version: in
         stored.damage.append(f"its batches up to version {version} are missing (the newest stored is {newest})")
 
 
+def payload_directory(database: Path) -> Path:
+    """Where the SQLite store at ``database`` keeps its big payloads: ``<database>-payloads``, beside its ``-wal``."""
+    return database.with_name(database.name + "-payloads")
+
+
 class SqliteStorage:
     """``Storage`` in one SQLite file: WAL journal, ``synchronous=FULL`` (fsync at every commit).
 
     One connection shared by the service's threads behind a lock: SQLite has one
-    writer at a time anyway, and the commits are short next to fusion. One process
-    only: replicas share a ``app.storage_pg.PostgresStorage``.
+    writer at a time anyway, and the commits are short next to fusion. Payloads over
+    ``INLINE_BYTES`` are files in ``payload_directory``, written before the lock is
+    taken. One process only: replicas share a ``app.storage_pg.PostgresStorage``.
     """
 
     def __init__(self, path: Path) -> None:
         path.parent.mkdir(parents=True, exist_ok=True)
+        self._files = PayloadFiles(payload_directory(path))
         # isolation_level=None: transactions are opened explicitly, so each method is one commit
         self._db = sqlite3.connect(path, isolation_level=None, check_same_thread=False)
         self._lock = threading.Lock()
@@ -319,6 +354,31 @@ class SqliteStorage:
                 for column, declaration in added.items():
                     if column not in columns:
                         self._db.execute(f"ALTER TABLE {table} ADD COLUMN {column} {declaration}")
+            named = {file for (file,) in self._db.execute(
+                "SELECT file FROM batches WHERE file IS NOT NULL UNION SELECT file FROM snapshots WHERE file IS NOT NULL")}
+        self._files.sweep(named)  # files of writes that never committed, or whose rows went before them
+
+    def _stage(self, payload: bytes) -> str | None:
+        """A big payload written to its file (outside the lock); None for one that goes in its row."""
+        if len(payload) <= INLINE_BYTES:
+            return None
+        try:
+            return self._files.write(payload)
+        except OSError as exc:
+            raise StorageUnavailable(f"the payload file could not be written in {self._files.directory}: {exc}") from exc
+
+    def _with_files(self, staged: list[str], work: Callable[[sqlite3.Connection], tuple[T, list[str]]]) -> T:
+        """``_transaction(work)``, where ``work`` also returns the files its rows no longer name.
+
+        Those are removed once the transaction is on disk; the ``staged`` files, when it fails.
+        """
+        try:
+            result, dropped = self._transaction(work)
+        except BaseException:
+            self._files.remove(staged)
+            raise
+        self._files.remove(dropped)
+        return result
 
     def _transaction(self, work: Callable[[sqlite3.Connection], T]) -> T:
         """Run ``work`` in one immediate transaction: all of it is on disk when this returns.
@@ -375,11 +435,11 @@ class SqliteStorage:
 
     def load_map(self, name: str) -> StoredMap | None:
         with self._lock:  # one connection, so no write comes between the queries
-            return read_map(self._db.execute, name, None, None)
+            return read_map(self._db.execute, name, None, None, self._files)
 
     def load_since(self, name: str, after: int, up_to: int | None = None) -> StoredMap | None:
         with self._lock:
-            return read_map(self._db.execute, name, after, up_to)
+            return read_map(self._db.execute, name, after, up_to, self._files)
 
     def create_map(self, name: str, meta: dict[str, Any], updated: str) -> None:
         try:
@@ -388,17 +448,33 @@ class SqliteStorage:
             raise NameTaken(name) from None
 
     def delete_map(self, name: str, incarnation: str | None = None) -> None:
-        # the foreign keys cascade to the map's batches and snapshot
-        if incarnation is None:
-            self._write([("DELETE FROM maps WHERE name = ?", (name,))])
-        else:
-            self._write([("DELETE FROM maps WHERE name = ? AND incarnation = ?", (name, incarnation))])
+        def delete(db: sqlite3.Connection) -> tuple[None, list[str]]:
+            if not db.execute("SELECT 1 FROM maps WHERE name = ? AND (? IS NULL OR incarnation = ?)",
+                              (name, incarnation, incarnation)).fetchall():
+                return None, []
+            files = [file for (file,) in db.execute(
+                "SELECT file FROM batches WHERE map = ? AND file IS NOT NULL "
+                "UNION ALL SELECT file FROM snapshots WHERE map = ? AND file IS NOT NULL", (name, name))]
+            db.execute("DELETE FROM maps WHERE name = ?", (name,))  # cascades to its batches and snapshot
+            return None, files
+
+        self._with_files([], delete)
 
     def append_batches(self, records: Sequence[BatchRecord]) -> list[int]:
         if not records:
             return []
+        staged: list[str] = []
+        try:
+            for r in records:
+                file = self._stage(r.payload)
+                if file is not None:
+                    staged.append(file)
+        except BaseException:
+            self._files.remove(staged)
+            raise
+        files = iter(staged)
 
-        def append(db: sqlite3.Connection) -> list[int]:
+        def append(db: sqlite3.Connection) -> tuple[list[int], list[str]]:
             versions = []
             for r in records:
                 taken = db.execute(f"UPDATE maps SET version = {_SQLITE_NEWEST} + 1, updated = ?, scans = scans + ? "
@@ -406,52 +482,64 @@ class SqliteStorage:
                                    (r.updated, r.scans, r.name, r.incarnation)).fetchall()
                 if not taken:
                     raise MapGone(r.name)
-                db.execute("INSERT INTO batches (map, seq, payload, crc, scans, updated) VALUES (?, ?, ?, ?, ?, ?)",
-                           (r.name, taken[0][0], r.payload, checksum(r.payload), r.scans, r.updated))
+                file = next(files) if len(r.payload) > INLINE_BYTES else None
+                db.execute("INSERT INTO batches (map, seq, payload, crc, scans, updated, file) "
+                           "VALUES (?, ?, ?, ?, ?, ?, ?)",
+                           (r.name, taken[0][0], r.payload if file is None else b"", checksum(r.payload), r.scans,
+                            r.updated, file))
                 versions.append(taken[0][0])
-            return versions
+            return versions, []
 
         # one transaction, so one fsync of the WAL however many batches (group commit)
-        return self._transaction(append)
+        return self._with_files(staged, append)
 
     def discard_batch(self, name: str, version: int, incarnation: str | None = None) -> None:
-        def discard(db: sqlite3.Connection) -> None:
+        def discard(db: sqlite3.Connection) -> tuple[None, list[str]]:
             if not db.execute("SELECT 1 FROM maps WHERE name = ? AND (? IS NULL OR incarnation = ?)",
                               (name, incarnation, incarnation)).fetchall():
-                return
-            row = db.execute("SELECT scans FROM batches WHERE map = ? AND seq = ? AND length(payload) > 0",
-                             (name, version)).fetchone()
+                return None, []
+            row = db.execute("SELECT scans, file FROM batches WHERE map = ? AND seq = ? "
+                             "AND (length(payload) > 0 OR file IS NOT NULL)", (name, version)).fetchone()
             if row is None:  # already a tombstone, or covered by a snapshot since
-                return
-            db.execute("UPDATE batches SET payload = ?, crc = ?, scans = 0 WHERE map = ? AND seq = ?",
+                return None, []
+            db.execute("UPDATE batches SET payload = ?, crc = ?, scans = 0, file = NULL WHERE map = ? AND seq = ?",
                        (TOMBSTONE, checksum(TOMBSTONE), name, version))
             db.execute("UPDATE maps SET scans = scans - ? WHERE name = ?", (row[0] or 0, name))
+            return None, [] if row[1] is None else [row[1]]
 
-        self._transaction(discard)
+        self._with_files([], discard)
 
     def write_snapshot(self, name: str, version: int, payload: bytes, incarnation: str | None = None) -> None:
-        def snapshot(db: sqlite3.Connection) -> None:
+        file = self._stage(payload)
+        staged = [] if file is None else [file]
+
+        def snapshot(db: sqlite3.Connection) -> tuple[None, list[str]]:
             if not db.execute("SELECT 1 FROM maps WHERE name = ? AND (? IS NULL OR incarnation = ?)",
                               (name, incarnation, incarnation)).fetchall():
-                return
+                return None, staged
+            replaced = db.execute("SELECT file FROM snapshots WHERE map = ? AND file IS NOT NULL", (name,)).fetchall()
             # only forwards: another writer may have stored a newer one meanwhile
             # the snapshot keeps its version's ``updated`` (its batch row goes)
-            if not db.execute("INSERT INTO snapshots (map, version, payload, crc, updated) VALUES (?, ?, ?, ?, "
-                              "(SELECT updated FROM batches WHERE map = ? AND seq = ?)) "
+            if not db.execute("INSERT INTO snapshots (map, version, payload, crc, updated, file) VALUES (?, ?, ?, ?, "
+                              "(SELECT updated FROM batches WHERE map = ? AND seq = ?), ?) "
                               "ON CONFLICT(map) DO UPDATE SET version = excluded.version, "
-                              "payload = excluded.payload, crc = excluded.crc, updated = excluded.updated "
-                              "WHERE snapshots.version < excluded.version RETURNING version",
-                              (name, version, payload, checksum(payload), name, version)).fetchall():
-                return
+                              "payload = excluded.payload, crc = excluded.crc, updated = excluded.updated, "
+                              "file = excluded.file WHERE snapshots.version < excluded.version RETURNING version",
+                              (name, version, payload if file is None else b"", checksum(payload), name, version,
+                               file)).fetchall():
+                return None, staged
+            covered = [f for (f,) in db.execute("SELECT file FROM batches WHERE map = ? AND seq <= ? "
+                                                "AND file IS NOT NULL", (name, version))]
             db.execute("DELETE FROM batches WHERE map = ? AND seq <= ?", (name, version))
             db.execute("UPDATE maps SET snapshot_version = ? WHERE name = ?", (version, name))
+            return None, covered + [f for (f,) in replaced]
 
-        self._transaction(snapshot)
+        self._with_files(staged, snapshot)
 
     def close(self) -> None:
         with self._lock:
             try:
-                # fold the WAL back into the main file so a copied data dir is one self-contained file
+                # fold the WAL back into the main file: a copied data dir is then the file and its payloads
                 self._db.execute("PRAGMA wal_checkpoint(TRUNCATE)")
             except sqlite3.OperationalError:
                 pass  # full or read-only: the WAL stays, and SQLite folds it in at the next open

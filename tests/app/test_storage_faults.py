@@ -49,7 +49,8 @@ def test_a_full_disk_answers_503_json_and_applies_nothing(lab: TestClient, kit: 
     assert lab.post("/maps/lab/scans", json=_batch(kit, 0)).status_code == 200
     before = kit.risk_npy(lab, "lab")
     _fill_disk(lab)
-    big = {"scans": [kit.laser(beams=20_000, wall=2.5 + 0.01 * k) for k in range(4)]}  # larger than any free page
+    # larger than any free page, and small enough to go in its row (not in a payload file: see below)
+    big = {"scans": [kit.laser(beams=10_000, wall=2.5 + 0.01 * k) for k in range(2)]}
     response = lab.post("/maps/lab/scans", json=big)
     assert response.status_code == 503, response.text
     assert response.json() == {"code": "STORAGE_UNAVAILABLE", "message": STORAGE_UNAVAILABLE_DETAIL, "details": None}

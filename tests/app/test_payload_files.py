@@ -1,0 +1,259 @@
+"""Big payloads as files beside the SQLite database: written before the commit, outside the commit line."""
+
+from __future__ import annotations
+
+import sqlite3
+import threading
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+from app.backup import backup
+from app.committer import GroupCommitter
+from app.metrics import Metrics
+from app.payloadfiles import PayloadFiles
+from app.storage import (
+    INLINE_BYTES,
+    BatchRecord,
+    MapGone,
+    SqliteStorage,
+    StorageUnavailable,
+    payload_directory,
+)
+
+BIG = INLINE_BYTES + 1
+
+
+def _payload(size: int, seed: int) -> bytes:
+    return (seed.to_bytes(4, "little") * (size // 4 + 1))[:size]
+
+
+@pytest.fixture
+def path(tmp_path: Path) -> Path:
+    return tmp_path / "data" / "fuzzyrisk.sqlite3"
+
+
+@pytest.fixture
+def store(path: Path) -> Iterator[SqliteStorage]:
+    storage = SqliteStorage(path)
+    storage.create_map("m", {"name": "m"}, "t0")
+    yield storage
+    storage.close()
+
+
+def _append(store: SqliteStorage, payload: bytes, name: str = "m") -> int:
+    return store.append_batches([BatchRecord(name, None, payload, "t", 1)])[0]
+
+
+def _files(path: Path) -> list[str]:
+    directory = payload_directory(path)
+    return sorted(p.name for p in directory.iterdir()) if directory.is_dir() else []
+
+
+def _rows(path: Path, sql: str) -> list[tuple[object, ...]]:
+    with sqlite3.connect(path) as db:
+        return db.execute(sql).fetchall()
+
+
+def test_a_big_batch_is_a_file_and_loads_bit_for_bit(store: SqliteStorage, path: Path) -> None:
+    big, small = _payload(BIG, 1), _payload(INLINE_BYTES, 2)
+    assert [_append(store, big), _append(store, small)] == [1, 2]
+    assert store.load_map("m").batches == [(1, big), (2, small)]  # type: ignore[union-attr]
+    (file,) = _files(path)
+    assert _rows(path, "SELECT seq, length(payload), file FROM batches ORDER BY seq") == \
+        [(1, 0, file), (2, INLINE_BYTES, None)]  # the big one's row holds its file's name, not its bytes
+
+
+def test_files_go_with_the_rows_that_name_them(store: SqliteStorage, path: Path) -> None:
+    for k in range(3):
+        _append(store, _payload(BIG, k))
+    store.discard_batch("m", 2)
+    assert len(_files(path)) == 2
+    store.write_snapshot("m", 2, _payload(BIG, 10))  # covers batches 1 and 2, and is a file itself
+    (snapshot_file,) = _rows(path, "SELECT file FROM snapshots")[0]
+    (batch_file,) = _rows(path, "SELECT file FROM batches WHERE seq = 3")[0]
+    assert _files(path) == sorted([snapshot_file, batch_file])
+    store.write_snapshot("m", 3, _payload(BIG, 11))  # replaces the snapshot's file
+    assert _files(path) == [_rows(path, "SELECT file FROM snapshots")[0][0]]
+    stored = store.load_map("m")
+    assert stored is not None and (stored.snapshot_version, stored.snapshot) == (3, _payload(BIG, 11))
+    store.write_snapshot("m", 2, _payload(BIG, 12))  # an older snapshot is no write: its file does not stay
+    assert len(_files(path)) == 1
+    store.delete_map("m")
+    assert _files(path) == []
+
+
+def test_a_failed_commit_leaves_no_file(store: SqliteStorage, path: Path) -> None:
+    with pytest.raises(MapGone):
+        store.append_batches([BatchRecord("m", None, _payload(BIG, 1), "t", 1),
+                              BatchRecord("gone", None, _payload(BIG, 2), "t", 1)])
+    assert _files(path) == [] and store.load_map("m").batches == []  # type: ignore[union-attr]
+
+
+def test_files_no_row_names_are_removed_at_the_next_open(path: Path) -> None:
+    store = SqliteStorage(path)
+    store.create_map("m", {"name": "m"}, "t0")
+    _append(store, _payload(BIG, 1))
+    kept = _files(path)
+    orphan = PayloadFiles(payload_directory(path)).write(b"written, then the process died before its commit")
+    store.close()
+    reopened = SqliteStorage(path)
+    assert orphan not in _files(path) and _files(path) == kept
+    assert reopened.load_map("m").batches == [(1, _payload(BIG, 1))]  # type: ignore[union-attr]
+    reopened.close()
+
+
+@pytest.mark.parametrize("damage", ["flipped", "missing", "outside"])
+def test_a_damaged_or_missing_file_is_damage_of_its_batch(store: SqliteStorage, path: Path, damage: str) -> None:
+    _append(store, _payload(BIG, 1))
+    (file,) = _files(path)
+    target = payload_directory(path) / file
+    if damage == "flipped":
+        data = bytearray(target.read_bytes())
+        data[1000] ^= 4
+        target.write_bytes(bytes(data))
+        expected = "its stored batch 1 fails its checksum"
+    elif damage == "missing":
+        target.unlink()
+        expected = f"its stored batch 1 lacks its payload file {file}"
+    else:  # a row that names a file elsewhere: never read
+        (path.parent / "secret").write_bytes(_payload(BIG, 1))
+        with sqlite3.connect(path) as db:
+            db.execute("UPDATE batches SET file = '../secret'")
+        expected = "its stored batch 1 lacks its payload file ../secret"
+    stored = store.load_map("m")
+    assert stored is not None and len(stored.damage) == 1 and stored.damage[0].startswith(expected)
+
+
+def test_a_payload_file_that_cannot_be_written_stores_nothing(store: SqliteStorage, path: Path) -> None:
+    directory = payload_directory(path)
+    directory.write_bytes(b"")  # the directory's name taken by a file: every write to it fails
+    with pytest.raises(StorageUnavailable, match="payload file could not be written"):
+        _append(store, _payload(BIG, 1))
+    assert _append(store, b"small") == 1  # the store goes on; the failed batch took no version
+    directory.unlink()
+    assert _append(store, _payload(BIG, 2)) == 2
+
+
+def _hold_big_writes(monkeypatch: pytest.MonkeyPatch) -> tuple[threading.Event, threading.Event]:
+    """Hold every payload file write until ``release`` is set; ``writing`` is set once one has begun."""
+    writing, release = threading.Event(), threading.Event()
+    write = PayloadFiles.write
+
+    def held(self: PayloadFiles, payload: bytes) -> str:
+        writing.set()
+        assert release.wait(30)
+        return write(self, payload)
+
+    monkeypatch.setattr(PayloadFiles, "write", held)
+    return writing, release
+
+
+def test_small_commits_go_on_while_a_big_payload_is_written(store: SqliteStorage,
+                                                            monkeypatch: pytest.MonkeyPatch) -> None:
+    store.create_map("other", {"name": "other"}, "t0")
+    writing, release = _hold_big_writes(monkeypatch)
+    big = threading.Thread(target=_append, args=(store, _payload(BIG, 1)))
+    big.start()
+    try:
+        assert writing.wait(30)
+        assert [_append(store, b"small", "other") for _ in range(3)] == [1, 2, 3]  # not behind the big write
+    finally:
+        release.set()
+        big.join()
+    assert [v for v, _ in store.load_map("m").batches] == [1]  # type: ignore[union-attr]
+
+
+def test_the_committer_commits_a_big_batch_beside_the_group(store: SqliteStorage,
+                                                            monkeypatch: pytest.MonkeyPatch) -> None:
+    store.create_map("other", {"name": "other"}, "t0")
+    writing, release = _hold_big_writes(monkeypatch)
+    committer = GroupCommitter(store, Metrics())
+    try:
+        big = committer.append(BatchRecord("m", None, _payload(BIG, 1), "t", 1))
+        assert writing.wait(30)
+        small = [committer.append(BatchRecord("other", None, b"s%d" % k, "t", 1)) for k in range(3)]
+        assert [f.result(timeout=30) for f in small] == [1, 2, 3] and not big.done()
+        release.set()
+        assert big.result(timeout=30) == 1
+    finally:
+        release.set()
+        committer.shutdown()
+
+
+def test_a_backup_is_one_self_contained_file(store: SqliteStorage, path: Path, tmp_path: Path) -> None:
+    for k in range(3):
+        _append(store, _payload(BIG, k))
+    store.write_snapshot("m", 2, _payload(BIG, 10))
+    copy = tmp_path / "copy" / "fuzzyrisk.sqlite3"
+    copy.parent.mkdir()
+    assert backup(path.parent, copy) > 0
+    assert _rows(copy, "SELECT count(*) FROM batches WHERE file IS NOT NULL UNION ALL "
+                       "SELECT count(*) FROM snapshots WHERE file IS NOT NULL") == [(0,), (0,)]
+    restored = SqliteStorage(copy)
+    stored = restored.load_map("m")
+    restored.close()
+    assert stored is not None and stored.damage == [] and stored.snapshot == _payload(BIG, 10)
+    assert stored.batches == [(3, _payload(BIG, 2))]
+
+
+def test_a_backup_taken_while_big_batches_commit_and_snapshots_drop_them_is_complete(
+        store: SqliteStorage, path: Path, tmp_path: Path) -> None:
+    done = threading.Event()
+    acknowledged: list[int] = []
+
+    def writer() -> None:  # batches, each one snapshotted over at once: files come and go under the backup
+        k = 0
+        while not done.is_set():
+            k += 1
+            acknowledged.append(_append(store, _payload(BIG, k)))
+            if k % 2 == 0:
+                store.write_snapshot("m", acknowledged[-1] - 1, _payload(BIG, 1000 + k))
+
+    thread = threading.Thread(target=writer)
+    thread.start()
+    copies = []
+    try:
+        for attempt in range(4):
+            copy = tmp_path / f"copy{attempt}" / "fuzzyrisk.sqlite3"
+            copy.parent.mkdir()
+            before = len(acknowledged)
+            backup(path.parent, copy)
+            copies.append((copy, before))
+    finally:
+        done.set()
+        thread.join()
+    for copy, before in copies:
+        restored = SqliteStorage(copy)
+        stored = restored.load_map("m")
+        restored.close()
+        assert stored is not None and stored.damage == []
+        assert stored.version >= before  # every batch acknowledged before the backup began
+        assert _files(copy) == []  # everything is in the copy's rows
+
+
+def test_a_backup_whose_files_go_before_it_reads_them_copies_again(store: SqliteStorage, path: Path,
+                                                                   tmp_path: Path,
+                                                                   monkeypatch: pytest.MonkeyPatch) -> None:
+    import app.backup
+
+    for k in range(3):
+        _append(store, _payload(BIG, k))
+    copy, copies = app.backup._copy, []
+
+    def copy_then_snapshot(source: Path, dest: Path) -> None:
+        copy(source, dest)
+        copies.append(dest)
+        if len(copies) == 1:  # the copy names batch 1-3's files; a snapshot removes them before they are read
+            store.write_snapshot("m", 3, _payload(BIG, 10))
+
+    monkeypatch.setattr(app.backup, "_copy", copy_then_snapshot)
+    target = tmp_path / "copy" / "fuzzyrisk.sqlite3"
+    target.parent.mkdir()
+    backup(path.parent, target)
+    assert len(copies) == 2
+    restored = SqliteStorage(target)
+    stored = restored.load_map("m")
+    restored.close()
+    assert stored is not None and stored.damage == [] and (stored.snapshot_version, stored.batches) == (3, [])
