@@ -140,6 +140,12 @@ class Settings(BaseSettings):
         description="Snapshot a map once its batches since the last snapshot take this many bytes: a map's disk is "
         "its snapshot plus at most this much log (and one batch).",
     )
+    snapshot_log_cells: int = Field(
+        2_000_000_000, ge=1,
+        description="Snapshot a map once its batches since the last snapshot walk this many cells in all (their cast "
+        "work, as FUZZYRISK_MAX_BATCH_CELLS counts it): a restart replays at most that much fusion for the map "
+        "(and one batch), about 10 s on 2 cores.",
+    )
     max_recording_bytes: int = Field(
         256 * 2**20, ge=1024,
         description="Most bytes of messages in one MCAP export of a map (GET /maps/{name}/export/mcap: its grid and "

@@ -23,7 +23,7 @@ import numpy as np
 from app import batches, conditional, engines, exports, plangrids
 from app.schemas import DEFAULT_FRAME_ID, EngineInfo, MapInfo, PlanResult, SensorIn
 from app.storage import MapHead, StoredMap
-from fuzzyocc import BayesMap, FuzzyMap, GridSpec, SensorModel
+from fuzzyocc import BayesMap, FuzzyMap, GridSpec, SensorModel, cast_work
 
 LOG = logging.getLogger("fuzzyrisk.maps")
 T = TypeVar("T")
@@ -171,8 +171,9 @@ class MapEntry:
     deleted: bool = False
     #: uploads for this map whose bodies are still arriving (they count against its line: ``receiving``)
     arriving: int = 0
-    #: (version, bytes) of each batch in the log after the latest snapshot: the log is bounded in bytes too
-    log: collections.deque[tuple[int, int]] = field(default_factory=collections.deque)
+    #: (version, bytes, cells walked) of each batch in the log after the latest snapshot: the log is bounded
+    #: in bytes (the disk) and in cells (the replay at a restart) too
+    log: collections.deque[tuple[int, int, int]] = field(default_factory=collections.deque)
     #: names this map among every map the process held (a deleted map's name may come back; its uid does not)
     uid: int = field(default_factory=plangrids.new_uid)
     #: ``time.monotonic()`` of the last request that used the map (a replica drops maps idle for long)
@@ -366,8 +367,8 @@ class Replayed:
     version: int = 0
     updated: str = ""
     last_scan: batches.Scan | None = None
-    #: (version, bytes) of the batches replayed, for ``MapEntry.log``
-    log: list[tuple[int, int]] = field(default_factory=list)
+    #: (version, bytes, cells walked) of the batches replayed, for ``MapEntry.log``
+    log: list[tuple[int, int, int]] = field(default_factory=list)
 
 
 def replay(built: OccupancyMap, stored: StoredMap, *, after: int, up_to: int | None = None) -> Replayed:
@@ -384,7 +385,7 @@ def replay(built: OccupancyMap, stored: StoredMap, *, after: int, up_to: int | N
             # an acknowledged batch: never dropped silently; the service refuses to start and says where
             raise RuntimeError(f"map {stored.name!r}: stored batch {version} is corrupt ({exc}); the database "
                                f"needs repair (restore a backup, or delete that row to drop the batch)") from exc
-        progress.log.append((version, len(payload)))
+        progress.log.append((version, len(payload), cast_work(built.spec, scans)))
         try:
             built.integrate_batch(scans)
         except ValueError:

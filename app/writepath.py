@@ -183,10 +183,12 @@ class WritePath:
         task.add_done_callback(forget)
 
     def _snapshot_due(self, entry: MapEntry) -> bool:
-        """Every ``FUZZYRISK_SNAPSHOT_EVERY`` batches, or once the log holds ``FUZZYRISK_SNAPSHOT_LOG_BYTES``.
+        """Every ``FUZZYRISK_SNAPSHOT_EVERY`` batches, or once the log holds ``FUZZYRISK_SNAPSHOT_LOG_BYTES`` or
+        walks ``FUZZYRISK_SNAPSHOT_LOG_CELLS``.
 
         The bytes bound the disk a map takes (its snapshot, plus at most that much log and a batch):
-        200 batches of 64 MiB would otherwise be 12.5 GiB of log for one map (issue 11).
+        200 batches of 64 MiB would otherwise be 12.5 GiB of log for one map (issue 11). The cells bound
+        the fusion a restart replays: 28 scans of 2 M beams (8 MB each, under the bytes) took 52-56 s.
         """
         if entry.snapshotting is not None:
             return False
@@ -194,8 +196,12 @@ class WritePath:
         # after a failure, wait another ``every`` batches: a full disk should not cost a snapshot per batch
         if entry.snapshot_failed_version > entry.snapshot_version and entry.version - entry.snapshot_failed_version < every:
             return False
-        logged = sum(size for version, size in entry.log if version <= entry.version)
-        return entry.version - entry.snapshot_version >= every or logged >= self.settings.snapshot_log_bytes
+        logged = walked = 0
+        for version, size, cells in entry.log:
+            if version <= entry.version:
+                logged, walked = logged + size, walked + cells
+        return (entry.version - entry.snapshot_version >= every or logged >= self.settings.snapshot_log_bytes
+                or walked >= self.settings.snapshot_log_cells)
 
 
     def _prepare(
@@ -359,7 +365,7 @@ class WritePath:
             except MapGone:
                 raise await self._registry.gone(entry) from None
             entry.inflight.add(version)
-            entry.log.append((version, len(payload)))
+            entry.log.append((version, len(payload), work))
             entry.line.commit.done(ticket)  # the next batch may commit while this one waits for its fusion
             await entry.line.apply.wait(ticket)
             async with entry.apply_lock:
