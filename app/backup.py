@@ -14,74 +14,101 @@ import argparse
 import sqlite3
 import sys
 from pathlib import Path
+from typing import BinaryIO
 
 from app.config import Settings
-from app.payloadfiles import PayloadFiles
+from app.payloadfiles import PayloadFiles, PayloadUnreadable
 from app.storage import payload_directory
 
 DATABASE = "fuzzyrisk.sqlite3"
-#: Copies made again when a payload file named in the copy was removed before it was read (its rows
-#: went meanwhile: a snapshot covered them, or the map was deleted); a newer copy no longer names it.
-ATTEMPTS = 5
+_TABLES = (("batches", "seq"), ("snapshots", "version"))
+
+
+class BackupDamaged(Exception):
+    """The store names payload files it does not have: the maps they belong to are damaged (quarantined)."""
 
 
 def backup(data_dir: Path, dest: Path) -> int:
-    """Copy ``data_dir``'s database to ``dest`` (refusing to overwrite); returns the pages copied."""
+    """Copy ``data_dir``'s database to ``dest`` (refusing to overwrite); returns the pages copied.
+
+    Written as ``<dest>.partial`` and renamed when complete: an interrupted backup leaves no copy that
+    looks whole.
+    """
     source_path = data_dir / DATABASE
     if not source_path.is_file():
         raise FileNotFoundError(f"no map database at {source_path} (FUZZYRISK_DATA_DIR or --data-dir)")
     if dest.exists():
         raise FileExistsError(f"{dest} exists; the backup does not overwrite a file")
-    files = PayloadFiles(payload_directory(source_path))
-    for attempt in range(1, ATTEMPTS + 1):
-        _copy(source_path, dest)
-        missing = _inline_payloads(dest, files)
-        if not missing or attempt == ATTEMPTS:
-            break
-        dest.unlink()
-    for table, key, file in missing:  # removed behind the service's back: the copy is as damaged as the store
-        print(f"fuzzyrisk-backup: warning: {table} row {key} names payload file {file}, which is not in "
-              f"{files.directory}; the copy keeps the row as it is (that map will be quarantined)", file=sys.stderr)
-    target = sqlite3.connect(dest)
+    partial = dest.with_name(dest.name + ".partial")
+    partial.unlink(missing_ok=True)  # left by a backup that was interrupted
     try:
-        return int(target.execute("PRAGMA page_count").fetchone()[0])
-    finally:
-        target.close()
+        _copy(source_path, partial, PayloadFiles(payload_directory(source_path)))
+        target = sqlite3.connect(partial)
+        try:
+            pages = int(target.execute("PRAGMA page_count").fetchone()[0])
+        finally:
+            target.close()
+        partial.rename(dest)
+    except BaseException:
+        partial.unlink(missing_ok=True)
+        raise
+    return pages
 
 
-def _copy(source_path: Path, dest: Path) -> None:
+def _copy(source_path: Path, target_path: Path, files: PayloadFiles) -> None:
+    """The database as of one read transaction, with the payload files its rows name put into those rows.
+
+    The files are opened inside that transaction, before the pages are copied: a snapshot or a delete
+    that removes them afterwards cannot take them from the copy (an open file stays readable).
+    """
     # read-only: the backup never writes the service's database
-    source = sqlite3.connect(f"file:{source_path}?mode=ro", uri=True)
-    target = sqlite3.connect(dest)
+    source = sqlite3.connect(f"file:{source_path}?mode=ro", uri=True, isolation_level=None)
+    target = sqlite3.connect(target_path, isolation_level=None)
+    opened: dict[str, BinaryIO] = {}
     try:
-        source.backup(target)
+        source.execute("BEGIN")
+        named, missing = _open_named(source, files, opened)
+        if missing:
+            raise BackupDamaged("the store's rows name payload files that cannot be read, so its maps "
+                                f"{sorted(missing)} are damaged (quarantined by the service); drop them "
+                                "(DELETE /maps/NAME) or restore an earlier backup: " + "; ".join(missing.values()))
+        _copy_pages(source, target)
+        source.execute("COMMIT")
+        target.execute("PRAGMA journal_mode=DELETE")  # the copy is one file; and its log is not a second copy
+        target.execute("BEGIN")
+        for (table, key), rows in named.items():
+            for name, number, file in rows:
+                target.execute(f"UPDATE {table} SET payload = ?, file = NULL WHERE map = ? AND {key} = ?",
+                               (opened[file].read(), name, number))
+        target.execute("COMMIT")
     finally:
+        for file in opened.values():
+            file.close()
         target.close()
         source.close()
 
 
-def _inline_payloads(dest: Path, files: PayloadFiles) -> list[tuple[str, str, str]]:
-    """Put the bytes of every payload file the copy names into its row; the (table, row, file) not found."""
-    target = sqlite3.connect(dest, isolation_level=None)
-    missing = []
-    try:
-        target.execute("BEGIN")
-        for table, key in (("batches", "seq"), ("snapshots", "version")):
-            columns = {row[1] for row in target.execute(f"PRAGMA table_info({table})")}
-            if "file" not in columns:
-                continue  # a database from before payload files
-            rows = target.execute(f"SELECT map, {key}, file FROM {table} WHERE file IS NOT NULL").fetchall()
-            for name, number, file in rows:
-                payload = files.read(file)
-                if payload is None:
-                    missing.append((table, f"{name!r} {number}", file))
-                    continue
-                target.execute(f"UPDATE {table} SET payload = ?, file = NULL WHERE map = ? AND {key} = ?",
-                               (payload, name, number))
-        target.execute("COMMIT")
-    finally:
-        target.close()
-    return missing
+def _open_named(source: sqlite3.Connection, files: PayloadFiles, opened: dict[str, BinaryIO]
+                ) -> tuple[dict[tuple[str, str], list[tuple[str, int, str]]], dict[str, str]]:
+    """Open every payload file the source's rows name, in its read transaction: the rows, by table, and the
+    maps whose files could not be opened (with why)."""
+    named: dict[tuple[str, str], list[tuple[str, int, str]]] = {}
+    missing: dict[str, str] = {}
+    for table, key in _TABLES:
+        if "file" not in {row[1] for row in source.execute(f"PRAGMA table_info({table})")}:
+            continue  # a database from before payload files
+        rows = source.execute(f"SELECT map, {key}, file FROM {table} WHERE file IS NOT NULL").fetchall()
+        named[(table, key)] = rows
+        for name, _, file in rows:
+            try:
+                opened[file] = files.open(file)
+            except PayloadUnreadable as exc:
+                missing[name] = str(exc)
+    return named, missing
+
+
+def _copy_pages(source: sqlite3.Connection, target: sqlite3.Connection) -> None:
+    source.backup(target)  # inside the source's read transaction: the rows _open_named listed
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -92,7 +119,7 @@ def main(argv: list[str] | None = None) -> int:
     data_dir = args.data_dir or Settings().data_dir
     try:
         pages = backup(data_dir, args.dest)
-    except (OSError, sqlite3.Error) as exc:
+    except (OSError, sqlite3.Error, BackupDamaged) as exc:
         print(f"fuzzyrisk-backup: error: {exc}", file=sys.stderr)
         return 1
     print(f"{args.dest}: {pages} pages copied from {data_dir / DATABASE}")

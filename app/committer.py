@@ -67,8 +67,13 @@ class GroupCommitter:
         return item.future
 
     def _commit_big(self, item: _Pending) -> None:
-        if item.future.set_running_or_notify_cancel():
+        if not item.future.set_running_or_notify_cancel():
+            return
+        try:
             self._commit_alone(item)
+        finally:
+            if not item.future.done():  # as in _flush: its map's commit turn must come back
+                item.future.set_exception(RuntimeError("the batch's commit ended without an answer"))
 
     def _flush(self) -> None:
         with self._lock:

@@ -9,17 +9,21 @@ on disk, so a committed row always has its file.
 
 Files are named by a random token, written once and never changed, and removed only after the rows
 naming them are gone. A file no row names (a crash between the write and its commit, or between a
-row's deletion and the file's) is removed when the store next opens.
+row's deletion and the file's) is removed when the store next opens, if no other store has the
+database open (a lock file says so): another's file being written has no row yet.
 """
 
 from __future__ import annotations
 
+import contextlib
+import fcntl
 import logging
 import os
 import re
 import uuid
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from pathlib import Path
+from typing import BinaryIO
 
 #: The size of the pieces made durable one at a time: a small commit waits at most about one piece.
 PIECE_BYTES = 1 << 20
@@ -27,11 +31,44 @@ LOG = logging.getLogger("fuzzyrisk.storage")
 _NAME = re.compile(r"[0-9a-f]{32}\.bin")
 
 
+class PayloadUnreadable(Exception):
+    """A payload file a row names is missing or cannot be read (the message says which, and why)."""
+
+
 class PayloadFiles:
     """The directory of a store's big payloads (made at the first write: a read-only data directory still starts)."""
 
     def __init__(self, directory: Path) -> None:
         self.directory = directory
+        self._lock: int | None = None
+
+    def attach(self, named: Callable[[], set[str]]) -> None:
+        """Mark the directory in use by this store; alone on it, first remove every file not in ``named()``.
+
+        A shared lock on ``<directory>.lock`` for the store's life; the sweep runs only under an exclusive
+        one, so never while another store (a second process on the same data directory) is writing.
+        """
+        try:
+            self._lock = os.open(self.directory.with_name(self.directory.name + ".lock"), os.O_RDWR | os.O_CREAT,
+                                 0o644)
+        except OSError as exc:  # a read-only data directory: nothing can be written, nothing to sweep
+            LOG.info("payload lock file not opened (%s); files no row names are not removed", exc)
+            return
+        try:
+            fcntl.flock(self._lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            fcntl.flock(self._lock, fcntl.LOCK_SH)
+            return
+        try:
+            self.sweep(named())
+        finally:
+            fcntl.flock(self._lock, fcntl.LOCK_SH)
+
+    def detach(self) -> None:
+        """Give up the lock taken by ``attach``."""
+        if self._lock is not None:
+            os.close(self._lock)
+            self._lock = None
 
     def write(self, payload: bytes) -> str:
         """Store ``payload`` durably in a new file; its name. ``OSError`` (nothing left behind) when it cannot."""
@@ -39,7 +76,7 @@ class PayloadFiles:
         path = self.directory / name
         view = memoryview(payload)
         try:
-            self.directory.mkdir(exist_ok=True)
+            self._make_directory()
             fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
             try:
                 for start in range(0, len(view), PIECE_BYTES):
@@ -52,18 +89,29 @@ class PayloadFiles:
                 os.close(fd)
             self._sync_directory()
         except BaseException:
-            path.unlink(missing_ok=True)
+            with contextlib.suppress(OSError):  # the write's own error is the one to report
+                path.unlink(missing_ok=True)
             raise
         return name
 
-    def read(self, name: str) -> bytes | None:
-        """The payload of the file ``name``; None when there is no such file (or the name is not one of ours)."""
+    def open(self, name: str) -> BinaryIO:
+        """The file ``name``, open for reading (still readable once removed); ``PayloadUnreadable`` if it cannot be."""
         if not _NAME.fullmatch(name):  # a damaged row never makes the store read outside its directory
-            return None
+            raise PayloadUnreadable(f"payload file {name!r} is not a name the store gives")
         try:
-            return (self.directory / name).read_bytes()
+            return (self.directory / name).open("rb")
         except FileNotFoundError:
-            return None
+            raise PayloadUnreadable(f"payload file {name} is missing from {self.directory}") from None
+        except OSError as exc:
+            raise PayloadUnreadable(f"payload file {name} cannot be read: {exc}") from exc
+
+    def read(self, name: str) -> bytes:
+        """The payload of the file ``name``; ``PayloadUnreadable`` when it is missing or cannot be read."""
+        with self.open(name) as file:
+            try:
+                return file.read()
+            except OSError as exc:
+                raise PayloadUnreadable(f"payload file {name} cannot be read: {exc}") from exc
 
     def remove(self, names: Iterable[str]) -> None:
         """Remove the files ``names`` (whose rows are gone); a file already gone is no error.
@@ -83,17 +131,32 @@ class PayloadFiles:
 
         Only while no write is under way: a file being written has no row yet.
         """
-        if not self.directory.is_dir():
+        try:
+            orphans = [path.name for path in self.directory.iterdir() if _NAME.fullmatch(path.name)
+                       and path.name not in named]
+        except FileNotFoundError:
             return 0
-        orphans = [path.name for path in self.directory.iterdir() if _NAME.fullmatch(path.name)
-                   and path.name not in named]
+        except OSError as exc:
+            LOG.warning("payload directory %s not swept: %s", self.directory, exc)
+            return 0
         self.remove(orphans)
         return len(orphans)
 
+    def _make_directory(self) -> None:
+        try:
+            self.directory.mkdir()
+        except FileExistsError:
+            return
+        _fsync_path(self.directory.parent)  # the directory's own name, as durable as the files in it
+
     def _sync_directory(self) -> None:
         # the file's name must be as durable as its bytes before a row names it
-        fd = os.open(self.directory, os.O_RDONLY)
-        try:
-            os.fsync(fd)
-        finally:
-            os.close(fd)
+        _fsync_path(self.directory)
+
+
+def _fsync_path(path: Path) -> None:
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)

@@ -25,7 +25,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, NamedTuple, Protocol, TypeVar
 
-from app.payloadfiles import PayloadFiles
+from app.payloadfiles import PayloadFiles, PayloadUnreadable
 
 T = TypeVar("T")
 
@@ -271,13 +271,14 @@ def read_map(query: Callable[[str, tuple[Any, ...]], Iterable[Sequence[Any]]], n
 
 def _payload(stored: StoredMap, what: str, payload: bytes, file: str | None,
              files: PayloadFiles | None) -> bytes | None:
-    """A row's payload: its own bytes, or its file's; None (and damage) when the file is missing."""
+    """A row's payload: its own bytes, or its file's; None (and damage) when the file is missing or unreadable."""
     if file is None or files is None:
         return bytes(payload)
-    content = files.read(file)
-    if content is None:
-        stored.damage.append(f"{what} lacks its payload file {file} (in {files.directory})")
-    return content
+    try:
+        return files.read(file)
+    except PayloadUnreadable as exc:
+        stored.damage.append(f"{what}: {exc}")
+        return None
 
 
 def _check_gap(stored: StoredMap, previous: int, seq: int, stamp: str | None) -> None:
@@ -354,9 +355,9 @@ class SqliteStorage:
                 for column, declaration in added.items():
                     if column not in columns:
                         self._db.execute(f"ALTER TABLE {table} ADD COLUMN {column} {declaration}")
-            named = {file for (file,) in self._db.execute(
-                "SELECT file FROM batches WHERE file IS NOT NULL UNION SELECT file FROM snapshots WHERE file IS NOT NULL")}
-        self._files.sweep(named)  # files of writes that never committed, or whose rows went before them
+            # files of writes that never committed, or whose rows went before them, go (if no other store is open)
+            self._files.attach(lambda: {file for (file,) in self._db.execute(
+                "SELECT file FROM batches WHERE file IS NOT NULL UNION SELECT file FROM snapshots WHERE file IS NOT NULL")})
 
     def _stage(self, payload: bytes) -> str | None:
         """A big payload written to its file (outside the lock); None for one that goes in its row."""
@@ -473,10 +474,11 @@ class SqliteStorage:
             self._files.remove(staged)
             raise
         files = iter(staged)
+        crcs = [checksum(r.payload) for r in records]  # before the lock: 3 ms for 8 MB
 
         def append(db: sqlite3.Connection) -> tuple[list[int], list[str]]:
             versions = []
-            for r in records:
+            for r, crc in zip(records, crcs, strict=True):
                 taken = db.execute(f"UPDATE maps SET version = {_SQLITE_NEWEST} + 1, updated = ?, scans = scans + ? "
                                    "WHERE name = ? AND incarnation IS ? RETURNING version",
                                    (r.updated, r.scans, r.name, r.incarnation)).fetchall()
@@ -485,8 +487,7 @@ class SqliteStorage:
                 file = next(files) if len(r.payload) > INLINE_BYTES else None
                 db.execute("INSERT INTO batches (map, seq, payload, crc, scans, updated, file) "
                            "VALUES (?, ?, ?, ?, ?, ?, ?)",
-                           (r.name, taken[0][0], r.payload if file is None else b"", checksum(r.payload), r.scans,
-                            r.updated, file))
+                           (r.name, taken[0][0], r.payload if file is None else b"", crc, r.scans, r.updated, file))
                 versions.append(taken[0][0])
             return versions, []
 
@@ -512,6 +513,7 @@ class SqliteStorage:
     def write_snapshot(self, name: str, version: int, payload: bytes, incarnation: str | None = None) -> None:
         file = self._stage(payload)
         staged = [] if file is None else [file]
+        crc = checksum(payload)
 
         def snapshot(db: sqlite3.Connection) -> tuple[None, list[str]]:
             if not db.execute("SELECT 1 FROM maps WHERE name = ? AND (? IS NULL OR incarnation = ?)",
@@ -525,8 +527,7 @@ class SqliteStorage:
                               "ON CONFLICT(map) DO UPDATE SET version = excluded.version, "
                               "payload = excluded.payload, crc = excluded.crc, updated = excluded.updated, "
                               "file = excluded.file WHERE snapshots.version < excluded.version RETURNING version",
-                              (name, version, payload if file is None else b"", checksum(payload), name, version,
-                               file)).fetchall():
+                              (name, version, payload if file is None else b"", crc, name, version, file)).fetchall():
                 return None, staged
             covered = [f for (f,) in db.execute("SELECT file FROM batches WHERE map = ? AND seq <= ? "
                                                 "AND file IS NOT NULL", (name, version))]
@@ -545,3 +546,4 @@ class SqliteStorage:
                 pass  # full or read-only: the WAL stays, and SQLite folds it in at the next open
             finally:
                 self._db.close()
+                self._files.detach()

@@ -6,6 +6,7 @@ import sqlite3
 import threading
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -116,12 +117,12 @@ def test_a_damaged_or_missing_file_is_damage_of_its_batch(store: SqliteStorage, 
         expected = "its stored batch 1 fails its checksum"
     elif damage == "missing":
         target.unlink()
-        expected = f"its stored batch 1 lacks its payload file {file}"
+        expected = f"its stored batch 1: payload file {file} is missing"
     else:  # a row that names a file elsewhere: never read
         (path.parent / "secret").write_bytes(_payload(BIG, 1))
         with sqlite3.connect(path) as db:
             db.execute("UPDATE batches SET file = '../secret'")
-        expected = "its stored batch 1 lacks its payload file ../secret"
+        expected = "its stored batch 1: payload file '../secret' is not a name the store gives"
     stored = store.load_map("m")
     assert stored is not None and len(stored.damage) == 1 and stored.damage[0].startswith(expected)
 
@@ -233,27 +234,79 @@ def test_a_backup_taken_while_big_batches_commit_and_snapshots_drop_them_is_comp
         assert _files(copy) == []  # everything is in the copy's rows
 
 
-def test_a_backup_whose_files_go_before_it_reads_them_copies_again(store: SqliteStorage, path: Path,
-                                                                   tmp_path: Path,
-                                                                   monkeypatch: pytest.MonkeyPatch) -> None:
+@pytest.mark.parametrize("when", ["_open_named", "_copy_pages"])
+def test_a_backup_keeps_the_files_a_snapshot_removes_while_it_copies(store: SqliteStorage, path: Path,
+                                                                     tmp_path: Path, when: str,
+                                                                     monkeypatch: pytest.MonkeyPatch) -> None:
     import app.backup
 
     for k in range(3):
         _append(store, _payload(BIG, k))
-    copy, copies = app.backup._copy, []
+    real = getattr(app.backup, when)
 
-    def copy_then_snapshot(source: Path, dest: Path) -> None:
-        copy(source, dest)
-        copies.append(dest)
-        if len(copies) == 1:  # the copy names batch 1-3's files; a snapshot removes them before they are read
-            store.write_snapshot("m", 3, _payload(BIG, 10))
+    def then_snapshot(*args: Any) -> Any:  # the service snapshots over batches 1-3: their files go
+        result = real(*args)
+        store.write_snapshot("m", 3, _payload(BIG, 10))
+        _append(store, _payload(BIG, 4))
+        return result
 
-    monkeypatch.setattr(app.backup, "_copy", copy_then_snapshot)
+    monkeypatch.setattr(app.backup, when, then_snapshot)
     target = tmp_path / "copy" / "fuzzyrisk.sqlite3"
     target.parent.mkdir()
     backup(path.parent, target)
-    assert len(copies) == 2
+    assert len(_files(path)) == 2  # the snapshot's and batch 4's: batches 1-3's files are gone
     restored = SqliteStorage(target)
     stored = restored.load_map("m")
     restored.close()
-    assert stored is not None and stored.damage == [] and (stored.snapshot_version, stored.batches) == (3, [])
+    # the copy is of the database as the backup began (its pages copied in the transaction that opened the files)
+    assert stored is not None and stored.damage == [] and stored.snapshot is None
+    assert stored.batches == [(k + 1, _payload(BIG, k)) for k in range(3)]
+
+
+def test_a_backup_of_a_store_missing_a_payload_file_fails_and_leaves_no_copy(store: SqliteStorage, path: Path,
+                                                                           tmp_path: Path,
+                                                                           capsys: pytest.CaptureFixture[str]) -> None:
+    from app.backup import main
+
+    _append(store, _payload(BIG, 1))
+    (payload_directory(path) / _files(path)[0]).unlink()
+    target = tmp_path / "copy.sqlite3"
+    assert main([str(target), "--data-dir", str(path.parent)]) == 1
+    assert "so its maps ['m'] are damaged" in capsys.readouterr().err
+    assert list(tmp_path.glob("copy.sqlite3*")) == []
+
+
+def test_a_second_store_on_the_database_leaves_the_first_ones_files_alone(store: SqliteStorage, path: Path,
+                                                                          monkeypatch: pytest.MonkeyPatch) -> None:
+    writing, release = threading.Event(), threading.Event()
+    written: list[str] = []
+    write = PayloadFiles.write
+
+    def held_after(self: PayloadFiles, payload: bytes) -> str:  # the file is there, its row not yet
+        written.append(write(self, payload))
+        writing.set()
+        assert release.wait(30)
+        return written[-1]
+
+    monkeypatch.setattr(PayloadFiles, "write", held_after)
+    big = threading.Thread(target=_append, args=(store, _payload(BIG, 1)))
+    big.start()
+    try:
+        assert writing.wait(30)
+        second = SqliteStorage(path)  # an overlapping restart, say: it must not sweep that file
+        assert len(written) == 1 and _files(path) == written
+    finally:
+        release.set()
+        big.join()
+    stored = second.load_map("m")
+    second.close()
+    assert stored is not None and stored.damage == [] and stored.batches == [(1, _payload(BIG, 1))]
+
+
+def test_an_unreadable_payload_file_is_damage_of_its_map_not_a_failed_load(store: SqliteStorage, path: Path) -> None:
+    _append(store, _payload(BIG, 1))
+    (file,) = _files(path)
+    (payload_directory(path) / file).unlink()
+    (payload_directory(path) / file).mkdir()  # reading it fails (IsADirectoryError), as an I/O error would
+    stored = store.load_map("m")
+    assert stored is not None and len(stored.damage) == 1 and f"payload file {file} cannot be read" in stored.damage[0]

@@ -39,7 +39,8 @@ from tests.conftest import error_message
 def _rows(data_dir: Path) -> list[tuple[str, int]]:
     """The batch rows that hold a batch (a discarded one stays as an empty tombstone: its version stays taken)."""
     with sqlite3.connect(data_dir / "fuzzyrisk.sqlite3") as db:
-        return db.execute("SELECT map, seq FROM batches WHERE length(payload) > 0 ORDER BY map, seq").fetchall()
+        return db.execute("SELECT map, seq FROM batches WHERE length(payload) > 0 OR file IS NOT NULL "
+                          "ORDER BY map, seq").fetchall()
 
 
 def _bodies(kit: Any, n: int) -> list[dict[str, Any]]:
