@@ -18,11 +18,11 @@ from fuzzyocc import FuzzyMap, GridSpec, LaserScan, SensorModel
 pytestmark = pytest.mark.slow
 
 
-def _bodies(world: Any, count: int) -> list[dict[str, Any]]:
+def _bodies(world: Any, count: int, beams: int = 360) -> list[dict[str, Any]]:
     rng = random.Random(5)
     poses = [(x + rng.uniform(-0.3, 0.3), y + rng.uniform(-0.3, 0.3), th + rng.uniform(-1, 1))
              for x, y, th in (world.POSES * (count // len(world.POSES) + 1))[:count]]
-    return [{"scans": [world.laser_json(pose, beams=360)]} for pose in poses]
+    return [{"scans": [world.laser_json(pose, beams=beams)]} for pose in poses]
 
 
 def _replay(world: Any, bodies: list[dict[str, Any]]) -> bytes:
@@ -39,9 +39,13 @@ def _replay(world: Any, bodies: list[dict[str, Any]]) -> bytes:
     return np.ascontiguousarray(fresh.risk()).tobytes()
 
 
-def test_kill_9_mid_stream_loses_no_acknowledged_batch(start_server: Any, world: Any) -> None:
-    server = start_server(FUZZYRISK_SNAPSHOT_EVERY="4")  # snapshots mid-stream too
-    bodies = _bodies(world, 80)
+# 360 beams: snapshots mid-stream too; 40,000: each batch's payload (320 kB of float64) is a file beside the
+# database, and none is snapshotted over before the kill
+@pytest.mark.parametrize(("beams", "snapshot_every"), [(360, "4"), (40_000, "1000")])
+def test_kill_9_mid_stream_loses_no_acknowledged_batch(start_server: Any, world: Any, beams: int,
+                                                       snapshot_every: str) -> None:
+    server = start_server(FUZZYRISK_SNAPSHOT_EVERY=snapshot_every)
+    bodies = _bodies(world, 80, beams)
     with server.client() as http:
         assert http.post("/maps", json=world.MAP).status_code == 201
     acked: list[int] = []
@@ -68,6 +72,8 @@ def test_kill_9_mid_stream_loses_no_acknowledged_batch(start_server: Any, world:
     assert 10 <= len(acked) < len(bodies), "the kill must land mid-stream"
     assert acked == list(range(1, len(acked) + 1))
 
+    files = list((server.data_dir / "fuzzyrisk.sqlite3-payloads").glob("*.bin"))
+    assert len(files) >= (len(acked) if beams > 360 else 0), (len(files), len(acked))
     server = start_server()
     with server.client() as http:
         version = http.get("/maps/hall").json()["version"]
