@@ -30,8 +30,8 @@ LOG = logging.getLogger("fuzzyrisk.storage")
 STORAGE_UNAVAILABLE_DETAIL = ("the map store cannot take the write (the data directory full or read-only, or the "
                               "database unreachable); nothing was applied")
 #: ... when the database connection was lost while it committed (``CommitUncertain``).
-COMMIT_UNCERTAIN_DETAIL = ("the connection to the database was lost while it committed: the batch may be stored; "
-                           "read the map's version before sending it again")
+COMMIT_UNCERTAIN_DETAIL = ("the database's commit was cut short (its connection lost, or a disk error at the commit): "
+                           "the batch may be stored; read the map's version before sending it again")
 #: Seconds a client should wait before retrying a write refused by storage (an operator must act first).
 STORAGE_RETRY_AFTER_S = 30
 

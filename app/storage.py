@@ -50,7 +50,8 @@ class StorageUnavailable(Exception):
 
 
 class CommitUncertain(StorageUnavailable):
-    """The connection to the database was lost while it committed: the write may be stored, or not.
+    """The connection to the database was lost while it committed (or SQLite's disk failed at the commit): the
+    write may be stored, or not.
 
     Never retried by the service (a retry could store it twice); the client is told to check.
     """
@@ -371,10 +372,13 @@ class SqliteStorage:
     def _with_files(self, staged: list[str], work: Callable[[sqlite3.Connection], tuple[T, list[str]]]) -> T:
         """``_transaction(work)``, where ``work`` also returns the files its rows no longer name.
 
-        Those are removed once the transaction is on disk; the ``staged`` files, when it fails.
+        Those are removed once the transaction is on disk; the ``staged`` files, when it fails (but when
+        it may have committed, they stay for the next open to sweep, or to serve should the rows be there).
         """
         try:
             result, dropped = self._transaction(work)
+        except CommitUncertain:
+            raise
         except BaseException:
             self._files.remove(staged)
             raise
@@ -385,24 +389,31 @@ class SqliteStorage:
         """Run ``work`` in one immediate transaction: all of it is on disk when this returns.
 
         ``StorageUnavailable`` (nothing written) when SQLite cannot write: a full disk, a
-        read-only directory or an I/O error, at any statement or at the COMMIT itself. Any
-        other exception of ``work`` (``MapGone``) rolls back and goes through as it is.
+        read-only directory or an I/O error, at any statement or at the COMMIT itself, except
+        ``CommitUncertain`` for an I/O error at the COMMIT (its log frames may be written, and a
+        recovery after a crash may bring them back). Any other exception of ``work``
+        (``MapGone``) rolls back and goes through as it is.
         """
         with self._lock:
             if self._db.in_transaction:  # left open by a ROLLBACK that failed too
                 self._rollback()
+            committing = False
             try:
                 self._db.execute("BEGIN IMMEDIATE")
                 try:
                     result = work(self._db)
                     # inside the try: a COMMIT that fails (SQLITE_FULL at the WAL append) leaves
                     # the transaction open, and the next BEGIN would fail on it
+                    committing = True
                     self._db.execute("COMMIT")
                 except BaseException:
                     self._rollback()
                     raise
             except sqlite3.OperationalError as exc:
-                raise StorageUnavailable(f"{exc} (SQLite {getattr(exc, 'sqlite_errorname', '?')})") from exc
+                code = getattr(exc, "sqlite_errorname", "?")
+                if committing and code.startswith("SQLITE_IOERR"):
+                    raise CommitUncertain(f"{exc} (SQLite {code}, at the commit)") from exc
+                raise StorageUnavailable(f"{exc} (SQLite {code})") from exc
             return result
 
     def _write(self, statements: list[tuple[str, tuple[Any, ...]]]) -> None:

@@ -17,6 +17,7 @@ from app.payloadfiles import PayloadFiles
 from app.storage import (
     INLINE_BYTES,
     BatchRecord,
+    CommitUncertain,
     MapGone,
     SqliteStorage,
     StorageUnavailable,
@@ -310,3 +311,43 @@ def test_an_unreadable_payload_file_is_damage_of_its_map_not_a_failed_load(store
     (payload_directory(path) / file).mkdir()  # reading it fails (IsADirectoryError), as an I/O error would
     stored = store.load_map("m")
     assert stored is not None and len(stored.damage) == 1 and f"payload file {file} cannot be read" in stored.damage[0]
+
+
+class _DiskFailsAtCommit:
+    """The store's connection, with the disk failing at the next COMMIT as an fsync error does (SQLite's own
+    errors can only be had from a failing device, so the COMMIT's is raised here)."""
+
+    def __init__(self, db: sqlite3.Connection) -> None:
+        self._db = db
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._db, name)
+
+    def execute(self, sql: str, *args: Any) -> Any:
+        if sql == "COMMIT":
+            self._db.execute("ROLLBACK")
+            error = sqlite3.OperationalError("disk I/O error")
+            error.sqlite_errorname = "SQLITE_IOERR_FSYNC"  # type: ignore[attr-defined]
+            raise error
+        return self._db.execute(sql, *args)
+
+
+def test_a_commit_cut_short_by_the_disk_is_uncertain_and_keeps_its_file(path: Path) -> None:
+    # its log frames may be on disk, and a recovery after a crash may bring its row back: the file stays for that
+    # row (or for the next open's sweep), and the service says the batch may be stored rather than "not stored"
+    store = SqliteStorage(path)
+    store.create_map("m", {"name": "m"}, "t0")
+    db = store._db
+    store._db = _DiskFailsAtCommit(db)  # type: ignore[assignment]
+    try:
+        with pytest.raises(CommitUncertain, match="SQLITE_IOERR_FSYNC, at the commit"):
+            _append(store, _payload(BIG, 1))
+    finally:
+        store._db = db
+    assert len(_files(path)) == 1
+    assert _append(store, _payload(BIG, 2)) == 1  # the store goes on (the first took no version here)
+    assert len(_files(path)) == 2
+    store.close()
+    reopened = SqliteStorage(path)  # its row is not there: its file is swept
+    assert len(_files(path)) == 1 and reopened.load_map("m").batches == [(1, _payload(BIG, 2))]  # type: ignore[union-attr]
+    reopened.close()
