@@ -23,7 +23,7 @@ import re
 import uuid
 from collections.abc import Callable, Iterable
 from pathlib import Path
-from typing import BinaryIO
+from typing import BinaryIO, Protocol
 
 #: The size of the pieces made durable one at a time: a small commit waits at most about one piece.
 PIECE_BYTES = 1 << 20
@@ -33,6 +33,11 @@ _NAME = re.compile(r"[0-9a-f]{32}\.bin")
 
 class PayloadUnreadable(Exception):
     """A payload file a row names is missing or cannot be read (the message says which, and why)."""
+
+
+class PayloadSource(Protocol):
+    def read(self, name: str) -> bytes:
+        """The payload of the file ``name``; ``PayloadUnreadable`` when it is missing or cannot be read."""
 
 
 class PayloadFiles:
@@ -113,6 +118,14 @@ class PayloadFiles:
             except OSError as exc:
                 raise PayloadUnreadable(f"payload file {name} cannot be read: {exc}") from exc
 
+    def open_all(self, names: Iterable[str]) -> dict[str, BinaryIO]:
+        """The files ``names`` that can be opened, open (those that cannot are reported when read by name)."""
+        opened = {}
+        for name in names:
+            with contextlib.suppress(PayloadUnreadable):
+                opened[name] = self.open(name)
+        return opened
+
     def remove(self, names: Iterable[str]) -> None:
         """Remove the files ``names`` (whose rows are gone); a file already gone is no error.
 
@@ -152,6 +165,22 @@ class PayloadFiles:
     def _sync_directory(self) -> None:
         # the file's name must be as durable as its bytes before a row names it
         _fsync_path(self.directory)
+
+
+class Prefetched:
+    """Payload files read ahead (outside the store's lock: big files never hold its commits); any other is read
+    from its file when asked for."""
+
+    def __init__(self, files: PayloadFiles, opened: dict[str, BinaryIO]) -> None:
+        self._files = files
+        self._contents: dict[str, bytes] = {}
+        for name, file in opened.items():
+            with file, contextlib.suppress(OSError):  # reported when read by name
+                self._contents[name] = file.read()
+
+    def read(self, name: str) -> bytes:
+        content = self._contents.pop(name, None)
+        return self._files.read(name) if content is None else content
 
 
 def _fsync_path(path: Path) -> None:

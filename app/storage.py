@@ -25,7 +25,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, NamedTuple, Protocol, TypeVar
 
-from app.payloadfiles import PayloadFiles, PayloadUnreadable
+from app.payloadfiles import PayloadFiles, PayloadSource, PayloadUnreadable, Prefetched
 
 T = TypeVar("T")
 
@@ -229,7 +229,7 @@ def head_of(row: Sequence[Any]) -> MapHead:
 
 
 def read_map(query: Callable[[str, tuple[Any, ...]], Iterable[Sequence[Any]]], name: str, after: int | None,
-             up_to: int | None, files: PayloadFiles | None = None) -> StoredMap | None:
+             up_to: int | None, files: PayloadSource | None = None) -> StoredMap | None:
     """``load_map`` (``after`` None) or ``load_since`` on a consistent view of a store: ``query(sql, args)``
     runs one statement of either dialect (``?`` placeholders) and yields its rows. ``files``: where the
     store keeps its big payloads (rows with a ``file`` column), if it does."""
@@ -271,7 +271,7 @@ def read_map(query: Callable[[str, tuple[Any, ...]], Iterable[Sequence[Any]]], n
 
 
 def _payload(stored: StoredMap, what: str, payload: bytes, file: str | None,
-             files: PayloadFiles | None) -> bytes | None:
+             files: PayloadSource | None) -> bytes | None:
     """A row's payload: its own bytes, or its file's; None (and damage) when the file is missing or unreadable."""
     if file is None or files is None:
         return bytes(payload)
@@ -446,12 +446,28 @@ class SqliteStorage:
         return [head_of(row) for row in rows]
 
     def load_map(self, name: str) -> StoredMap | None:
-        with self._lock:  # one connection, so no write comes between the queries
-            return read_map(self._db.execute, name, None, None, self._files)
+        return self._load(name, None, None)
 
     def load_since(self, name: str, after: int, up_to: int | None = None) -> StoredMap | None:
+        return self._load(name, after, up_to)
+
+    def _load(self, name: str, after: int | None, up_to: int | None) -> StoredMap | None:
+        """``read_map`` with the map's payload files read between two holds of the lock, not under it: 256 MiB
+        of log read for an MCAP export held every map's commits for as long.
+
+        The files are opened under the lock (an open file stays readable should a snapshot remove it
+        meanwhile); the rows are then read in one view, and a file named by a row committed in between
+        is read then.
+        """
+        lower = -_NO_LIMIT if after is None else after
         with self._lock:
-            return read_map(self._db.execute, name, after, up_to, self._files)
+            opened = self._files.open_all(file for (file,) in self._db.execute(
+                "SELECT file FROM batches WHERE map = ? AND seq > ? AND file IS NOT NULL UNION ALL "
+                "SELECT file FROM snapshots WHERE map = ? AND version > ? AND file IS NOT NULL",
+                (name, lower, name, lower)))
+        files = Prefetched(self._files, opened)
+        with self._lock:  # one connection, so no write comes between the queries
+            return read_map(self._db.execute, name, after, up_to, files)
 
     def create_map(self, name: str, meta: dict[str, Any], updated: str) -> None:
         try:

@@ -13,7 +13,7 @@ import pytest
 from app.backup import backup
 from app.committer import GroupCommitter
 from app.metrics import Metrics
-from app.payloadfiles import PayloadFiles
+from app.payloadfiles import PayloadFiles, Prefetched
 from app.storage import (
     INLINE_BYTES,
     BatchRecord,
@@ -351,3 +351,34 @@ def test_a_commit_cut_short_by_the_disk_is_uncertain_and_keeps_its_file(path: Pa
     reopened = SqliteStorage(path)  # its row is not there: its file is swept
     assert len(_files(path)) == 1 and reopened.load_map("m").batches == [(1, _payload(BIG, 2))]  # type: ignore[union-attr]
     reopened.close()
+
+
+def test_a_load_reads_its_payload_files_without_holding_the_commits(store: SqliteStorage, path: Path,
+                                                                     monkeypatch: pytest.MonkeyPatch) -> None:
+    # an MCAP export reads up to 256 MiB of a map's log: under the store's lock, every map's commits waited for it
+    store.create_map("other", {"name": "other"}, "t0")
+    for k in range(3):
+        _append(store, _payload(BIG, k))
+    reading, release = threading.Event(), threading.Event()
+    prefetch = Prefetched.__init__
+
+    def held(self: Prefetched, *args: Any) -> None:
+        reading.set()
+        assert release.wait(30)
+        prefetch(self, *args)
+
+    monkeypatch.setattr(Prefetched, "__init__", held)
+    loaded: list[Any] = []
+    load = threading.Thread(target=lambda: loaded.append(store.load_map("m")))
+    load.start()
+    try:
+        assert reading.wait(30)
+        assert _append(store, b"small", "other") == 1  # not behind the read
+        store.write_snapshot("m", 2, _payload(BIG, 10))  # and batches 1-2's files go, opened already
+    finally:
+        release.set()
+        load.join()
+    (stored,) = loaded
+    # the rows as they are once the files are read: the new snapshot (read from its file then) and batch 3
+    assert stored.damage == [] and (stored.snapshot_version, stored.snapshot) == (2, _payload(BIG, 10))
+    assert stored.batches == [(3, _payload(BIG, 2))]
