@@ -118,14 +118,6 @@ class PayloadFiles:
             except OSError as exc:
                 raise PayloadUnreadable(f"payload file {name} cannot be read: {exc}") from exc
 
-    def open_all(self, names: Iterable[str]) -> dict[str, BinaryIO]:
-        """The files ``names`` that can be opened, open (those that cannot are reported when read by name)."""
-        opened = {}
-        for name in names:
-            with contextlib.suppress(PayloadUnreadable):
-                opened[name] = self.open(name)
-        return opened
-
     def remove(self, names: Iterable[str]) -> None:
         """Remove the files ``names`` (whose rows are gone); a file already gone is no error.
 
@@ -169,14 +161,18 @@ class PayloadFiles:
 
 class Prefetched:
     """Payload files read ahead (outside the store's lock: big files never hold its commits); any other is read
-    from its file when asked for."""
+    from its file when asked for.
 
-    def __init__(self, files: PayloadFiles, opened: dict[str, BinaryIO]) -> None:
+    One at a time, by name: a file is removed only after every row naming it is gone, so one missing
+    here belongs to no row any more (or is damage, reported when its row asks for it).
+    """
+
+    def __init__(self, files: PayloadFiles, names: Iterable[str]) -> None:
         self._files = files
         self._contents: dict[str, bytes] = {}
-        for name, file in opened.items():
-            with file, contextlib.suppress(OSError):  # reported when read by name
-                self._contents[name] = file.read()
+        for name in names:
+            with contextlib.suppress(PayloadUnreadable):
+                self._contents[name] = files.read(name)
 
     def read(self, name: str) -> bytes:
         content = self._contents.pop(name, None)

@@ -411,7 +411,8 @@ class SqliteStorage:
                     raise
             except sqlite3.OperationalError as exc:
                 code = getattr(exc, "sqlite_errorname", "?")
-                if committing and code.startswith("SQLITE_IOERR"):
+                # the primary code: a newer SQLite's extended code may have no name in this Python
+                if committing and getattr(exc, "sqlite_errorcode", 0) & 0xFF == sqlite3.SQLITE_IOERR:
                     raise CommitUncertain(f"{exc} (SQLite {code}, at the commit)") from exc
                 raise StorageUnavailable(f"{exc} (SQLite {code})") from exc
             return result
@@ -455,17 +456,17 @@ class SqliteStorage:
         """``read_map`` with the map's payload files read between two holds of the lock, not under it: 256 MiB
         of log read for an MCAP export held every map's commits for as long.
 
-        The files are opened under the lock (an open file stays readable should a snapshot remove it
-        meanwhile); the rows are then read in one view, and a file named by a row committed in between
-        is read then.
+        The files' names are read under the lock, the files after it; the rows are then read in one
+        view (a file named by a row committed in between is read then; one removed in between belongs
+        to no row any more).
         """
         lower = -_NO_LIMIT if after is None else after
         with self._lock:
-            opened = self._files.open_all(file for (file,) in self._db.execute(
-                "SELECT file FROM batches WHERE map = ? AND seq > ? AND file IS NOT NULL UNION ALL "
+            names = [file for (file,) in self._db.execute(
+                "SELECT file FROM batches WHERE map = ? AND seq > ? AND seq <= ? AND file IS NOT NULL UNION ALL "
                 "SELECT file FROM snapshots WHERE map = ? AND version > ? AND file IS NOT NULL",
-                (name, lower, name, lower)))
-        files = Prefetched(self._files, opened)
+                (name, lower, _NO_LIMIT if up_to is None else up_to, name, lower))]
+        files = Prefetched(self._files, names)
         with self._lock:  # one connection, so no write comes between the queries
             return read_map(self._db.execute, name, after, up_to, files)
 

@@ -328,6 +328,7 @@ class _DiskFailsAtCommit:
             self._db.execute("ROLLBACK")
             error = sqlite3.OperationalError("disk I/O error")
             error.sqlite_errorname = "SQLITE_IOERR_FSYNC"  # type: ignore[attr-defined]
+            error.sqlite_errorcode = sqlite3.SQLITE_IOERR_FSYNC  # type: ignore[attr-defined]
             raise error
         return self._db.execute(sql, *args)
 
@@ -374,7 +375,7 @@ def test_a_load_reads_its_payload_files_without_holding_the_commits(store: Sqlit
     try:
         assert reading.wait(30)
         assert _append(store, b"small", "other") == 1  # not behind the read
-        store.write_snapshot("m", 2, _payload(BIG, 10))  # and batches 1-2's files go, opened already
+        store.write_snapshot("m", 2, _payload(BIG, 10))  # and batches 1-2's files go before they are read
     finally:
         release.set()
         load.join()
