@@ -492,27 +492,23 @@ class SqliteStorage:
     def append_batches(self, records: Sequence[BatchRecord]) -> list[int]:
         if not records:
             return []
-        staged: list[str] = []
+        files: list[str | None] = []  # each record's file, None for one that goes in its row
         try:
             for r in records:
-                file = self._stage(r.payload)
-                if file is not None:
-                    staged.append(file)
+                files.append(self._stage(r.payload))
         except BaseException:
-            self._files.remove(staged)
+            self._files.remove(f for f in files if f is not None)
             raise
-        files = iter(staged)
         crcs = [checksum(r.payload) for r in records]  # before the lock: 3 ms for 8 MB
 
         def append(db: sqlite3.Connection) -> tuple[list[int], list[str]]:
             versions = []
-            for r, crc in zip(records, crcs, strict=True):
+            for r, crc, file in zip(records, crcs, files, strict=True):
                 taken = db.execute(f"UPDATE maps SET version = {_SQLITE_NEWEST} + 1, updated = ?, scans = scans + ? "
                                    "WHERE name = ? AND incarnation IS ? RETURNING version",
                                    (r.updated, r.scans, r.name, r.incarnation)).fetchall()
                 if not taken:
                     raise MapGone(r.name)
-                file = next(files) if len(r.payload) > INLINE_BYTES else None
                 db.execute("INSERT INTO batches (map, seq, payload, crc, scans, updated, file) "
                            "VALUES (?, ?, ?, ?, ?, ?, ?)",
                            (r.name, taken[0][0], r.payload if file is None else b"", crc, r.scans, r.updated, file))
@@ -520,7 +516,7 @@ class SqliteStorage:
             return versions, []
 
         # one transaction, so one fsync of the WAL however many batches (group commit)
-        return self._with_files(staged, append)
+        return self._with_files([f for f in files if f is not None], append)
 
     def discard_batch(self, name: str, version: int, incarnation: str | None = None) -> None:
         def discard(db: sqlite3.Connection) -> tuple[None, list[str]]:
