@@ -72,8 +72,7 @@ class GroupCommitter:
         try:
             self._commit_alone(item)
         finally:
-            if not item.future.done():  # as in _flush: its map's commit turn must come back
-                item.future.set_exception(RuntimeError("the batch's commit ended without an answer"))
+            _answer_the_rest([item])
 
     def _flush(self) -> None:
         with self._lock:
@@ -97,10 +96,7 @@ class GroupCommitter:
                 return
             self._resolve(group, versions)
         finally:
-            # whatever went wrong above, no writer may wait forever (it holds its map's commit turn)
-            for item in group:
-                if not item.future.done():
-                    item.future.set_exception(RuntimeError("the batch's commit ended without an answer"))
+            _answer_the_rest(group)
 
     def _commit_alone(self, item: _Pending) -> None:
         try:
@@ -124,3 +120,11 @@ class GroupCommitter:
             self._closed = True
         self._big_writer.shutdown(wait=True)
         self._writer.shutdown(wait=True)
+
+
+def _answer_the_rest(items: list[_Pending]) -> None:
+    """Fail the batches left without an answer: whatever went wrong, no writer may wait forever (it holds its
+    map's commit turn)."""
+    for item in items:
+        if not item.future.done():
+            item.future.set_exception(RuntimeError("the batch's commit ended without an answer"))
