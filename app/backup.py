@@ -11,6 +11,8 @@ get that file's bytes in the copy, so the copy is a self-contained database: poi
 from __future__ import annotations
 
 import argparse
+import errno
+import resource
 import sqlite3
 import sys
 from pathlib import Path
@@ -97,14 +99,31 @@ def _open_named(source: sqlite3.Connection, files: PayloadFiles, opened: dict[st
     for table, key in _TABLES:
         if "file" not in {row[1] for row in source.execute(f"PRAGMA table_info({table})")}:
             continue  # a database from before payload files
-        rows = source.execute(f"SELECT map, {key}, file FROM {table} WHERE file IS NOT NULL").fetchall()
-        named[(table, key)] = rows
+        named[(table, key)] = source.execute(f"SELECT map, {key}, file FROM {table} WHERE file IS NOT NULL").fetchall()
+    _allow_open_files(sum(len(rows) for rows in named.values()))
+    for rows in named.values():
         for name, _, file in rows:
             try:
                 opened[file] = files.open(file)
             except PayloadUnreadable as exc:
                 missing[name] = str(exc)
     return named, missing
+
+
+def _allow_open_files(count: int) -> None:
+    """Raise this process's limit of open files to hold ``count`` more (up to the hard limit), or say why not.
+
+    Every payload file stays open until its bytes are in the copy: a store may hold many thousands
+    (up to ``FUZZYRISK_SNAPSHOT_LOG_BYTES`` / 256 KiB a map), beyond a shell's usual 1,024.
+    """
+    soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+    needed = count + 64  # the databases, the standard streams and some room
+    if needed <= soft:
+        return
+    if hard != resource.RLIM_INFINITY and needed > hard:
+        raise OSError(errno.EMFILE, f"the store has {count} payload files, which the backup holds open at once, "
+                      f"beyond this process's hard limit of {hard} open files: raise it (ulimit -Hn) and run again")
+    resource.setrlimit(resource.RLIMIT_NOFILE, (needed, hard))
 
 
 def _copy_pages(source: sqlite3.Connection, target: sqlite3.Connection) -> None:

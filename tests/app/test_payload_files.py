@@ -383,3 +383,24 @@ def test_a_load_reads_its_payload_files_without_holding_the_commits(store: Sqlit
     # the rows as they are once the files are read: the new snapshot (read from its file then) and batch 3
     assert stored.damage == [] and (stored.snapshot_version, stored.snapshot) == (2, _payload(BIG, 10))
     assert stored.batches == [(3, _payload(BIG, 2))]
+
+
+def test_a_backup_raises_its_open_file_limit_to_hold_every_payload_file(store: SqliteStorage, path: Path,
+                                                                        tmp_path: Path) -> None:
+    # every file stays open until its bytes are in the copy: a store's thousands of files met a soft limit of 1,024
+    import resource
+
+    for k in range(40):
+        _append(store, _payload(BIG, k))
+    saved = resource.getrlimit(resource.RLIMIT_NOFILE)
+    resource.setrlimit(resource.RLIMIT_NOFILE, (64, saved[1]))  # fewer than the files and the databases need
+    try:
+        target = tmp_path / "copy.sqlite3"
+        backup(path.parent, target)
+        assert resource.getrlimit(resource.RLIMIT_NOFILE)[0] >= 40 + 64
+    finally:
+        resource.setrlimit(resource.RLIMIT_NOFILE, saved)
+    restored = SqliteStorage(target)
+    stored = restored.load_map("m")
+    restored.close()
+    assert stored is not None and stored.damage == [] and len(stored.batches) == 40
