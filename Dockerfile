@@ -61,7 +61,7 @@ RUN /opt/fuzzyrisk/bin/pip install --no-deps --constraint constraints.txt . \
     # a trim that went too far (a new version of a dependency that needs what step 1 removes) fails the build;
     # planning.query compiles kernels as it is imported: their cache goes to /tmp, which the image does not copy
     && NUMBA_CACHE_DIR=/tmp/numba-cache /opt/fuzzyrisk/bin/python -I -c \
-           "import app.main, app.planworker, app.import_bag, planning.query"
+           "import app.api.factory, app.plans.worker, app.cli.import_bag, planning.query"
 
 # ---------------------------------------------------------------- the image: Python, the environment, tini
 FROM ${PYTHON_IMAGE}

@@ -16,8 +16,8 @@ from pathlib import Path
 from pydantic import ValidationError
 
 from app.config import Settings
-from app.lifecycle import GIL_SWITCH_INTERVAL_S, StartupError, bind, foxglove_sdk_missing, prepare_directories
-from app.logs import configure_logging
+from app.ops.process_setup import GIL_SWITCH_INTERVAL_S, StartupError, bind, foxglove_sdk_missing, prepare_directories
+from app.ops.logs import configure_logging
 
 #: Exit status when the service cannot start (a bad setting, a port in use, an unusable data directory).
 EXIT_STARTUP_FAILURE = 1
@@ -61,8 +61,8 @@ def main(argv: list[str] | None = None) -> None:
     # numba, OMPL, the web stack: imported only now that NUMBA_CACHE_DIR is set
     import uvicorn
 
-    from app import httpserver
-    from app.main import create_app
+    from app.api import httpserver
+    from app.api.factory import create_app
 
     server = uvicorn.Server(uvicorn.Config(
         create_app(settings),

@@ -1,4 +1,4 @@
-"""Domain errors of the service, the one error body every answer uses, and the handlers that write it.
+"""Domain errors of the service and the one error body every answer uses (``app.api.errors`` installs the handlers).
 
 Services raise these; routes stay free of status codes. Every error answer, whoever writes it
 (a service, request validation, the middleware, an unknown route, an unexpected exception), is
@@ -11,21 +11,14 @@ of validation errors) and is ``null`` otherwise.
 from __future__ import annotations
 
 import http
-import logging
 import math
 from typing import Any
 
-from fastapi import FastAPI, Request
 from fastapi.encoders import jsonable_encoder
 from fastapi.exceptions import RequestValidationError
-from fastapi.responses import JSONResponse, Response
 from pydantic import BaseModel, Field
 from starlette.exceptions import HTTPException as StarletteHTTPException
-from starlette.requests import ClientDisconnect
 
-from app.storage import CommitUncertain, StorageUnavailable
-
-LOG = logging.getLogger("fuzzyrisk.storage")
 #: What a client is told when the data directory cannot take a write.
 STORAGE_UNAVAILABLE_DETAIL = ("the map store cannot take the write (the data directory full or read-only, or the "
                               "database unreachable); nothing was applied")
@@ -154,6 +147,19 @@ class Unavailable(ServiceError):
     status = 503
 
 
+class StorageUnavailable(Exception):
+    """A write could not be made durable (disk full, read-only or failing data directory, database unreachable);
+    nothing was stored."""
+
+
+class CommitUncertain(StorageUnavailable):
+    """The connection to the database was lost while it committed (or SQLite's disk failed at the commit): the
+    write may be stored, or not.
+
+    Never retried by the service (a retry could store it twice); the client is told to check.
+    """
+
+
 def _json_safe(value: Any) -> Any:
     """NaN and infinities as strings: the refused input is often exactly such a number."""
     if isinstance(value, float) and not math.isfinite(value):
@@ -165,7 +171,7 @@ def _json_safe(value: Any) -> Any:
     return value
 
 
-def _validation_errors(exc: RequestValidationError) -> list[dict[str, Any]]:
+def validation_errors(exc: RequestValidationError) -> list[dict[str, Any]]:
     errors = []
     for error in exc.errors():
         error = dict(error)
@@ -177,7 +183,7 @@ def _validation_errors(exc: RequestValidationError) -> list[dict[str, Any]]:
     return _json_safe(jsonable_encoder(errors))  # type: ignore[no-any-return]
 
 
-def _validation_message(errors: list[dict[str, Any]]) -> str:
+def validation_message(errors: list[dict[str, Any]]) -> str:
     """The first problems in one line: ``body.scans.0.ranges: Input should be ... (and 3 more)``."""
     parts = [f"{'.'.join(str(p) for p in e.get('loc', ()))}: {e.get('msg', '')}" for e in errors[:3]]
     more = f" (and {len(errors) - 3} more)" if len(errors) > 3 else ""
@@ -197,44 +203,3 @@ def error_body_of(exc: BaseException) -> dict[str, Any]:
         return error_body(status_code_name(exc.status_code), str(exc.detail))
     return error_body(status_code_name(500), f"internal error ({type(exc).__name__}); nothing more is told here: "
                       "the service's log has the traceback")
-
-
-def install_error_handlers(app: FastAPI) -> None:
-    """Answer every error with an ``ErrorBody``: services' errors, validation (no bodies echoed),
-    Starlette's (unknown route, wrong method), storage refusals (503 + ``Retry-After``) and any
-    unexpected exception (500; the server logs its traceback)."""
-
-    async def handle(_request: Request, exc: Exception) -> JSONResponse:
-        assert isinstance(exc, ServiceError)
-        return JSONResponse(error_body_of(exc), status_code=exc.status, headers=exc.headers)
-
-    async def handle_validation(_request: Request, exc: Exception) -> JSONResponse:
-        assert isinstance(exc, RequestValidationError)
-        errors = _validation_errors(exc)
-        return JSONResponse(error_body(VALIDATION_ERROR, _validation_message(errors), errors), status_code=422)
-
-    async def handle_http(_request: Request, exc: Exception) -> JSONResponse:
-        assert isinstance(exc, StarletteHTTPException)
-        return JSONResponse(error_body_of(exc), status_code=exc.status_code, headers=exc.headers)
-
-    async def handle_storage(request: Request, exc: Exception) -> JSONResponse:
-        # the services raise before touching a map in memory, so "nothing was applied" holds
-        LOG.error("write refused by storage: %s %s: %s", request.method, request.url.path, exc)
-        return JSONResponse(error_body_of(exc), status_code=503, headers={"Retry-After": str(STORAGE_RETRY_AFTER_S)})
-
-    async def handle_disconnect(request: Request, _exc: Exception) -> Response:
-        # the client went away while its body arrived: nobody to answer, and nothing went wrong here (it was
-        # logged as "Exception in ASGI application" once per such client, issue 11); 499 as nginx says it
-        LOG.info("client disconnected before its body was in: %s %s", request.method, request.url.path)
-        return Response(status_code=CLIENT_CLOSED_REQUEST)
-
-    async def handle_unexpected(_request: Request, exc: Exception) -> JSONResponse:
-        # Starlette re-raises the exception after this answer: the server logs its traceback once
-        return JSONResponse(error_body_of(exc), status_code=500)
-
-    app.add_exception_handler(ServiceError, handle)
-    app.add_exception_handler(StorageUnavailable, handle_storage)
-    app.add_exception_handler(RequestValidationError, handle_validation)
-    app.add_exception_handler(StarletteHTTPException, handle_http)
-    app.add_exception_handler(ClientDisconnect, handle_disconnect)
-    app.add_exception_handler(Exception, handle_unexpected)

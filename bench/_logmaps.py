@@ -45,7 +45,7 @@ def log_name(path: Path) -> str:
 
 
 def grid_for(scans: list[LaserScan], resolution: float = RESOLUTION, margin: float = MARGIN_M) -> GridSpec:
-    """The box of every pose and hit end point, padded by ``margin`` (what ``app.import_log`` maps)."""
+    """The box of every pose and hit end point, padded by ``margin`` (what ``app.cli.import_log`` maps)."""
     return grid_for_scans(scans, resolution, margin)
 
 

@@ -1,7 +1,7 @@
 """Planning on maps of real buildings (issue 13): the instrument of ``bench_planning``'s real-map section.
 
 A map per shared CARMEN log (``bench/_logmaps.py``): every scan of the log fused in log order, in
-batches of 32 (what ``app.import_log`` posts), into ``FuzzyMap(spec)`` (the default preset and
+batches of 32 (what ``app.cli.import_log`` posts), into ``FuzzyMap(spec)`` (the default preset and
 sensor model, as the service builds a new map), 0.05 m cells. Queries: ``_plan_audit.pick_pairs``,
 pairs of laser poses the robot drove, at least 30 % of the map's diagonal apart, both valid starts
 (robot radius 0.2 m, ``max_risk`` 0.45: ``plan``'s defaults).

@@ -667,7 +667,7 @@ def _attack_from_afar() -> None:
     taken from the server and the innocent client, which a remote attacker's is not. Niced, they
     take the CPU the server leaves: the pressure on the server is what the server lets through.
     """
-    from app.lifecycle import lower_priority
+    from app.ops.process_setup import lower_priority
 
     lower_priority(ATTACKER_NICE)
 

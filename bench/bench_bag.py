@@ -23,11 +23,11 @@ import numpy as np
 from fastapi.testclient import TestClient
 from rosbags.rosbag2 import StoragePlugin, Writer
 
-from app import import_bag
+from app.ros import bags
 from app.config import Settings
-from app.main import create_app
-from app.mediatypes import MCAP
-from app.rostypes import typestore
+from app.api.factory import create_app
+from app.formats.mediatypes import MCAP
+from app.ros.msgtypes import typestore
 from fuzzyocc import FuzzyMap
 
 ROOM_HALF_M = 10.0
@@ -106,14 +106,14 @@ def main() -> None:
         bag = write_bag(Path(tmp) / "drive", args.scans, args.beams)
         print(f"bag: {bag.stat().st_size / 2**20:.1f} MiB, {args.scans} LaserScans of {args.beams} beams, "
               f"TF at 50 Hz", flush=True)
-        options = import_bag.BagOptions()
+        options = bags.BagOptions()
         read_s, fuse_s = [], []
         for _ in range(args.runs):
             started = time.perf_counter()
-            read = import_bag.read_bag(bag, options, dims=2, limits=import_bag.DEFAULT_LIMITS)
+            read = bags.read_bag(bag, options, dims=2, limits=bags.DEFAULT_LIMITS)
             read_s.append(time.perf_counter() - started)
             scans = [s.scan for s in read.scans]
-            spec = import_bag.grid_for(scans, 2, 0.05, 1.0, 16_000_000)
+            spec = bags.grid_for(scans, 2, 0.05, 1.0, 16_000_000)
             FuzzyMap(spec).integrate_batch(scans[:2])  # numba's compilation, once, outside the clock
             occupancy = FuzzyMap(spec)
             started = time.perf_counter()

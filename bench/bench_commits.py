@@ -23,10 +23,10 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
-import app.committer
+import app.storage.committer
 import app.storage
-from app.committer import GroupCommitter
-from app.metrics import Metrics
+from app.storage.committer import GroupCommitter
+from app.ops.metrics import Metrics
 from app.storage import BatchRecord, SqliteStorage
 
 SMALL, BIG, BIG_EVERY_S, SMALL_EVERY_S = 2_000, 8_000_000, 0.5, 0.05
@@ -35,11 +35,11 @@ SMALL, BIG, BIG_EVERY_S, SMALL_EVERY_S = 2_000, 8_000_000, 0.5, 0.05
 @contextmanager
 def _inline_limit(limit: int) -> Iterator[None]:
     saved = app.storage.INLINE_BYTES
-    app.storage.INLINE_BYTES = app.committer.INLINE_BYTES = limit
+    app.storage.INLINE_BYTES = app.storage.committer.INLINE_BYTES = limit
     try:
         yield
     finally:
-        app.storage.INLINE_BYTES = app.committer.INLINE_BYTES = saved
+        app.storage.INLINE_BYTES = app.storage.committer.INLINE_BYTES = saved
 
 
 def _window(directory: Path, seconds: float, big: bool) -> list[float]:

@@ -26,7 +26,7 @@ import numpy as np
 from fastapi.testclient import TestClient
 
 from app.config import Settings
-from app.main import create_app
+from app.api.factory import create_app
 
 SIDE_CELLS = 2000
 RESOLUTION_M = 0.05

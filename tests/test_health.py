@@ -1,7 +1,7 @@
 from fastapi.testclient import TestClient
 
 from app.config import Settings
-from app.main import create_app
+from app.api.factory import create_app
 
 
 def test_health_answers_ok() -> None:

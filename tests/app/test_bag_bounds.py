@@ -1,5 +1,5 @@
 """An uploaded bag is bounded by what its chunks decompress to, read from its headers before any chunk is
-(``app/bagsize.py``): a small compressed body cannot make the service decompress gigabytes."""
+(``app/ros/bagsize.py``): a small compressed body cannot make the service decompress gigabytes."""
 
 from __future__ import annotations
 
@@ -16,7 +16,7 @@ from mcap.writer import Writer as McapWriter
 from rosbags.rosbag1 import Writer as Writer1
 from rosbags.typesys import Stores, get_typestore
 
-from app import bagsize
+from app.ros import bagsize
 from tests.app._ros import laser_msg
 from tests.conftest import error_message
 

@@ -27,9 +27,9 @@ from rosbags.typesys import Stores, get_typestore
 
 from app.config import Settings
 from app.errors import Invalid
-from app.lifecycle import bind
-from app.main import create_app
-from app.rosmsgs import SensorPose, level_heading
+from app.ops.process_setup import bind
+from app.api.factory import create_app
+from app.ros.messages_in import SensorPose, level_heading
 from fuzzyrisk_bridge import __main__ as bridge_main
 from fuzzyrisk_bridge.core import Bridge, BridgeConfig, NotLevel, scan_to_json
 
@@ -264,7 +264,7 @@ def orientations() -> list[tuple[str, tuple[float, float, float, float]]]:
 
 
 def test_the_bridge_places_a_scan_as_the_service_places_a_cdr_body() -> None:
-    """The bridge's copy of the level rule (``core.level_heading``) against the service's (``app.rosmsgs``)."""
+    """The bridge's copy of the level rule (``core.level_heading``) against the service's (``app.ros.messages_in``)."""
     refused = accepted = 0
     for label, q in orientations():
         try:

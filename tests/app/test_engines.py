@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
-from app import batches
+from app.scans import batches
 from app.storage import BatchRecord, SqliteStorage
 from fuzzyocc import FuzzyEngine, FuzzyMap, GridSpec, LaserScan, SensorModel, presets
 from fuzzyocc.engine import even_output_mfs

@@ -12,8 +12,9 @@ import pytest
 from fastapi import FastAPI, Request
 from fastapi.testclient import TestClient
 
-from app.errors import CLIENT_CLOSED_REQUEST, install_error_handlers
-from app.main import create_app
+from app.api.errors import install_error_handlers
+from app.errors import CLIENT_CLOSED_REQUEST
+from app.api.factory import create_app
 
 KEY = "key-for-the-error-tests-0123456789"
 ERROR_REF = "#/components/schemas/ErrorBody"

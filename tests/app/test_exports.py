@@ -14,9 +14,9 @@ import yaml
 from fastapi.testclient import TestClient
 from PIL import Image
 
-from app import exports
-from app.exports import NAV2_FREE_THRESH as FREE
-from app.exports import UNKNOWN_RGB
+from app.formats import exports
+from app.formats.exports import NAV2_FREE_THRESH as FREE
+from app.formats.exports import UNKNOWN_RGB
 from tests.conftest import error_message
 
 
@@ -493,7 +493,7 @@ def test_the_occupancy_values_are_written_as_json_by_numpy() -> None:
     import numpy as np
     import pytest
 
-    from app.exports import int8_json_array
+    from app.formats.exports import int8_json_array
 
     values = np.arange(-1, 101, dtype=np.int8).repeat(3)
     assert json.loads(int8_json_array(values)) == values.tolist()

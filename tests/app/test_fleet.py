@@ -20,10 +20,10 @@ import psycopg
 import pytest
 from fastapi.testclient import TestClient
 
-from app import bagsize
-from app.main import create_app
-from app.mapstate import restore
-from app.storage_pg import PostgresStorage
+from app.ros import bagsize
+from app.api.factory import create_app
+from app.maps.state import restore
+from app.storage.postgres import PostgresStorage
 from tests.app.test_import_bag import laser_scenario, upload, write_bag
 from tests.conftest import error_message
 

@@ -13,10 +13,10 @@ import pytest
 
 pytest.importorskip("foxglove", reason="the foxglove extra (foxglove-sdk) is not installed")
 
-from app import foxglove_live as live
+from app.reads import foxglove as live
 from app.config import Settings
-from app.lifecycle import StartupError, foxglove_sdk_missing
-from app.mapstate import GridSnapshot
+from app.ops.process_setup import StartupError, foxglove_sdk_missing
+from app.maps.state import GridSnapshot
 from fuzzyocc.config import GridSpec
 
 

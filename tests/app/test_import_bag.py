@@ -32,14 +32,15 @@ from rosbags.rosbag2 import Writer as Writer2
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from scipy.spatial.transform import Rotation, Slerp
 
-from app import bagsize, import_bag
+from app.ros import bagsize
+from app.ros import bags
 from app.config import Settings
 from app.errors import Unavailable
-from app.import_bag import main
-from app.main import create_app
+from app.cli.import_bag import main
+from app.api.factory import create_app
 from app.schemas import MapCreate
-from app.services import MapService
-from app.writepath import WritePath
+from app.service.mapservice import MapService
+from app.maps.writepath import WritePath
 from app.storage import SqliteStorage, StorageUnavailable
 from tests.app._ros import cloud_msg, grids, laser_msg, wall_ranges
 from tests.conftest import error_message
@@ -214,7 +215,7 @@ def placed_poses(scenario: Scenario, bag: Path, dims: int, **options: Any) -> li
     map is that sensitive (one ulp of pose moved 7 of 10,000 cells by less than 0.001 of risk in
     this scenario). So the expected map is posted with the importer's poses, once they are shown right.
     """
-    read = import_bag.read_bag(bag, import_bag.BagOptions(**options), dims=dims, limits=import_bag.DEFAULT_LIMITS)
+    read = bags.read_bag(bag, bags.BagOptions(**options), dims=dims, limits=bags.DEFAULT_LIMITS)
     placeable = [stamp for _, _, stamp, _ in scenario.scans if T0 <= stamp <= T0 + 10 * 10**9]
     assert [s.stamp_ns for s in read.scans] == placeable
     poses = []
@@ -527,7 +528,7 @@ def test_an_upload_is_fused_batch_by_batch_as_it_is_read(
     bag = write_bag(laser_scenario(), tmp_path / "drive", "mcap-jazzy")
     assert client.post("/maps", json={**MAP_2D, "name": "bag"}).status_code == 201
     events: list[str] = []
-    place, add = import_bag._place, WritePath.add_parsed_scans
+    place, add = bags._place, WritePath.add_parsed_scans
 
     def placing(*args: Any, **kwargs: Any) -> Any:
         events.append("read")
@@ -537,7 +538,7 @@ def test_an_upload_is_fused_batch_by_batch_as_it_is_read(
         events.append("fuse")
         return await add(self, *args, **kwargs)
 
-    monkeypatch.setattr(import_bag, "_place", placing)
+    monkeypatch.setattr(bags, "_place", placing)
     monkeypatch.setattr(WritePath, "add_parsed_scans", fusing)
     assert upload(client, "bag", bag).json()["batches"] == 5
     assert events.index("fuse") < len(events) - 1 - events[::-1].index("read")

@@ -20,7 +20,7 @@ import pytest
 import yaml
 from PIL import Image
 
-from app.import_log import main
+from app.cli.import_log import main
 from fuzzyocc import FuzzyMap
 from fuzzyocc.carmen import grid_for_scans, read_carmen
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import asyncio
 import os
 
-from app.largebody import CHUNK_BYTES, ChunkedBytesResponse, bytes_response
+from app.api.largebody import CHUNK_BYTES, ChunkedBytesResponse, bytes_response
 
 
 def _sent(response: object) -> list[dict]:

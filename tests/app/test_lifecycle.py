@@ -20,9 +20,9 @@ import psutil
 import pytest
 from fastapi.testclient import TestClient
 
-from app import lifecycle
+from app.ops import process_setup as lifecycle
 from app.config import Settings
-from app.lifecycle import StartupError, prepare_directories
+from app.ops.process_setup import StartupError, prepare_directories
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -73,7 +73,7 @@ def test_a_bad_setting_stops_the_start_with_exit_1_naming_it(tmp_path: Path) -> 
 
 def test_the_web_process_imports_no_planner_kernel() -> None:
     """Plans run in the workers: the server must not compile their kernels (seconds on a cold cache)."""
-    code = "import sys, app.main; print(sorted(m for m in sys.modules if m.startswith('planning')))"
+    code = "import sys, app.api.factory; print(sorted(m for m in sys.modules if m.startswith('planning')))"
     loaded = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, check=True).stdout
     assert "planning._kernels" not in loaded and "planning.query" not in loaded, loaded
 
@@ -145,7 +145,7 @@ def test_once_ready_a_full_garbage_collection_skips_what_lives_as_long_as_the_pr
 ) -> None:
     # issue 11: a full collection walked every module, kernel and map of the process (about 100 ms on 175,000
     # objects, holding the GIL): every client's requests waited, at the collector's rhythm
-    from app.main import create_app
+    from app.api.factory import create_app
 
     with TestClient(create_app(make_settings())) as client:
         _wait_ready(client)
@@ -170,7 +170,7 @@ def test_die_with_parent_ends_a_child_when_its_parent_is_killed(tmp_path: Path) 
     if not sys.platform.startswith("linux"):
         pytest.skip("PR_SET_PDEATHSIG is Linux's")
     armed = tmp_path / "armed"
-    child = ("import pathlib, time; from app.lifecycle import die_with_parent; assert die_with_parent(); "
+    child = ("import pathlib, time; from app.ops.process_setup import die_with_parent; assert die_with_parent(); "
              f"pathlib.Path({str(armed)!r}).write_text('1'); time.sleep(120)")
     parent = subprocess.Popen([sys.executable, "-c", (
         "import subprocess, sys, time; "
@@ -189,9 +189,9 @@ def test_die_with_parent_ends_a_child_when_its_parent_is_killed(tmp_path: Path) 
 
 
 def test_the_forkserver_preload_does_nothing_outside_a_forkserver() -> None:
-    import app.forkserver_preload
+    import app.ops.forkserver_preload
 
-    assert app.forkserver_preload.ACTIVE is False  # this process must not die with pytest's parent
+    assert app.ops.forkserver_preload.ACTIVE is False  # this process must not die with pytest's parent
 
 
 # ---------------------------------------------------------------- the lock

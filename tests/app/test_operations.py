@@ -14,8 +14,8 @@ from fastapi.testclient import TestClient
 
 from app.__main__ import main as cli_main
 from app.config import Settings
-from app.logs import JsonFormatter, KeyValueFormatter
-from app.main import create_app
+from app.ops.logs import JsonFormatter, KeyValueFormatter
+from app.api.factory import create_app
 
 
 def test_settings_come_from_fuzzyrisk_variables(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:

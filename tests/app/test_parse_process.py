@@ -13,7 +13,7 @@ import numpy as np
 import psutil
 from fastapi.testclient import TestClient
 
-from app.parseproc import PROCESS_PARSE_BYTES
+from app.maps.ingest_process import PROCESS_PARSE_BYTES
 from tests.conftest import error_message
 
 

@@ -10,10 +10,10 @@ from typing import Any
 
 import pytest
 
-from app.backup import backup
-from app.committer import GroupCommitter
-from app.metrics import Metrics
-from app.payloadfiles import PayloadFiles, Prefetched
+from app.cli.backup import backup
+from app.storage.committer import GroupCommitter
+from app.ops.metrics import Metrics
+from app.storage.payloadfiles import PayloadFiles, Prefetched
 from app.storage import (
     INLINE_BYTES,
     BatchRecord,
@@ -239,11 +239,11 @@ def test_a_backup_taken_while_big_batches_commit_and_snapshots_drop_them_is_comp
 def test_a_backup_keeps_the_files_a_snapshot_removes_while_it_copies(store: SqliteStorage, path: Path,
                                                                      tmp_path: Path, when: str,
                                                                      monkeypatch: pytest.MonkeyPatch) -> None:
-    import app.backup
+    import app.cli.backup
 
     for k in range(3):
         _append(store, _payload(BIG, k))
-    real = getattr(app.backup, when)
+    real = getattr(app.cli.backup, when)
 
     def then_snapshot(*args: Any) -> Any:  # the service snapshots over batches 1-3: their files go
         result = real(*args)
@@ -251,7 +251,7 @@ def test_a_backup_keeps_the_files_a_snapshot_removes_while_it_copies(store: Sqli
         _append(store, _payload(BIG, 4))
         return result
 
-    monkeypatch.setattr(app.backup, when, then_snapshot)
+    monkeypatch.setattr(app.cli.backup, when, then_snapshot)
     target = tmp_path / "copy" / "fuzzyrisk.sqlite3"
     target.parent.mkdir()
     backup(path.parent, target)
@@ -267,7 +267,7 @@ def test_a_backup_keeps_the_files_a_snapshot_removes_while_it_copies(store: Sqli
 def test_a_backup_of_a_store_missing_a_payload_file_fails_and_leaves_no_copy(store: SqliteStorage, path: Path,
                                                                            tmp_path: Path,
                                                                            capsys: pytest.CaptureFixture[str]) -> None:
-    from app.backup import main
+    from app.cli.backup import main
 
     _append(store, _payload(BIG, 1))
     (payload_directory(path) / _files(path)[0]).unlink()

@@ -1,4 +1,4 @@
-"""Map grids shared with the planner workers (``app.plangrids``): a plan runs on the version it reports,
+"""Map grids shared with the planner workers (``app.maps.shared_grids``): a plan runs on the version it reports,
 the files go with their version, their map and the service, stay within FUZZYRISK_PLAN_CACHE_BYTES, and a
 replaced worker plans on them again."""
 
@@ -159,8 +159,9 @@ def test_a_worker_keeps_a_grids_field_and_its_dilations_for_the_next_plans(tmp_p
 
     import numpy as np
 
-    from app.plangrids import PlanGrids
-    from app.planworker import PlanPool, run_shared_plan, worker_fields
+    from app.maps.shared_grids import PlanGrids
+    from app.plans.pool import PlanPool
+    from app.plans.worker import run_shared_plan, worker_fields
 
     risk = np.full((60, 40), 0.1, np.float32)
     risk[30, :30] = 1.0
@@ -208,7 +209,7 @@ def test_first_plans_of_a_version_share_one_write_and_a_cancelled_one_leaves_no_
 
     import numpy as np
 
-    from app.plangrids import PlanGrids
+    from app.maps.shared_grids import PlanGrids
 
     risk, observed = np.zeros((50, 50), np.float32), np.ones((50, 50), bool)
     gate, writes = threading.Event(), []

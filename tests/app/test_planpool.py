@@ -13,8 +13,8 @@ import numpy as np
 import pytest
 
 from app.errors import Unavailable
-from app import planworker
-from app.planworker import PlanPool
+from app.plans import pool as planworker
+from app.plans.pool import PlanPool
 
 
 def test_a_stuck_worker_is_ended_and_replaced() -> None:
@@ -269,7 +269,7 @@ def test_a_refusal_names_the_per_map_setting(short_room_wait: float) -> None:
 def test_workers_use_the_compiled_planner_callbacks_unless_configured_not_to(native: bool) -> None:
     from planning import native as compiled
 
-    from app.planworker import run_plan
+    from app.plans.worker import run_plan
 
     risk = np.zeros((40, 40), np.float32)
     params = {"start": [0.3, 0.3], "goal": [1.7, 1.7], "planner": "RRTstar", "time_limit": 0.2, "seed": 1}

@@ -11,7 +11,7 @@ import pytest
 from fastapi.testclient import TestClient
 
 from app.config import Settings
-from app.main import create_app
+from app.api.factory import create_app
 from planning.planners import UNSUPPORTED
 
 

@@ -8,7 +8,7 @@ import time
 import pytest
 
 from app.errors import Unavailable
-from app.readlane import ReadLane
+from app.reads.lane import ReadLane
 
 
 def test_the_next_big_read_starts_after_a_rest_in_proportion_to_the_last() -> None:
@@ -89,7 +89,7 @@ def test_a_share_outside_zero_to_one_is_refused(share: float) -> None:
 def test_a_turn_handed_over_lasts_until_its_body_is_sent(monkeypatch: pytest.MonkeyPatch) -> None:
     # the body of a big read (16 MB of OccupancyGrid) is part of its work: with renders four times faster and the
     # turn ending at the render, the lane let four times as many bodies out (bench abuse row 10)
-    from app import readlane
+    from app.reads import lane as readlane
 
     monkeypatch.setattr(readlane, "MAX_SEND_HELD_S", 0.5)
 
@@ -115,7 +115,7 @@ def test_a_turn_handed_over_lasts_until_its_body_is_sent(monkeypatch: pytest.Mon
 
 def test_the_rest_after_a_long_turn_is_bounded(monkeypatch: pytest.MonkeyPatch) -> None:
     # a read that waited seconds for its map's batch before its copy must not close the lane for three times that
-    from app import readlane
+    from app.reads import lane as readlane
 
     monkeypatch.setattr(readlane, "MAX_REST_S", 0.3)
 

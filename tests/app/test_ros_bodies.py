@@ -1,7 +1,7 @@
 """POST /maps/{name}/scans with CDR-serialized sensor_msgs LaserScan and PointCloud2 bodies (issue 12 item 2).
 
 Each accepted body must give the map, bit for bit, that posting the same scan as JSON (or binary) gives;
-the expected poses and points are computed here, independently of app.rosmsgs.
+the expected poses and points are computed here, independently of app.ros.messages_in.
 """
 
 from __future__ import annotations
@@ -14,8 +14,8 @@ import pytest
 from fastapi.testclient import TestClient
 from scipy.spatial.transform import Rotation
 
-from app import rosmsgs
-from app.batches import Limits
+from app.ros import messages_in
+from app.scans.batches import Limits
 from tests.app._ros import (
     CLOUD_CT,
     LASER_CT,
@@ -264,7 +264,7 @@ def test_every_pointfield_datatype_reads_exactly(dtype: str) -> None:
     for bigendian in (False, True):
         msg = ts.deserialize_cdr(cdr(ts, cloud_msg(ts, points, dtype=dtype, bigendian=bigendian)),
                                  "sensor_msgs/msg/PointCloud2")
-        read = rosmsgs.cloud_points(msg, "body", 3, Limits(max_scans=1, max_rays=100))
+        read = messages_in.cloud_points(msg, "body", 3, Limits(max_scans=1, max_rays=100))
         assert np.array_equal(read, points)
 
 

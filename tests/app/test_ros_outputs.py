@@ -22,9 +22,9 @@ from mcap.reader import make_reader
 from rosbags.rosbag2 import Reader
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
-from app import rosout
+from app.ros import messages_out
 from app.config import Settings
-from app.main import create_app
+from app.api.factory import create_app
 from app.storage import SqliteStorage
 from tests.conftest import error_message
 
@@ -194,10 +194,10 @@ def test_a_plan_that_misses_the_goal_still_has_a_header_and_one_pose_a_point(pla
 
 def test_path_yaws_keep_a_heading_through_repeated_and_vertical_points() -> None:
     path = np.array([[0.0, 0.0, 0.0], [0.0, 0.0, 1.0], [1.0, 1.0, 1.0], [1.0, 1.0, 1.0], [1.0, 1.0, 2.0]])
-    assert np.allclose(rosout.path_yaws(path, "R3"), [math.pi / 4] * 5)  # vertical and repeated steps keep it
-    assert np.allclose(rosout.path_yaws(path[:1], "R2"), [0.0])  # one point: identity
-    assert np.allclose(rosout.path_yaws(path[:1], "R2", goal_yaw=1.0), [1.0])
-    assert np.allclose(rosout.path_yaws(np.array([[0.0, 0.0], [0.0, -1.0]]), "R2", goal_yaw=0.5), [-math.pi / 2, 0.5])
+    assert np.allclose(messages_out.path_yaws(path, "R3"), [math.pi / 4] * 5)  # vertical and repeated steps keep it
+    assert np.allclose(messages_out.path_yaws(path[:1], "R2"), [0.0])  # one point: identity
+    assert np.allclose(messages_out.path_yaws(path[:1], "R2", goal_yaw=1.0), [1.0])
+    assert np.allclose(messages_out.path_yaws(np.array([[0.0, 0.0], [0.0, -1.0]]), "R2", goal_yaw=0.5), [-math.pi / 2, 0.5])
 
 
 # ---------------------------------------------------------------- frame per map
@@ -395,11 +395,11 @@ def test_the_grid_is_serialized_as_rosbags_serializes_it_whole(cells: int) -> No
     # the cells are appended to rosbags' serialization of the rest (one copy of 16 M cells instead of three)
     import numpy as np
 
-    from app import rosout
-    from app.rostypes import typestore
+    from app.ros import messages_out
+    from app.ros.msgtypes import typestore
 
     data = np.random.default_rng(cells).integers(-1, 101, cells).astype(np.int8)
-    message = rosout.occupancy_grid_message(data, width=cells, height=1 if cells else 0, resolution=0.05,
+    message = messages_out.occupancy_grid_message(data, width=cells, height=1 if cells else 0, resolution=0.05,
                                             origin_xy=(-1.5, 2.25), frame_id="map", stamp={"sec": 7, "nanosec": 9})
-    whole = bytes(typestore().serialize_cdr(message, rosout.OCCUPANCY_GRID))
-    assert rosout.occupancy_grid_cdr(message) == whole
+    whole = bytes(typestore().serialize_cdr(message, messages_out.OCCUPANCY_GRID))
+    assert messages_out.occupancy_grid_cdr(message) == whole

@@ -20,11 +20,11 @@ import psycopg
 import pytest
 from fastapi.testclient import TestClient
 
-from app.committer import GroupCommitter
+from app.storage.committer import GroupCommitter
 from app.config import Settings
 from app.errors import error_body_of
-from app.main import create_app
-from app.metrics import Metrics
+from app.api.factory import create_app
+from app.ops.metrics import Metrics
 from app.storage import (
     BatchRecord,
     CommitUncertain,
@@ -36,7 +36,7 @@ from app.storage import (
     StorageUnavailable,
     StoredMap,
 )
-from app.storage_pg import PostgresStorage
+from app.storage.postgres import PostgresStorage
 from fuzzyocc import FuzzyMap, GridSpec, LaserScan, cast_work
 from tests.conftest import error_message
 
@@ -378,7 +378,7 @@ def test_replayed_risk_equals_a_fresh_in_process_fusion(make_client: Any, kit: A
 
 def test_a_backup_taken_while_the_service_runs_serves_the_same_maps(make_settings: Any, kit: Any,
                                                                     tmp_path: Path) -> None:
-    from app.backup import main as backup_main
+    from app.cli.backup import main as backup_main
 
     settings = make_settings()
     copy = tmp_path / "copy" / "fuzzyrisk.sqlite3"
@@ -403,10 +403,10 @@ def test_a_start_holds_one_map_at_a_time(make_client: Any, make_settings: Any, k
     import asyncio
     import tracemalloc
 
-    from app import batches
-    from app.metrics import Metrics
+    from app.scans import batches
+    from app.ops.metrics import Metrics
     from app.schemas import ScanBatch
-    from app.services import MapService
+    from app.service.mapservice import MapService
     from app.storage import BatchRecord, SqliteStorage
 
     names = [f"m{k}" for k in range(8)]

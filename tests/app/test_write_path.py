@@ -24,13 +24,13 @@ import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
-from app import writepath
-from app.committer import GroupCommitter
+from app.maps import writepath
+from app.storage.committer import GroupCommitter
 from app.config import Settings
-from app.main import create_app
-from app.metrics import Metrics
+from app.api.factory import create_app
+from app.ops.metrics import Metrics
 from app.schemas import MapCreate, ScanBatch
-from app.services import MapService
+from app.service.mapservice import MapService
 from app.storage import BatchRecord, MapGone, SqliteStorage, StorageUnavailable
 from fuzzyocc import FuzzyMap, GridSpec, LaserScan, SensorModel
 from tests.conftest import error_message
@@ -407,7 +407,7 @@ def _same_scans(a: Sequence[Any], b: Sequence[Any]) -> bool:
 
 
 def test_a_stored_batch_decodes_to_the_same_scans_bit_for_bit() -> None:
-    from app import batches
+    from app.scans import batches
 
     scans = _mixed_scans()
     payload = batches.encode(scans)
@@ -419,7 +419,7 @@ def test_a_stored_batch_decodes_to_the_same_scans_bit_for_bit() -> None:
 
 
 def test_batches_stored_as_npz_by_earlier_versions_still_decode_and_replay(make_settings: Any, kit: Any) -> None:
-    from app import batches
+    from app.scans import batches
 
     legacy = [_mixed_scans()[0], _mixed_scans()[2]]  # the old encoder stored laser ranges as float32
     assert _same_scans(legacy, batches.decode(_legacy_npz(legacy)))
@@ -446,7 +446,7 @@ def test_batches_stored_as_npz_by_earlier_versions_still_decode_and_replay(make_
 
 
 def test_a_stored_batch_keeps_every_bit_of_odd_floats() -> None:
-    from app import batches
+    from app.scans import batches
 
     ranges = np.array([1.5, -0.0, 5e-324, 1e300, np.inf, np.nan, np.nan])
     ranges.view(np.uint64)[6] = 0x7FF8000000000001  # a NaN with payload bits float32 cannot hold
@@ -457,7 +457,7 @@ def test_a_stored_batch_keeps_every_bit_of_odd_floats() -> None:
 
 
 def test_a_corrupt_stored_batch_is_named_as_such_and_never_read_past_its_end() -> None:
-    from app import batches
+    from app.scans import batches
 
     payload = batches.encode(_mixed_scans())
     for cut in range(len(payload)):  # truncated anywhere
@@ -591,7 +591,8 @@ def test_a_read_of_a_small_map_does_not_wait_behind_big_reads(make_client: Any, 
                                                               monkeypatch: pytest.MonkeyPatch) -> None:
     # issue 11 (bench abuse row 10): two readers of a 16 M-cell map's OccupancyGrid held both read threads, and
     # another map's reads waited (p99 13 -> 232 ms)
-    from app import exports, reads
+    from app.formats import exports
+    from app.reads import service as reads
 
     client = make_client(read_threads=1)
     assert client.post("/maps", json={**kit.MAP_2D, "name": "big"}).status_code == 201  # 10,000 cells
@@ -623,7 +624,8 @@ def test_big_reads_take_turns_and_those_beyond_the_queue_are_refused(make_client
                                                                    monkeypatch: pytest.MonkeyPatch) -> None:
     # issue 11 (bench abuse row 10): big reads side by side each held a copy of the grid while they waited for
     # their render, and took both cores from the other clients; now one at a time, and a bounded queue
-    from app import exports, reads
+    from app.formats import exports
+    from app.reads import service as reads
 
     client = make_client(heavy_read_queue=1, heavy_read_share=1.0)
     assert client.post("/maps", json={**kit.MAP_2D, "name": "big"}).status_code == 201  # 10,000 cells
@@ -706,7 +708,7 @@ def test_a_light_batch_is_not_held_behind_heavy_batches_of_other_maps(make_clien
 def test_heavy_batches_fuse_at_a_lower_priority_than_the_others() -> None:
     # measured (bench abuse row 6): at equal priority two 2 M-beam scans took two thirds of the cores from every
     # other map's fusion (the innocent's scan p99 4.1x its unloaded value); niced, 2.6x
-    from app.workers import Workers
+    from app.ops.threads import Workers
 
     workers = Workers(fusion_threads=1, read_threads=1)
 

@@ -20,7 +20,7 @@ import httpx
 import psutil
 import pytest
 
-from app.planworker import SHUTDOWN_GRACE_S
+from app.plans.pool import SHUTDOWN_GRACE_S
 from tests.e2e.conftest import CHILDREN_GRACE_S, assert_ended, free_port
 
 pytestmark = pytest.mark.slow
@@ -84,7 +84,7 @@ def _trimmed_paths() -> list[str]:
 _LOADED = """
 import io, json, sys
 sys.modules["scipy"] = None  # not in the image (numba imports it where it can): any import of it fails here
-import app.main, app.planworker, app.import_bag, app.rosmsgs, app.recording, app.rosout, app.bagsize, app.exports
+import app.api.factory, app.plans.worker, app.cli.import_bag, app.ros.messages_in, app.reads.recording, app.ros.messages_out, app.ros.bagsize, app.formats.exports
 import fuzzyocc, planning.query
 import numpy as np
 from PIL import Image
@@ -120,7 +120,7 @@ def test_the_environment_is_trimmed_in_the_build_stage_of_nothing_the_service_lo
     # every shared library stripped, but one that strip breaks (ldd refuses the stripped copy) kept whole
     assert "strip --strip-unneeded" in step and 'ldd "$f.stripped"' in step
     # the build fails if a trim went too far for the service's imports
-    assert re.search(r"python -I -c \s*\"import app\.main, app\.planworker, app\.import_bag, planning\.query\"",
+    assert re.search(r"python -I -c \s*\"import app\.api\.factory, app\.plans\.worker, app\.cli\.import_bag, planning\.query\"",
                      build[build.index("COPY app"):].replace("\\\n", " "))
     removed = _trimmed_paths()
     assert len(removed) > 20 and "numpy/distutils" in removed and "numba/cuda" in removed

@@ -290,7 +290,7 @@ def service_env() -> dict[str, str]:
 
 
 def test_the_view_is_off_by_default_and_its_sdk_not_imported() -> None:
-    code = ("import sys; from app.main import create_app; from app.config import Settings; "
+    code = ("import sys; from app.api.factory import create_app; from app.config import Settings; "
             "assert Settings().foxglove_port is None; create_app(Settings()); print('foxglove' in sys.modules)")
     out = subprocess.run([sys.executable, "-c", code], check=False, cwd=ROOT, capture_output=True, text=True, timeout=120,
                          env=service_env())

@@ -20,7 +20,7 @@ import numpy as np
 import pytest
 from playwright.sync_api import Browser, Page, expect
 
-from app.exports import RISK_LUT, UNKNOWN_RGB
+from app.formats.exports import RISK_LUT, UNKNOWN_RGB
 from planning import available_planners
 from tests.e2e.conftest import BEAMS, POSES, ROOT, WORLD_MAP, Server, laser_json
 

@@ -24,7 +24,7 @@ from hypothesis import HealthCheck, given, settings
 from schemathesis.generation import GenerationMode
 
 from app.config import Settings
-from app.main import create_app
+from app.api.factory import create_app
 from bench._client import ServerProcess
 
 from .conftest import SENT, STATUSES, assert_error_body, auth, cloud, laser

@@ -1,0 +1,337 @@
+"""Reads of a map: its grid at one version, and every representation made of it (JSON, .npy, PNG, map_server,
+OccupancyGrid, MCAP); copies under the map's apply lock, encodings in the read threads."""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+from collections.abc import AsyncIterator, Awaitable, Callable, Mapping
+from typing import Any, Literal, TypeVar
+
+import numpy as np
+
+from app.scans import batches
+from app.formats import etags
+from app.formats import exports
+from app.ros import messages_out
+from app.ros import msgtypes
+from app.config import Settings
+from app.errors import Invalid, NotFound, TooLarge, Unavailable
+from app.maps.state import GridSnapshot, GridStamp, MapEntry
+from app.reads.lane import ReadLane, Turn
+from app.schemas import LastScan, MapInfo, OccupancyGrid, RiskGridJSON, RiskValues
+from app.storage import Storage, StoredMap
+from app.ops.threads import Workers
+from fuzzyocc import GridSpec
+
+LOG = logging.getLogger("fuzzyrisk.maps")
+T = TypeVar("T")
+
+#: Above this many cells the JSON risk grid is refused (use format=npy or png).
+MAX_JSON_CELLS = 4_000_000
+#: Reads of maps with more cells take turns in the big reads' lane (``app.reads.lane``), in a thread of their own
+#: (``Workers.run_read(heavy=True)``): two readers of a 16 M-cell map's OccupancyGrid (16 MB of CDR, about 0.3 s
+#: each) held both read threads, and another map's 176,000-cell reads waited (issue 11, bench abuse row 10:
+#: p99 13 -> 232 ms)
+HEAVY_READ_CELLS = 4_000_000
+#: Most pixels of one PNG.
+MAX_PNG_PIXELS = 64_000_000
+
+
+class MapReads:
+    """A map's outputs, each consistent with one version of the map."""
+
+    def __init__(self, settings: Settings, storage: Storage, workers: Workers,
+                 current: Callable[[str], Awaitable[MapEntry]]) -> None:
+        self.settings = settings
+        self.storage = storage
+        self._workers = workers
+        self._current = current  # ``WritePath.current``: the map with every acknowledged batch applied
+        self._lane = ReadLane(share=settings.heavy_read_share, queue=settings.heavy_read_queue)
+
+    @contextlib.asynccontextmanager
+    async def big_read(self, spec: GridSpec) -> AsyncIterator[Turn | None]:
+        """A turn in the big reads' lane for a read of a map of more than ``HEAVY_READ_CELLS`` (its copy, its render
+        and, handed over to the response, the sending of its body; or a plan's copy and publication); None for a
+        smaller map."""
+        if _heavy(spec):
+            async with self._lane.turn() as turn:
+                yield turn
+        else:
+            yield None
+
+    async def map_info(self, name: str) -> MapInfo:
+        """What ``GET /maps/{name}`` shows."""
+        return (await self._current(name)).info()
+
+    async def last_scan(self, name: str) -> LastScan:
+        """Beam ends of the last scan fused; the view is built at the first request, not per batch."""
+        entry = await self._current(name)
+        scan, view, version = entry.last_scan, entry.last_view, entry.version
+        if scan is None:
+            raise NotFound(f"map {name!r} has fused no scan since the service started")
+        if view is None:
+            # most batches are never drawn; a big cloud's view takes a while, so off the event loop
+            view = await self._workers.run_read(batches.scan_view, scan)
+            if entry.last_scan is scan:  # not replaced by a newer batch meanwhile
+                entry.last_view = view
+        return LastScan(origin=view.origin, endpoints=view.endpoints, hit=view.hit, version=version)
+
+    # ---------------------------------------------------------------- risk
+
+    async def current_etag(self, name: str, variant: Mapping[str, Any]) -> tuple[str, int]:
+        """The ETag a read of ``variant`` would carry now, and the version (no grid read: for If-None-Match)."""
+        entry = await self._current(name)
+        return etags.entity_tag(entry.etag_seed, entry.version, variant), entry.version
+
+    async def read_grid(self, name: str) -> GridSnapshot:
+        """The map's risk and observed arrays, consistent with one version.
+
+        ``risk()`` and ``observed()`` already hand out new read-only arrays, so no copy is needed.
+        """
+        entry = await self._current(name)
+        async with self.big_read(entry.spec):
+            return await self.read_grid_of(entry)
+
+    async def read_grid_of(self, entry: MapEntry) -> GridSnapshot:
+        """``read_grid`` of a map already looked up; a caller of a big map holds its ``big_read`` turn."""
+        async with entry.apply_lock:
+            risk, observed = await self._workers.run_read(lambda: (entry.map.risk(), entry.map.observed()),
+                                                          heavy=_heavy(entry.spec))
+            # version and updated are assigned together under this lock (``_write``): they match the arrays
+            return GridSnapshot(entry.spec, entry.version, risk, observed, entry.frame_id, entry.updated,
+                                entry.etag_seed)
+
+    async def render_log(self, name: str, render: Callable[[GridSnapshot, StoredMap], T]) -> T:
+        """``render(grid, stored)`` in a read thread: the map's grid and its stored batch log at one version.
+
+        The grid is copied and the log read (``Storage.load_map``: the latest snapshot's version and the
+        batches after it) together under the apply lock, so no batch is applied between the two: the log
+        holds every batch up to the grid's version (each was committed before it was applied), and those
+        committed but not applied yet are left out. ``render`` runs once the lock is released
+        (``app.reads.recording``); ``stored.snapshot`` is dropped, the arrays are not needed.
+        """
+        entry = await self._current(name)
+        async with self.big_read(entry.spec):
+            return await self._render_log(name, entry, render)
+
+    async def _render_log(self, name: str, entry: MapEntry, render: Callable[[GridSnapshot, StoredMap], T]) -> T:
+        """``render_log`` of a map looked up (looked up again when another replica's snapshot is newer)."""
+        for attempt in range(3):
+            if attempt:
+                entry = await self._current(name)
+            async with entry.apply_lock:
+                risk, observed, stored = await self._workers.run_read(
+                    lambda e=entry: (e.map.risk(), e.map.observed(), self.storage.load_map(e.name)),
+                    heavy=_heavy(entry.spec))
+                grid = GridSnapshot(entry.spec, entry.version, risk, observed, entry.frame_id, entry.updated,
+                                    entry.etag_seed)
+            # another replica's snapshot newer than this grid dropped the batches up to it: catch up, again
+            if stored is None or stored.snapshot_version <= grid.version:
+                break
+        if stored is None or stored.incarnation != entry.incarnation \
+                or stored.meta.get("created") != entry.meta["created"]:  # deleted (and made again)
+            raise NotFound(f"no map named {name!r}; GET /maps lists them")
+        if stored.snapshot_version > grid.version:
+            raise Unavailable(f"map {name!r} changes faster than its log can be read; retry",
+                              headers={"Retry-After": "1"})
+        if stored.damage:
+            raise Unavailable(f"map {name!r}: its stored log is damaged ({'; '.join(stored.damage)})")
+        stored.snapshot = None
+        stored.batches = [(version, payload) for version, payload in stored.batches if version <= grid.version]
+        return await self._workers.run_read(render, grid, stored, heavy=_heavy(grid.spec))
+
+    async def risk_at(self, name: str, points: list[list[float]]) -> RiskValues:
+        if len(points) > self.settings.max_query_points:
+            raise TooLarge(
+                f"{len(points)} points, more than the limit of {self.settings.max_query_points} "
+                "(FUZZYRISK_MAX_QUERY_POINTS): split the query"
+            )
+        entry = await self._current(name)
+        dims = entry.spec.ndim
+        if any(len(p) != dims for p in points):
+            bad = next(i for i, p in enumerate(points) if len(p) != dims)
+            raise Invalid(f"points[{bad}] has {len(points[bad])} coordinates; this map is {dims}-D")
+        async with entry.apply_lock:
+            try:
+                values = await self._workers.run_read(entry.map.risk_at, np.asarray(points, dtype=np.float64))
+            except ValueError as exc:
+                raise Invalid(str(exc)) from None
+            return RiskValues(risk=[float(v) for v in values], version=entry.version)
+
+    async def risk_json(self, name: str) -> tuple[bytes, GridSnapshot]:
+        """The grid as ``RiskGridJSON``, serialised (off the event loop: big maps make big documents)."""
+        entry = await self._current(name)
+        if entry.spec.num_cells > MAX_JSON_CELLS:
+            raise Invalid(
+                f"the map has {entry.spec.num_cells} cells, too many for JSON (at most {MAX_JSON_CELLS}); "
+                "ask for format=npy or format=png"
+            )
+        grid = await self.read_grid_of(entry)  # not a big map: no turn in the lane
+
+        def encode() -> bytes:
+            return RiskGridJSON(
+                name=name, version=grid.version, frame_id=grid.frame_id, resolution=grid.spec.resolution,
+                origin=list(grid.spec.origin), shape=list(grid.spec.shape),
+                risk=np.round(grid.risk.astype(np.float64), 6).tolist(), observed=grid.observed.tolist(),
+            ).model_dump_json().encode()
+
+        return await self._workers.run_read(encode, heavy=_heavy(grid.spec)), grid
+
+    async def _rendered(self, entry: MapEntry, render: Callable[[GridSnapshot], T]) -> tuple[T, GridSnapshot, Sent]:
+        """``render(grid)`` of the map's grid at one version, in a read thread: for a big map in its turn in the lane,
+        handed over to the response (``Sent``)."""
+        async with self.big_read(entry.spec) as turn:
+            grid = await self.read_grid_of(entry)
+            return await self._workers.run_read(render, grid, heavy=_heavy(entry.spec)), grid, _hand_over(turn)
+
+    async def risk_npy(self, name: str,
+                       layer: Literal["risk", "observed"] = "risk") -> tuple[bytes, GridSnapshot, Sent]:
+        """The risk (float32) or the observed mask (bool) as ``.npy``, of one version (and ``Sent``)."""
+        return await self._rendered(await self._current(name),
+                                    lambda grid: exports.npy_bytes(grid.risk if layer == "risk" else grid.observed))
+
+    async def risk_png(self, name: str, *, scale: int, z_min: float | None,
+                       z_max: float | None) -> tuple[bytes, GridSnapshot, Sent]:
+        _check_band(z_min, z_max)
+        entry = await self._current(name)
+        nx, ny = entry.spec.shape[:2]
+        if nx * ny * scale * scale > MAX_PNG_PIXELS:
+            raise Invalid(f"scale {scale} would make a {nx * scale} x {ny * scale} image; use a smaller scale")
+
+        def render(grid: GridSnapshot) -> bytes:
+            text = {
+                "map": name, "version": str(grid.version), "frame_id": grid.frame_id,
+                "resolution": repr(grid.spec.resolution), "origin": repr(list(grid.spec.origin)),
+            }
+            risk, observed = grid.planar(z_min, z_max)
+            return exports.risk_png(risk, observed, scale=scale, text=text)
+
+        return await self._rendered(entry, render)
+
+    async def nav2_zip(
+        self, name: str, *, mode: Literal["trinary", "scale", "raw"], image_format: Literal["pgm", "png"],
+        free_thresh: float, occupied_thresh: float, z_min: float | None, z_max: float | None,
+    ) -> tuple[bytes, GridSnapshot, Sent]:
+        """The zip for map_server; its entries are dated by the map's last batch, so one version gives one file."""
+        _check_band(z_min, z_max)
+        _check_thresholds(free_thresh, occupied_thresh)
+        try:
+            exports.check_nav2_format(mode, image_format)
+        except ValueError as exc:
+            raise Invalid(str(exc)) from None
+
+        def render(grid: GridSnapshot) -> bytes:
+            risk, observed = grid.planar(z_min, z_max)
+            return exports.nav2_zip(
+                risk, observed, resolution=grid.spec.resolution, origin_xy=grid.spec.origin[:2], mode=mode,
+                image_format=image_format, free_thresh=free_thresh, occupied_thresh=occupied_thresh,
+                frame_id=grid.frame_id, date_time=messages_out.zip_date_time(grid.updated),
+            )
+
+        return await self._rendered(await self._current(name), render)
+
+    async def occupancy_grid(
+        self, name: str, *, mode: Literal["trinary", "scale", "probability"], free_thresh: float,
+        occupied_thresh: float, z_min: float | None, z_max: float | None,
+        encoding: Literal["json", "cdr", "mcap"] = "json",
+    ) -> tuple[bytes | tuple[bytes, memoryview], GridStamp, Sent]:
+        """The map as a ``nav_msgs/OccupancyGrid``: JSON (``OccupancyGrid``), CDR bytes, or an MCAP file.
+
+        The stamp and ``map_load_time`` are when the map reached this version (``GridSnapshot.updated``),
+        so every read of one version gives the same bytes. JSON is refused above ``MAX_JSON_CELLS`` cells, as
+        the risk grid's: 16 M values written as text took 1-3 s of the GIL per read, and stalled every
+        client of the service (issue 11); CDR and MCAP carry them as bytes.
+        """
+        _check_band(z_min, z_max)
+        _check_thresholds(free_thresh, occupied_thresh)
+        entry = await self._current(name)
+        if encoding == "json":
+            cells = entry.spec.shape[0] * entry.spec.shape[1]  # the message is the plane, a 3-D map's included
+            if cells > MAX_JSON_CELLS:
+                raise Invalid(
+                    f"the map's OccupancyGrid has {cells:,} cells, too many for JSON (at most {MAX_JSON_CELLS:,}): "
+                    f"ask for GET /maps/{name}/occupancy_grid.cdr or .mcap (the same message as ROS 2 bytes)"
+                )
+        heavy = _heavy(entry.spec)
+        async with self.big_read(entry.spec) as turn:
+            if entry.spec.ndim == 2:
+                # the values straight from the map's risk codes, in one pass (a 16 M-cell map: 45 ms against 160,
+                # without the 80 MB copy of its risk and observed mask)
+                def lookup() -> np.ndarray:  # the table too is built here, not on the event loop (cached)
+                    return entry.map.plane_lookup(exports.occupancy_lut(mode, free_thresh, occupied_thresh), -1)
+
+                async with entry.apply_lock:
+                    values = await self._workers.run_read(lookup, heavy=heavy)
+                    stamp = entry.stamp()  # the version the values are of: it changes under this lock only
+            else:
+                grid = await self.read_grid_of(entry)
+
+                def project() -> np.ndarray:
+                    risk, observed = grid.planar(z_min, z_max)
+                    return exports.occupancy_data(risk, observed, mode=mode, free_thresh=free_thresh,
+                                                  occupied_thresh=occupied_thresh).reshape(risk.shape[1],
+                                                                                           risk.shape[0])
+
+                values, stamp = await self._workers.run_read(project, heavy=heavy), grid.stamp()
+            message = await self._workers.run_read(_occupancy_message, values, stamp, encoding, heavy=heavy)
+            return message, stamp, _hand_over(turn)
+
+
+#: Called once a read's body is sent (``largebody.bytes_response(on_sent=...)``): a big read's turn in the lane
+#: ends then; None for a small map's read
+Sent = Callable[[], None] | None
+
+
+def _hand_over(turn: Turn | None) -> Sent:
+    return turn.hand_over() if turn is not None else None
+
+
+def _occupancy_message(values: np.ndarray, grid: GridStamp,
+                       encoding: Literal["json", "cdr", "mcap"]) -> bytes | tuple[bytes, memoryview]:
+    """A ``nav_msgs/OccupancyGrid`` of ``values`` ((height, width) int8, rows along y) as JSON, CDR or MCAP."""
+    height, width = values.shape
+    data = values.reshape(-1)
+    stamp = msgtypes.ros_time_of_iso(grid.updated)
+    if encoding != "json":
+        message = messages_out.occupancy_grid_message(
+            data, width=width, height=height, resolution=grid.spec.resolution,
+            origin_xy=grid.spec.origin[:2], frame_id=grid.frame_id, stamp=stamp,
+        )
+        if encoding == "cdr":
+            return messages_out.occupancy_grid_cdr_parts(message)
+        return messages_out.occupancy_grid_mcap(messages_out.occupancy_grid_cdr(message),
+                                          log_time_ns=msgtypes.ns_of_ros_time(stamp))
+    # the small fields through the model (validated), the 4-16 M values by numpy: one pydantic pass over
+    # them held the GIL, and so every request, for seconds (issue 11)
+    head = OccupancyGrid.model_validate({
+        "header": {"stamp": stamp, "frame_id": grid.frame_id},
+        "info": {
+            "map_load_time": stamp, "resolution": grid.spec.resolution,
+            "width": int(width), "height": int(height),
+            "origin": {"position": {"x": grid.spec.origin[0], "y": grid.spec.origin[1], "z": 0.0},
+                       "orientation": {"x": 0.0, "y": 0.0, "z": 0.0, "w": 1.0}},
+        },
+        "data": [],
+        "version": grid.version,
+    }).model_dump_json().encode()
+    empty = b'"data":[]'
+    assert head.count(empty) == 1
+    return head.replace(empty, b'"data":' + exports.int8_json_array(data))
+
+
+def _check_thresholds(free_thresh: float, occupied_thresh: float) -> None:
+    # an 8-bit map image needs a grey strictly between the thresholds for "unknown"
+    try:
+        exports.check_thresholds(free_thresh, occupied_thresh)
+    except ValueError as exc:
+        raise Invalid(str(exc)) from None
+
+
+def _check_band(z_min: float | None, z_max: float | None) -> None:
+    if z_min is not None and z_max is not None and z_min > z_max:
+        raise Invalid(f"z_min ({z_min}) must not exceed z_max ({z_max})")
+
+
+def _heavy(spec: GridSpec) -> bool:
+    return spec.num_cells > HEAVY_READ_CELLS
