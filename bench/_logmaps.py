@@ -20,11 +20,10 @@ from pathlib import Path
 import numpy as np
 from numba import njit
 
+from bench import _data
 from fuzzyocc import BayesMap, FuzzyMap, GridSpec, LaserScan
 from fuzzyocc.carmen import grid_for_scans, read_carmen
 
-#: The shared logs, beside the repository (``../shared/data/carmen``).
-LOG_DIR = Path(__file__).resolve().parents[2] / "shared" / "data" / "carmen"
 RESOLUTION = 0.05
 MARGIN_M = 1.0
 HOLDOUT_EVERY = 10
@@ -32,11 +31,19 @@ OCCUPIED = 0.6  # the planner's default max_risk: what a default plan refuses
 TOLERANCE_CELLS = 2
 
 
-def log_paths(log_dir: Path = LOG_DIR) -> list[Path]:
-    """Every ``*.log.gz`` in the shared folder, sorted; ``SystemExit`` with a message when there is none."""
-    paths = sorted(log_dir.glob("*.log.gz"))
+def log_dir() -> Path:
+    """The logs' folder: ``carmen`` of the data directory (``--data``, ``bench/_data.py``); SystemExit if missing."""
+    return _data.needed("carmen")
+
+
+def log_paths(folder: Path | None = None) -> list[Path]:
+    """Every ``*.log.gz`` in ``folder`` (default ``log_dir()``), sorted; ``SystemExit`` with a message when there
+    is none."""
+    folder = log_dir() if folder is None else folder
+    paths = sorted(folder.glob("*.log.gz"))
     if not paths:
-        raise SystemExit(f"no CARMEN logs in {log_dir}: the shared data must sit beside the repository")
+        raise SystemExit(f"no CARMEN logs (*.log.gz) in {folder}: {_data.describe()}; give a data directory "
+                         f"that holds carmen/*.log.gz with {_data.OPTION} DIR")
     return paths
 
 

@@ -1,6 +1,6 @@
 """Planning on maps of real buildings (issue 13): the instrument of ``bench_planning``'s real-map section.
 
-A map per shared CARMEN log (``bench/_logmaps.py``): every scan of the log fused in log order, in
+A map per recorded CARMEN log of the data directory (``bench/_logmaps.py``, ``--data``): every scan of the log fused in log order, in
 batches of 32 (what ``app.cli.import_log`` posts), into ``FuzzyMap(spec)`` (the default preset and
 sensor model, as the service builds a new map), 0.05 m cells. Queries: ``_plan_audit.pick_pairs``,
 pairs of laser poses the robot drove, at least 30 % of the map's diagonal apart, both valid starts
@@ -43,7 +43,7 @@ from typing import Any
 
 import numpy as np
 
-from bench import _logmaps, _plan_audit
+from bench import _data, _logmaps, _plan_audit
 from fuzzyocc import FuzzyMap, GridSpec
 
 ROBOT_RADIUS = _plan_audit.ROBOT_RADIUS  # 0.2 m, plan's default
@@ -105,11 +105,13 @@ class RealMap:
 
 
 def log_path(name: str) -> Path:
-    """The shared log of that name (``csail`` or ``csail-corrected.log.gz``); SystemExit listing the names."""
+    """The log of that name (``csail`` or ``csail-corrected.log.gz``) in the data directory (``--data``);
+    SystemExit listing the names."""
     paths = {_logmaps.log_name(p): p for p in _logmaps.log_paths()}
     key = _logmaps.log_name(Path(name)) if name.endswith(".log.gz") else name
     if key not in paths:
-        raise SystemExit(f"no shared log named {name!r}; the logs are: {', '.join(sorted(paths))}")
+        raise SystemExit(f"no log named {name!r} in {_logmaps.log_dir()} ({_data.describe()}; another with "
+                         f"{_data.OPTION} DIR); the logs are: {', '.join(sorted(paths))}")
     return paths[key]
 
 

@@ -1,9 +1,10 @@
 """Map quality on real buildings, ours against OctoMap in the same run (issue 10).
 
-    python3 dev.py bench maps [--logs a,b] [--engine PRESET] [--quick] [--jobs N] [--reproducible-plans]
+    python3 dev.py bench maps [--data DIR] [--logs a,b] [--engine PRESET] [--quick] [--jobs N] [--reproducible-plans]
     python -m bench.bench_maps ...                                  (from the repository root)
 
-For every CARMEN log in ``../shared/data/carmen`` (``--logs``: names such as ``orebro,fhw``):
+For every CARMEN log in ``DIR/carmen`` (``--data DIR``, ``bench/_data.py``: default ``../shared/data`` beside
+the repository where it exists, else the repository's ``tests/data``; ``--logs``: names such as ``orebro,fhw``):
 
 1. held-out beams (``bench/_logmaps.py``): fuse 9 scans of every 10 into our ``FuzzyMap``
    (``--engine``, default ``fuzzyocc.presets.DEFAULT_PRESET``), ``BayesMap`` and OctoMap (its
@@ -41,7 +42,7 @@ from pathlib import Path
 
 import numpy as np
 
-from bench import _dynamic, _logmaps, _plan_audit
+from bench import _data, _dynamic, _logmaps, _plan_audit
 from bench._dynamic import Trial
 from bench._logmaps import Score
 from bench._plan_audit import PlanCheck
@@ -301,7 +302,8 @@ def _run_one(path: str, engine: str, limit: int | None, trials: int, pairs: int,
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="bench maps", description=__doc__.split("\n\n")[0])
-    ap.add_argument("--logs", help="comma-separated log names (e.g. orebro,fhw); default: every shared log")
+    _data.add_option(ap)
+    ap.add_argument("--logs", help="comma-separated log names (e.g. orebro,fhw); default: every log there")
     ap.add_argument("--engine", default=DEFAULT_PRESET, help=f"our map's engine preset (default {DEFAULT_PRESET!r})")
     ap.add_argument("--quick", action="store_true",
                     help=f"first {QUICK_SCANS} scans of each log, {QUICK_TRIALS} obstacles, {QUICK_PAIRS} plan pairs")
@@ -310,6 +312,7 @@ def main(argv: list[str] | None = None) -> int:
                     help=f"RRTstar runs {_plan_audit.FIXED_ITERATIONS:,} iterations instead of "
                          f"{_plan_audit.TIME_LIMIT:g} s: the same paths whatever the machine's load")
     args = ap.parse_args(argv)
+    _data.use(args)
     if args.engine not in PRESETS:
         ap.error(f"no engine preset named {args.engine!r}; the presets are {sorted(PRESETS)}")
     paths = _logmaps.log_paths()

@@ -1,6 +1,6 @@
 """The paper's n-input merge against the ray caster's "most occupied-ward beam wins", on real logs.
 
-    python3 dev.py bench nmerge [--logs a,b] [--engine PRESET]
+    python3 dev.py bench nmerge [--data DIR] [--logs a,b] [--engine PRESET]
 
 The held-out protocol of ``bench_maps`` (fuse 9 scans of every 10, march every held-out hit beam
 to the first cell at risk >= 0.6), for the same engine with the beams of one scan that reach a
@@ -15,7 +15,7 @@ from __future__ import annotations
 import argparse
 import time
 
-from bench import _logmaps
+from bench import _data, _logmaps
 from bench._nmerge_maps import nmerge_risk
 from fuzzyocc import FuzzyMap
 from fuzzyocc.presets import DEFAULT_PRESET, preset
@@ -23,16 +23,19 @@ from fuzzyocc.presets import DEFAULT_PRESET, preset
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--logs", help="comma-separated log names (e.g. orebro,fhw); default: every shared log")
+    _data.add_option(ap)
+    ap.add_argument("--logs", help="comma-separated log names (e.g. orebro,fhw); default: every log there")
     ap.add_argument("--engine", default=DEFAULT_PRESET, help=f"engine preset (default {DEFAULT_PRESET!r})")
     args = ap.parse_args(argv)
+    _data.use(args)
+    paths = _logmaps.log_paths()  # before any output: a missing data directory ends the run here
     wanted = set(args.logs.split(",")) if args.logs else None
     engine = preset(args.engine)
     print(f"engine {args.engine!r}; held-out hit beams: within 2 cells, median error, too early, too late, no surface")
     print("| log | merge | within 2 cells | median error | too early | too late | no surface |")
     print("|---|---|---|---|---|---|---|")
     started = time.perf_counter()
-    for path in _logmaps.log_paths():
+    for path in paths:
         name = _logmaps.log_name(path)
         if wanted and name not in wanted:
             continue

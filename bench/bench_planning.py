@@ -30,7 +30,8 @@ is measured as ``plan`` uses it (compiled into OMPL, ``planning/native.py``) and
 subclass it falls back to; a plain-Python length objective shows the floor any Python objective
 pays; and the number and rate of motionCost calls.
 
-Real maps (issue 13, ``bench/_real_plans.py``): a map per shared CARMEN log (``--logs``, default
+Real maps (issue 13, ``bench/_real_plans.py``): a map per CARMEN log of the data directory
+(``--data DIR``, ``bench/_data.py``; ``--logs``, default
 belgioioso, csail and orebro: 1.4-2.0 M cells of 0.05 m), every scan fused with the default engine;
 ``--pairs`` queries between far-apart poses the robot drove (``_plan_audit.pick_pairs``). Printed:
 per planner (grid and the sampling planners a user would pick, 1 s, seeded with the pair's number)
@@ -56,7 +57,7 @@ from ompl import geometric as og
 from ompl import util as ou
 from scipy import ndimage
 
-from bench import _real_plans
+from bench import _data, _real_plans
 from planning import RiskField, available_planners, native, plan, warm_up
 from planning.packed import PackedGrid
 from planning.planners import PLANNERS
@@ -386,7 +387,7 @@ def _notes(runs: list, label: str) -> list[str]:
 
 def real_maps(logs: list[str], pairs: int, planners: list[str], time_limit: float, repeats: int,
               http: bool, alone: bool = True) -> None:
-    """The real-map section: planners, grid search baselines and HTTP on maps of the shared logs."""
+    """The real-map section: planners, grid search baselines and HTTP on maps of the recorded logs (``--data``)."""
     import datetime
     import os
     import platform
@@ -584,8 +585,9 @@ def main() -> None:
     part = real.add_mutually_exclusive_group()
     part.add_argument("--real-only", action="store_true", help="only the real-map section")
     part.add_argument("--synthetic-only", action="store_true", help="only the synthetic maps (the issue 3 bench)")
+    _data.add_option(real)
     real.add_argument("--logs", default=None,
-                      help=f"shared logs, comma-separated (default {','.join(_real_plans.DEFAULT_LOGS)}; "
+                      help=f"logs of the data directory, comma-separated (default {','.join(_real_plans.DEFAULT_LOGS)}; "
                            f"--quick: {','.join(_real_plans.QUICK_LOGS)})")
     real.add_argument("--pairs", type=int, default=None,
                       help=f"queries per log (default {_real_plans.PAIRS}; --quick: {_real_plans.QUICK_PAIRS})")
@@ -598,6 +600,7 @@ def main() -> None:
     real.add_argument("--no-alone", action="store_true", help="skip the sampling planners' runs with "
                       "grid_seed=False (the sampler on its own, beside plan()'s default that seeds it with the grid's path)")
     args = parser.parse_args()
+    _data.use(args)
     if args.logs is not None:  # checked before minutes of synthetic maps
         for name in args.logs.split(","):
             _real_plans.log_path(name)

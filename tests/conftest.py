@@ -24,6 +24,8 @@ import pytest
 from tests.pgserver import postgres_server  # noqa: F401 - a real PostgreSQL, for the tests that ask
 
 ROOT = Path(__file__).resolve().parents[1]
+#: The real data the tests read, part of the repository (``tests/data/README.md``: where each file comes from).
+DATA_DIR = ROOT / "tests" / "data"
 SESSION_MARK = "FUZZYRISK_TEST_SESSION"
 #: How long processes of the session may take to end once the tests are done (as after a kill -9 of a server).
 STRAGGLER_GRACE_S = 10.0
@@ -80,3 +82,13 @@ def no_process_outlives_the_suite() -> Iterator[None]:
 def error_message(response) -> str:  # type: ignore[no-untyped-def]
     """The human-readable message of an error answer (every error body is ``{code, message, details}``)."""
     return str(response.json()["message"])
+
+
+def carmen_log(name: str) -> Path:
+    """A recorded CARMEN log of ``tests/data/carmen`` (e.g. ``orebro-corrected.log.gz``, the smallest: 237 scans);
+    fails (never skips) when it is not there, as the logs are part of the repository."""
+    path = DATA_DIR / "carmen" / name
+    if not path.is_file():
+        pytest.fail(f"{path} is missing: the CARMEN logs the tests read are kept in the repository under "
+                    "tests/data/carmen (see tests/data/README.md); restore them from git")
+    return path

@@ -23,18 +23,15 @@ from PIL import Image
 from app.cli.import_log import main
 from fuzzyocc import FuzzyMap
 from fuzzyocc.carmen import grid_for_scans, read_carmen
+from tests.conftest import carmen_log
 
 ROOT = Path(__file__).resolve().parents[2]
-OREBRO = ROOT.parent / "shared" / "data" / "carmen" / "orebro-corrected.log.gz"
 
 
 @pytest.fixture
 def orebro() -> Path:
-    """The smallest shared log (237 scans); the test fails, not skips, without ../shared beside the repository."""
-    if not OREBRO.is_file():
-        pytest.fail(f"{OREBRO} is missing: the tests read the shared CARMEN logs from ../shared/data/carmen "
-                    "beside the repository root (CI checks ../shared out there)")
-    return OREBRO
+    """The smallest recorded log (237 scans), from tests/data; the test fails, not skips, without it."""
+    return carmen_log("orebro-corrected.log.gz")
 
 
 def run_command(*args: str) -> subprocess.CompletedProcess[str]:

@@ -1,4 +1,4 @@
-"""Map quality against OctoMap (issue 10), CI-sized: the instrument, and the targets on the smallest shared log.
+"""Map quality against OctoMap (issue 10), CI-sized: the instrument, and the targets on the smallest recorded log.
 
 The instrument tests check what ``bench/bench_maps.py`` measures with: the held-out scoring on
 hand-made numbers, our march and OctoMap's ``castRay`` on a synthetic wall and against each other
@@ -19,17 +19,14 @@ import pytest
 from bench import _dynamic, _logmaps, _plan_audit, bench_maps
 from fuzzyocc import BayesMap, FuzzyMap, GridSpec, LaserScan
 from fuzzyocc.presets import DEFAULT_PRESET, preset
+from tests.conftest import carmen_log
 
-OREBRO = _logmaps.LOG_DIR / "orebro-corrected.log.gz"
 RES = 0.05
 
 
 def orebro() -> Path:
-    """The smallest shared log (237 scans); the test fails, not skips, without ../shared beside the repository."""
-    if not OREBRO.exists():
-        pytest.fail(f"{OREBRO} is missing: the tests read the shared CARMEN logs from ../shared/data/carmen "
-                    "beside the repository root (CI checks ../shared out there)")
-    return OREBRO
+    """The smallest recorded log (237 scans), from tests/data; the test fails, not skips, without it."""
+    return carmen_log("orebro-corrected.log.gz")
 
 
 @pytest.fixture(scope="module")

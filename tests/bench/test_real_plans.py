@@ -20,19 +20,17 @@ import numpy as np
 import pytest
 
 from bench import _logmaps, _plan_audit, _real_plans
+from tests.conftest import carmen_log
 
-OREBRO = _logmaps.LOG_DIR / "orebro-corrected.log.gz"
-SCANS = 120  # bench_maps.QUICK_SCANS: the CI-sized part of the smallest shared log
+SCANS = 120  # bench_maps.QUICK_SCANS: the CI-sized part of the smallest recorded log
 PAIRS = 3
 CLEAR = _real_plans.ROBOT_RADIUS - _logmaps.RESOLUTION - 1e-9  # the radius less one cell
 
 
 @pytest.fixture(scope="module")
 def small_map() -> _real_plans.RealMap:
-    if not OREBRO.exists():  # fails, not skips: CI lays ../shared beside the repository
-        pytest.fail(f"{OREBRO} is missing: the tests read the shared CARMEN logs from ../shared/data/carmen "
-                    "beside the repository root")
-    return _real_plans.build_map(OREBRO, pairs=PAIRS, scans=SCANS)
+    orebro = carmen_log("orebro-corrected.log.gz")  # from tests/data; fails, not skips, without it
+    return _real_plans.build_map(orebro, pairs=PAIRS, scans=SCANS)
 
 
 @pytest.fixture(scope="module")

@@ -1,4 +1,4 @@
-"""CARMEN logs in: beam angles, poses and stamps, no-returns, skipped and malformed lines, the shared real logs."""
+"""CARMEN logs in: beam angles, poses and stamps, no-returns, skipped and malformed lines, the real logs of tests/data."""
 
 from __future__ import annotations
 
@@ -10,11 +10,10 @@ import numpy as np
 import pytest
 
 from fuzzyocc.carmen import NO_RETURN_FRACTION, CarmenScan, grid_for_scans, parse_carmen_lines, read_carmen
+from tests.conftest import carmen_log
 
-ROOT = Path(__file__).resolve().parents[2]
-CARMEN = ROOT.parent / "shared" / "data" / "carmen"
-#: The shared README's table: FLASER scans and beams per scan of each log.
-SHARED_LOGS = {
+#: The table of tests/data/README.md: FLASER scans and beams per scan of each log.
+REAL_LOGS = {
     "acapulco-corrected.log.gz": (861, 181),
     "belgioioso-corrected.log.gz": (395, 361),
     "csail-corrected.log.gz": (406, 361),
@@ -25,15 +24,6 @@ SHARED_LOGS = {
     "orebro-corrected.log.gz": (237, 181),
     "seattle-corrected.log.gz": (241, 361),
 }
-
-
-def shared_log(name: str) -> Path:
-    """A log of ../shared/data/carmen beside the repository; fails (not skips) when it is not there."""
-    path = CARMEN / name
-    if not path.is_file():
-        pytest.fail(f"{path} is missing: the tests read the shared CARMEN logs from ../shared/data/carmen "
-                    "beside the repository root (CI checks ../shared out there)")
-    return path
 
 
 def flaser(ranges: list[float], pose: tuple[float, float, float] = (1.5, -2.25, 0.5),
@@ -122,7 +112,7 @@ def test_an_unusable_max_range_is_refused(tmp_path: Path, bad: float) -> None:
                                                ("csail-corrected.log.gz", 81.91),
                                                ("fhw-corrected.log.gz", 51.1)])
 def test_each_shared_log_has_its_own_scanner_maximum(name: str, maximum: float) -> None:
-    path = shared_log(name)
+    path = carmen_log(name)
     with gzip.open(path, "rt") as lines:
         raw = np.concatenate([s.ranges for s in parse_carmen_lines(lines)])
     scans = read_carmen(path)
@@ -219,13 +209,13 @@ def test_plain_and_gzip_logs_read_the_same(tmp_path: Path) -> None:
         assert a.ranges.tolist() == b.ranges.tolist()
 
 
-# ---------------------------------------------------------------- the shared real logs
+# ---------------------------------------------------------------- the real logs of tests/data
 
 
-@pytest.mark.parametrize("name", sorted(SHARED_LOGS))
+@pytest.mark.parametrize("name", sorted(REAL_LOGS))
 def test_every_shared_log_reads_with_the_scan_count_of_its_readme(name: str) -> None:
-    count, beams = SHARED_LOGS[name]
-    scans = read_carmen(shared_log(name))
+    count, beams = REAL_LOGS[name]
+    scans = read_carmen(carmen_log(name))
     assert len(scans) == count
     assert {s.ranges.size for s in scans} == {beams}
     assert {s.angle_min for s in scans} == {-math.pi / 2}
@@ -249,7 +239,7 @@ def test_the_grid_holds_poses_and_hits_with_the_margin_and_ignores_no_returns(tm
 
 
 def test_the_grid_of_a_real_log_holds_every_pose_and_hit_on_whole_cells() -> None:
-    scans = read_carmen(shared_log("orebro-corrected.log.gz"))
+    scans = read_carmen(carmen_log("orebro-corrected.log.gz"))
     spec = grid_for_scans(scans, resolution=0.05, margin=1.0)
     points = np.concatenate([np.array([s.pose[:2] for s in scans])]
                             + [r.endpoints[r.hit] for r in (s.to_rays() for s in scans)])
@@ -262,6 +252,6 @@ def test_the_grid_of_a_real_log_holds_every_pose_and_hit_on_whole_cells() -> Non
 @pytest.mark.parametrize(("resolution", "margin", "says"), [(0.0, 1.0, "resolution"), (0.05, -1.0, "margin"),
                                                             (1e-4, 1.0, "cells")])
 def test_an_unusable_grid_is_refused_with_what_to_change(resolution: float, margin: float, says: str) -> None:
-    scans = read_carmen(shared_log("orebro-corrected.log.gz"))
+    scans = read_carmen(carmen_log("orebro-corrected.log.gz"))
     with pytest.raises(ValueError, match=says):
         grid_for_scans(scans, resolution=resolution, margin=margin)
