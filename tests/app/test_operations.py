@@ -124,10 +124,10 @@ def test_every_documented_example_works_when_pasted(client: TestClient) -> None:
     assert answer.status_code == 200 and len(answer.json()["risk"]) == len(query["points"])
 
 
-def test_the_readme_documents_every_setting() -> None:
-    readme = (Path(__file__).resolve().parents[2] / "README.md").read_text()
+def test_the_configuration_page_documents_every_setting() -> None:
+    page = (Path(__file__).resolve().parents[2] / "docs" / "configuration.md").read_text()
     for name in Settings.model_fields:
-        assert f"`FUZZYRISK_{name.upper()}`" in readme, name
+        assert f"`FUZZYRISK_{name.upper()}`" in page, name
 
 
 def test_behind_a_path_prefix_the_schema_names_the_prefix_as_its_server(make_settings: Any) -> None:
