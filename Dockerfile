@@ -26,7 +26,7 @@ extras = [e for e in os.environ.get('EXTRAS', '').split(',') if e]; \
 print('\n'.join(p['dependencies'] + [d for e in extras for d in p['optional-dependencies'][e]]))" \
         > requirements.txt \
     && /opt/fuzzyrisk/bin/pip install --constraint constraints.txt --requirement requirements.txt
-#    then out of the environment, before the image copies it, what the service never loads (issue 15: an image
+#    then out of the environment, before the image copies it, what the service never loads (an image
 #    of at most 450 MB). With scipy out of the runtime dependencies too, /opt/fuzzyrisk comes to 275 MiB (du -sm;
 #    447 before), and the service, driven through every kind of work without them, answered alike (74 requests, no
 #    5xx); tests/e2e/test_container.py checks that the service loads none of them:

@@ -50,7 +50,7 @@ def install_error_handlers(app: FastAPI) -> None:
 
     async def handle_disconnect(request: Request, _exc: Exception) -> Response:
         # the client went away while its body arrived: nobody to answer, and nothing went wrong here (it was
-        # logged as "Exception in ASGI application" once per such client, issue 11); 499 as nginx says it
+        # logged as "Exception in ASGI application" once per such client); 499 as nginx says it
         LOG.info("client disconnected before its body was in: %s %s", request.method, request.url.path)
         return Response(status_code=CLIENT_CLOSED_REQUEST)
 

@@ -134,7 +134,7 @@ async def _build_routes(app: FastAPI) -> None:
     """Have FastAPI build every route's parameters now rather than at the first request that reaches them.
 
     FastAPI (0.16x) builds an included router's routes, their parameters and models, at its first
-    request: about 140 ms holding the GIL, every other request waiting (issue 11). A request for a
+    request: about 140 ms holding the GIL, every other request waiting. A request for a
     path no route takes, sent to the router alone (no middleware, no handler), walks them all.
     """
     scope = {"type": "http", "method": "GET", "path": "/maps/-/-/-/-/-/-/-", "raw_path": b"/maps/-/-/-/-/-/-/-",

@@ -1,4 +1,4 @@
-"""uvicorn's HTTP/1.1 protocol with a deadline on request headers (slow clients, issue 11).
+"""uvicorn's HTTP/1.1 protocol with a deadline on request headers (slow clients).
 
 uvicorn bounds the size of a request's headers (h11's incomplete-event limit) and the idle time
 between requests (keep-alive), but not the time headers take to arrive: a client that trickles

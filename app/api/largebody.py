@@ -9,7 +9,7 @@ from starlette.responses import Response
 from starlette.types import Receive, Scope, Send
 
 #: Bytes handed to the server per write. One write of a 16 MB OccupancyGrid was copied into the transport's buffer
-#: in one go while every other request waited (issue 11, bench abuse row 10); a MiB is a millisecond or so.
+#: in one go while every other request waited (bench abuse row 10); a MiB is a millisecond or so.
 CHUNK_BYTES = 1 << 20
 
 

@@ -44,7 +44,7 @@ class ApiKeyMiddleware:
     """401 for a protected route without the configured key, before a byte of its body is read.
 
     A route dependency would run only after FastAPI parsed the body: a 66 MB JSON body with a
-    wrong key was parsed (10 s, +1 GB) before its 401 (issue 11).
+    wrong key was parsed (10 s, +1 GB) before its 401.
     """
 
     def __init__(self, app: ASGIApp, api_key: SecretStr | None) -> None:
@@ -109,8 +109,8 @@ class BodyBudgetMiddleware:
 
     Every request's body bytes count from the moment they arrive until the request is answered
     (the service holds a parsed body that long); a chunk that would take all bodies together past
-    ``max_bytes`` answers 503 with ``Retry-After``, so forty slow 60 MB uploads cannot take 2.6 GB
-    (issue 11). A body whose next chunk takes longer than ``read_timeout_s``, or which is not all
+    ``max_bytes`` answers 503 with ``Retry-After``, so forty slow 60 MB uploads cannot take 2.6 GB.
+    A body whose next chunk takes longer than ``read_timeout_s``, or which is not all
     in within ``body_timeout_s`` of its first wait, answers 408: a trickled body (a byte every 10 s
     passes any per-chunk timeout) does not hold its connection and its share of the budget for ever.
     The bodies of one map hold at most half the budget once two of them are arriving: forty

@@ -337,7 +337,7 @@ def int8_json_array(data: np.ndarray) -> bytes:
     """``data`` (values in -1..100, an OccupancyGrid's) as a JSON array, built by numpy without a Python loop.
 
     Each value takes 4 bytes (the padding is JSON whitespace): 16 M cells in a fraction of a second
-    with the GIL mostly free, where pydantic held it for 2-3 s and every request waited (issue 11).
+    with the GIL mostly free, where pydantic held it for 2-3 s and every request waited.
     """
     flat = np.asarray(data, dtype=np.int16).reshape(-1)
     if flat.size == 0:

@@ -34,7 +34,7 @@ class StartupError(Exception):
 
 #: How long a thread holding the GIL keeps it while another waits (CPython's default is 5 ms). The event
 #: loop waits for the GIL each time it wakes; with a thread parsing a large body or serializing a grid,
-#: every wake-up cost up to 5 ms, and a request wakes it several times (issue 11, bench abuse rows 1, 9, 10).
+#: every wake-up cost up to 5 ms, and a request wakes it several times (bench abuse rows 1, 9, 10).
 GIL_SWITCH_INTERVAL_S = 0.001
 
 
@@ -202,7 +202,7 @@ def give_back_freed_memory() -> None:
     """Return the free pages of every malloc arena to the system (glibc's ``malloc_trim``; a no-op elsewhere).
 
     A map's state is many small blocks, allocated by whichever fusion thread touched them, in that
-    thread's arena: freed, they stay with the process. Measured (issue 11; 25 maps of 16 M cells made, a
+    thread's arena: freed, they stay with the process. Measured (25 maps of 16 M cells made, a
     scan fused into each, all deleted, six rounds): 0 MiB given back after a round's deletes before, 330-1,120
     MiB with this. It gives back only what is already freed: a map must be freed at its delete, not by a
     later run of the cyclic garbage collector (a map was a reference cycle until 2026-12-02; the process

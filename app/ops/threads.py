@@ -2,7 +2,7 @@
 
 Parsing has its own threads so that a burst of queued batches cannot put its parsing ahead of
 the commit and fusion of the batch whose turn it is, nor ahead of readers' copies; reads have
-theirs so that a read of one map never waits behind minutes of fusion of others (issue 11).
+theirs so that a read of one map never waits behind minutes of fusion of others.
 """
 
 from __future__ import annotations

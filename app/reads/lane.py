@@ -3,7 +3,7 @@
 A read of a big map (``reads.HEAVY_READ_CELLS``) copies or renders the grid and sends a body of up to
 tens of MB. Read side by side, such reads held a copy each while they waited for their render, and
 took both cores from every other client: two readers of a 16 M-cell OccupancyGrid, back to back, made
-an innocent client's scans 2.6x slower at the 99th percentile (issue 11, bench abuse row 10). In the
+an innocent client's scans 2.6x slower at the 99th percentile (bench abuse row 10). In the
 lane a big read holds its turn from its copy until its last byte is sent (``Turn.hand_over``: the
 response ends it), at most ``MAX_SEND_HELD_S`` of the sending; the lane then stays closed
 ``busy x (1 / share - 1)`` seconds, at most ``MAX_REST_S``, so that big reads together take about

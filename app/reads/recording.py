@@ -49,9 +49,9 @@ from app.scans import batches
 from app.formats import etags
 from app.formats import exports
 from app.ros import messages_out
-from app.ros import msgtypes as rostypes
 from app.errors import TooLarge, Unavailable
 from app.formats.exports import NAV2_FREE_THRESH, NAV2_OCCUPIED_THRESH
+from app.ros import msgtypes
 from app.ros.msgtypes import typestore
 from app.maps.state import GridSnapshot
 from app.storage import StoredMap
@@ -89,7 +89,7 @@ def scan_stamps_ns(last_ns: int, count: int) -> list[int]:
 def _header(frame_id: str, stamp_ns: int) -> Any:
     types = typestore().types
     return types["std_msgs/msg/Header"](
-        stamp=types["builtin_interfaces/msg/Time"](**rostypes.ros_time_of_ns(stamp_ns)), frame_id=frame_id)
+        stamp=types["builtin_interfaces/msg/Time"](**msgtypes.ros_time_of_ns(stamp_ns)), frame_id=frame_id)
 
 
 def laser_scan_message(scan: LaserScan, *, frame_id: str, stamp_ns: int) -> Any:
@@ -99,7 +99,7 @@ def laser_scan_message(scan: LaserScan, *, frame_id: str, stamp_ns: int) -> Any:
     return typestore().types[LASER_SCAN](
         header=_header(frame_id, stamp_ns), angle_min=scan.angle_min,
         angle_max=scan.angle_min + (ranges.size - 1) * scan.angle_increment, angle_increment=scan.angle_increment,
-        time_increment=0.0, scan_time=SCAN_PERIOD_NS / rostypes.NS_PER_S, range_min=scan.range_min,
+        time_increment=0.0, scan_time=SCAN_PERIOD_NS / msgtypes.NS_PER_S, range_min=scan.range_min,
         range_max=scan.range_max, ranges=ranges, intensities=np.zeros(0, dtype=np.float32),
     )
 
@@ -138,7 +138,7 @@ def grid_cdr(grid: GridSnapshot) -> bytes:
                                   occupied_thresh=NAV2_OCCUPIED_THRESH)
     message = messages_out.occupancy_grid_message(
         data, width=risk.shape[0], height=risk.shape[1], resolution=grid.spec.resolution,
-        origin_xy=grid.spec.origin[:2], frame_id=grid.frame_id, stamp=rostypes.ros_time_of_iso(grid.updated),
+        origin_xy=grid.spec.origin[:2], frame_id=grid.frame_id, stamp=msgtypes.ros_time_of_iso(grid.updated),
     )
     return messages_out.occupancy_grid_cdr(message)
 
@@ -180,7 +180,7 @@ def mcap_file(grid: GridSnapshot, log: Sequence[tuple[int, bytes]], *, since_ver
             f"with the grid, about {size:,} bytes of messages, more than FUZZYRISK_MAX_RECORDING_BYTES "
             f"({max_bytes:,}); raise it, or export after the map's next snapshot (FUZZYRISK_SNAPSHOT_EVERY)"
         )
-    stamps = scan_stamps_ns(rostypes.ns_of_ros_time(rostypes.ros_time_of_iso(grid.updated)), lasers + clouds)
+    stamps = scan_stamps_ns(msgtypes.ns_of_ros_time(msgtypes.ros_time_of_iso(grid.updated)), lasers + clouds)
 
     out = io.BytesIO()
     writer = Writer(out, compression=CompressionType.ZSTD)
@@ -201,7 +201,7 @@ def mcap_file(grid: GridSnapshot, log: Sequence[tuple[int, bytes]], *, since_ver
                            sequence=sequence[topic])
         sequence[topic] += 1
 
-    first_ns = stamps[0] if stamps else rostypes.ns_of_ros_time(rostypes.ros_time_of_iso(grid.updated))
+    first_ns = stamps[0] if stamps else msgtypes.ns_of_ros_time(msgtypes.ros_time_of_iso(grid.updated))
     writer.add_message(channel[messages_out.MAP_TOPIC], log_time=first_ns, data=grid_bytes, publish_time=first_ns,
                        sequence=0)
     for scan, stamp_ns in zip(_scans(log), stamps, strict=True):

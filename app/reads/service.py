@@ -31,7 +31,7 @@ T = TypeVar("T")
 MAX_JSON_CELLS = 4_000_000
 #: Reads of maps with more cells take turns in the big reads' lane (``app.reads.lane``), in a thread of their own
 #: (``Workers.run_read(heavy=True)``): two readers of a 16 M-cell map's OccupancyGrid (16 MB of CDR, about 0.3 s
-#: each) held both read threads, and another map's 176,000-cell reads waited (issue 11, bench abuse row 10:
+#: each) held both read threads, and another map's 176,000-cell reads waited (bench abuse row 10:
 #: p99 13 -> 232 ms)
 HEAVY_READ_CELLS = 4_000_000
 #: Most pixels of one PNG.
@@ -241,7 +241,7 @@ class MapReads:
         The stamp and ``map_load_time`` are when the map reached this version (``GridSnapshot.updated``),
         so every read of one version gives the same bytes. JSON is refused above ``MAX_JSON_CELLS`` cells, as
         the risk grid's: 16 M values written as text took 1-3 s of the GIL per read, and stalled every
-        client of the service (issue 11); CDR and MCAP carry them as bytes.
+        client of the service; CDR and MCAP carry them as bytes.
         """
         _check_band(z_min, z_max)
         _check_thresholds(free_thresh, occupied_thresh)
@@ -303,7 +303,7 @@ def _occupancy_message(values: np.ndarray, grid: GridStamp,
         return messages_out.occupancy_grid_mcap(messages_out.occupancy_grid_cdr(message),
                                           log_time_ns=msgtypes.ns_of_ros_time(stamp))
     # the small fields through the model (validated), the 4-16 M values by numpy: one pydantic pass over
-    # them held the GIL, and so every request, for seconds (issue 11)
+    # them held the GIL, and so every request, for seconds
     head = OccupancyGrid.model_validate({
         "header": {"stamp": stamp, "frame_id": grid.frame_id},
         "info": {

@@ -20,7 +20,6 @@ import logging
 import os
 from typing import Any
 
-from app.maps import shared_grids as plangrids
 from app.ros import msgtypes
 from app.ops import warmup
 from app.config import Settings
@@ -28,7 +27,7 @@ from app.storage.diskreserve import DiskReserve
 from app.ops.process_setup import give_back_freed_memory
 from app.maps.state import MapObserver
 from app.ops.metrics import Metrics
-from app.maps.shared_grids import PlanGrids
+from app.maps.shared_grids import DIRECTORY as PLAN_GRIDS_DIRECTORY, PlanGrids
 from app.plans.service import MapPlans
 from app.plans.pool import PlanPool
 from app.reads.service import MapReads
@@ -55,7 +54,7 @@ class MapService:
             field_cache_bytes=settings.plan_cache_bytes,
         )
         # map versions published for the planner workers, so that a plan does not copy its map's grid
-        self._grids = PlanGrids(settings.data_dir / plangrids.DIRECTORY, settings.plan_cache_bytes, self._workers.run,
+        self._grids = PlanGrids(settings.data_dir / PLAN_GRIDS_DIRECTORY, settings.plan_cache_bytes, self._workers.run,
                                 metrics.plan_grid_bytes.set)
         self._reserve = DiskReserve(settings.data_dir, settings.disk_reserve_bytes)
         self.maps = MapRegistry(settings, storage, metrics, self._workers, self._grids, self._reserve, self._notify)
@@ -120,7 +119,7 @@ class MapService:
         LOG.info("fusion kernels ready", extra={"fields": {"seconds": round(seconds, 2)}})
         # What exists now (modules, compiled kernels, the maps loaded) lives as long as the process: out of the
         # collector's sight, a full collection no longer walks it. Each one took about 100 ms holding the GIL,
-        # every request of every client waiting (issue 11: the innocent's scan and read p99 of bench abuse).
+        # every request of every client waiting (the innocent's scan and read p99 of bench abuse).
         # Freed by reference counting as before (a map is no reference cycle); collected first, so that no
         # garbage is frozen with it.
         gc.collect()
