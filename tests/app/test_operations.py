@@ -12,6 +12,7 @@ from typing import Any
 import pytest
 from fastapi.testclient import TestClient
 
+from tests.conftest import ROOT
 from app.__main__ import main as cli_main
 from app.config import Settings
 from app.ops.logs import JsonFormatter, KeyValueFormatter
@@ -125,7 +126,7 @@ def test_every_documented_example_works_when_pasted(client: TestClient) -> None:
 
 
 def test_the_configuration_page_documents_every_setting() -> None:
-    page = (Path(__file__).resolve().parents[2] / "docs" / "configuration.md").read_text()
+    page = (ROOT / "docs" / "configuration.md").read_text()
     for name in Settings.model_fields:
         assert f"`FUZZYRISK_{name.upper()}`" in page, name
 

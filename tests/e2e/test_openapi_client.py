@@ -122,7 +122,7 @@ def test_the_generated_client_drives_every_operation(generated: tuple[ModuleType
     assert op("maps", "get_map").sync("hall", client=client).scans_fused == len(POSES)
     last = op("scans", "last_scan").sync("hall", client=client)
     assert isinstance(last, m.LastScan) and last.version == one.version
-    # a bag upload (real bags: tests/app/test_import_bag.py): bytes that are no bag answer the one error body
+    # a bag upload (real bags: tests/app/cli/test_import_bag.py): bytes that are no bag answer the one error body
     not_a_bag = package.types.File(payload=io.BytesIO(b"not a bag"), mime_type="application/octet-stream")
     refused_bag = op("scans", "post_bag").sync("hall", client=client, body=not_a_bag)
     assert isinstance(refused_bag, m.ErrorBody) and refused_bag.code == "INVALID" and "bag" in refused_bag.message

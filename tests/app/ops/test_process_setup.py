@@ -20,11 +20,10 @@ import psutil
 import pytest
 from fastapi.testclient import TestClient
 
-from app.ops import process_setup as lifecycle
 from app.config import Settings
+from app.ops import process_setup
 from app.ops.process_setup import StartupError, prepare_directories
-
-ROOT = Path(__file__).resolve().parents[2]
+from tests.conftest import ROOT
 
 
 def _wait_ready(client: TestClient, timeout_s: float = 120.0) -> dict[str, Any]:
@@ -59,7 +58,7 @@ def test_a_port_in_use_stops_the_start_at_once_with_exit_1_and_a_message(tmp_pat
 def test_the_listening_socket_says_it_is_tcp_so_that_answers_are_not_delayed() -> None:
     """asyncio sets TCP_NODELAY only on connections of a socket whose protocol is IPPROTO_TCP: without it, a
     small answer waits for the client's delayed ACK (a /health of 40-50 ms instead of a few)."""
-    sock = lifecycle.bind("127.0.0.1", 0)
+    sock = process_setup.bind("127.0.0.1", 0)
     with sock:
         assert sock.proto == socket.IPPROTO_TCP and sock.type == socket.SOCK_STREAM
 
@@ -124,7 +123,7 @@ def test_without_a_writable_temporary_directory_the_data_directory_holds_the_tem
 
     monkeypatch.setattr(tempfile, "gettempdir", nowhere)
     (tmp_path / "data" / "tmp" / "pymp-stale").mkdir(parents=True)  # what a killed run left
-    temp = lifecycle._ensure_temp_dir(tmp_path / "data" / "tmp")
+    temp = process_setup._ensure_temp_dir(tmp_path / "data" / "tmp")
     assert temp == (tmp_path / "data" / "tmp").resolve() and os.environ["TMPDIR"] == str(temp)
     assert list(temp.iterdir()) == []
 
@@ -220,7 +219,7 @@ def test_a_lower_priority_is_lower_than_where_the_thread_ran_started_niced_or_no
         me = threading.get_native_id()
         os.setpriority(os.PRIO_PROCESS, me, os.getpriority(os.PRIO_PROCESS, me) + 3)
         before = os.getpriority(os.PRIO_PROCESS, me)
-        lifecycle.lower_priority(5)
+        process_setup.lower_priority(5)
         return before, os.getpriority(os.PRIO_PROCESS, me)
 
     result: list[tuple[int, int]] = []

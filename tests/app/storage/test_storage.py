@@ -813,7 +813,7 @@ def test_a_batch_deleted_from_the_middle_of_the_log_is_damage(backend: Backend) 
 
 
 def test_postgres_connection_loss_is_storage_unavailable_and_the_next_call_reconnects(postgres: Backend) -> None:
-    # (SQLite's failures to write: tests/app/test_storage_faults.py)
+    # (SQLite's failures to write: tests/app/storage/test_storage_faults.py)
     store = postgres.open()
     _make(store)
     dbname = postgres.url.rsplit("/", 1)[1]

@@ -23,9 +23,8 @@ from PIL import Image
 from app.cli.import_log import main
 from fuzzyocc import FuzzyMap
 from fuzzyocc.carmen import grid_for_scans, read_carmen
-from tests.conftest import carmen_log
+from tests.conftest import ROOT, carmen_log
 
-ROOT = Path(__file__).resolve().parents[2]
 
 
 @pytest.fixture
