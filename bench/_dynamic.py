@@ -1,4 +1,4 @@
-"""The dynamic-obstacle case of ``bench_maps`` (issue 10): an obstacle seen in a few scans, then gone.
+"""The dynamic-obstacle case of ``bench_maps``: an obstacle seen in a few scans, then gone.
 
 On a real log, after the training scans are fused, a few real scans spread over the log (chosen
 deterministically) each get a small box (0.4 m x 0.4 m, on the grid's cells) in the free space

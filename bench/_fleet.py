@@ -1,4 +1,4 @@
-"""Replicas of the service on one PostgreSQL database, as real processes (issue 14).
+"""Replicas of the service on one PostgreSQL database, as real processes.
 
 A small API for the benchmarks that run a fleet (``bench/bench_faults.py --replicas``, and any
 other that wants one):

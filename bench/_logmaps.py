@@ -1,6 +1,6 @@
 """Maps of recorded CARMEN logs and held-out beam scoring, shared by ``bench_maps`` and the tests.
 
-The protocol (issue 10): fuse 9 scans of every 10 (scan ``i`` is held out when ``i % 10 == 9``);
+The protocol: fuse 9 scans of every 10 (scan ``i`` is held out when ``i % 10 == 9``);
 march every held-out hit beam through the map from the laser and take the first cell at or
 above the occupied threshold; compare that cell's distance with the measured range.
 

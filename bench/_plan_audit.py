@@ -1,4 +1,4 @@
-"""The plan audit of ``bench_maps`` (issue 10): plans on our map, checked against OctoMap's occupied cells.
+"""The plan audit of ``bench_maps``: plans on our map, checked against OctoMap's occupied cells.
 
 Pairs of poses the robot really drove (the laser poses of the log), far apart: ``PAIRS`` starts
 spread evenly over the log, each the first pose from its spread position whose footprint is

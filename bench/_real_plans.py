@@ -1,4 +1,4 @@
-"""Planning on maps of real buildings (issue 13): the instrument of ``bench_planning``'s real-map section.
+"""Planning on maps of real buildings: the instrument of ``bench_planning``'s real-map section.
 
 A map per recorded CARMEN log of the data directory (``bench/_logmaps.py``, ``--data``): every scan of the log fused in log order, in
 batches of 32 (what ``app.cli.import_log`` posts), into ``FuzzyMap(spec)`` (the default preset and

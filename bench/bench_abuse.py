@@ -1,4 +1,4 @@
-"""Hostile clients against the real server (issue 11): each attack beside an innocent client, one row each.
+"""Hostile clients against the real server: each attack beside an innocent client, one row each.
 
     python3 dev.py bench abuse            (or .venv/bin/python -m bench.bench_abuse, from the repository root)
 
@@ -8,7 +8,7 @@ client (``bench._abuse_clients.Innocent``, its own process) minds a small map of
 throughout: a binary 1080-beam scan every 0.1 s, ``GET risk.npy`` every 0.1 s, an RRTConnect plan
 (0.5 s) every second, each on its own connection, retried after ``Retry-After`` on a 503. Its
 unloaded latency is measured in the same run: 20 s before the first attack and 15 s after the
-last, pooled. Then, one after the other (issue 11's items; 7 and 8, storage damage and a batch
+last, pooled. Then, one after the other (7 and 8, storage damage and a batch
 failing mid-apply, cannot be caused by a client: ``tests/app/test_storage.py``):
 
 1.  a small batch of long rays on a 16 M-cell map (0.01 m): 12 LaserScans of 16,384 beams beyond

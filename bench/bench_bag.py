@@ -1,4 +1,4 @@
-"""Bag import speed (issue 12): scans/s of ``python -m app.import_bag`` and of ``POST /maps/{name}/bags``.
+"""Bag import speed: scans/s of ``python -m app.import_bag`` and of ``POST /maps/{name}/bags``.
 
 Run: ``.venv/bin/python -m bench.bench_bag [--scans 1000] [--beams 720]``.
 

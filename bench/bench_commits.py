@@ -5,7 +5,7 @@
 
 * ``alone``: small batches (2 KB) only, one every 50 ms;
 * ``in rows``: the same beside an 8 MB batch every 0.5 s of another map, its payload in its row
-  (``INLINE_BYTES`` raised for the window: how the store wrote every batch before issue 11's row 6);
+  (``INLINE_BYTES`` raised for the window: how the store wrote every batch before payload files);
 * ``as files``: the same, with payloads over ``INLINE_BYTES`` written to files before their commit
   (what the service does).
 

@@ -29,7 +29,7 @@
    reads, and answer writes with a 5xx carrying a JSON error body; finally the directory is made
    writable again and the map checked against the acknowledged batches.
 
-4. **Replicas on one PostgreSQL (``--replicas N``, issue 14).** A PostgreSQL cluster is started
+4. **Replicas on one PostgreSQL (``--replicas N``).** A PostgreSQL cluster is started
    here with fsync on (``bench._fleet.durable_postgres``), N ``python -m app`` replicas on one
    database (own data directories and ports; snapshots every 5 batches), 3 maps. Three writer
    threads post batches, each to a random map through a random replica that is up, and a reader
@@ -560,7 +560,7 @@ def storage_faults(seed: int = 1, *, size_bytes: int = 3 * 2**20, max_batches: i
     return report
 
 
-# ---------------------------------------------------------------- replicas on one PostgreSQL (issue 14)
+# ---------------------------------------------------------------- replicas on one PostgreSQL
 
 #: The maps of the replica kill loop (name -> model); map i is created through replica i % replicas.
 REPLICA_MAPS = {"fz": "fuzzy", "bz": "bayes", "fz2": "fuzzy"}

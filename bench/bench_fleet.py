@@ -1,4 +1,4 @@
-"""A fleet of replicas on one PostgreSQL database against one server (issue 14): scans/s and plans/s.
+"""A fleet of replicas on one PostgreSQL database against one server: scans/s and plans/s.
 
     python -m bench.bench_fleet [--quick] [--robots N] [--plan-clients K] [--seconds S] [--rounds R]
                                 [--planner P] [--time-limit T] [--unseeded] [--py-spy DIR]
@@ -19,7 +19,7 @@ tests' cluster settings turn ``fsync`` off, this one runs with ``fsync``, ``full
 ``synchronous_commit`` on, checked with ``SHOW`` and printed). Both databases are on the same disk.
 
 Load balancing is done in the client: every request goes to replica ``crc32(map name) %
-replicas``, the map-affine balancer issue 14 assumes (each map's fusion happens on one replica;
+replicas``, the map-affine balancer of deploy/fleet/nginx.conf (each map's fusion happens on one replica;
 the others would catch up from the database at a read). The map names are chosen so that the
 hash spreads them evenly (with 4 maps a hash splits 2:2 only 3 times in 8; with many maps it
 evens out): the benchmark measures capacity, not the luck of a hash. The assignment is printed.
@@ -47,7 +47,7 @@ processes also wins a larger share of the CPU from the others). After the phases
 every replica of its fleet: the versions must equal the batches acknowledged, and the replicas'
 risk grids must be identical (a replica that did not fuse a map catches it up from the database).
 
-Targets (issue 14): pg2 / pg1 scans/s >= 0.9, plans/s >= 1.6. The run stops by itself; every
+Targets: pg2 / pg1 scans/s >= 0.9, plans/s >= 1.6. The run stops by itself; every
 process it starts is ended.
 """
 

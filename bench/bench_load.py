@@ -3,7 +3,7 @@
     python -m bench.bench_load [--quick] [--robots N] [--seconds S] [--client lean|httpx] [--py-spy DIR]
                                                                                     (from the repository root)
     python -m bench.bench_load --fleet [--quick] ...   # = python -m bench.bench_fleet: SQLite, 1 and 2
-                                                       #   replicas on one PostgreSQL (issue 14)
+                                                       #   replicas on one PostgreSQL
 
 N simulated robots in one 20 m x 20 m room (``bench.bench_fusion.planar_scene``: 1080-beam
 LaserScans over 270 degrees, 0.05 m maps of 420 x 420 cells) each stream their scans into their
@@ -368,7 +368,7 @@ def _py_spy(pid: int, seconds: float, out: Path, *extra: str) -> subprocess.Pope
 
 def main(argv: list[str] | None = None) -> int:
     args_in = sys.argv[1:] if argv is None else argv
-    if "--fleet" in args_in:  # issue 14: SQLite, 1 and 2 replicas on one PostgreSQL (bench/bench_fleet.py)
+    if "--fleet" in args_in:  # SQLite, 1 and 2 replicas on one PostgreSQL (bench/bench_fleet.py)
         from bench import bench_fleet
 
         return bench_fleet.main([a for a in args_in if a != "--fleet"])

@@ -1,4 +1,4 @@
-"""Map quality on real buildings, ours against OctoMap in the same run (issue 10).
+"""Map quality on real buildings, ours against OctoMap in the same run.
 
     python3 dev.py bench maps [--data DIR] [--logs a,b] [--engine PRESET] [--quick] [--jobs N] [--reproducible-plans]
     python -m bench.bench_maps ...                                  (from the repository root)
@@ -155,7 +155,7 @@ def evaluate_log(path: Path, engine_name: str = DEFAULT_PRESET, scan_limit: int 
 # ------------------------------------------------------------------ targets
 @dataclass(frozen=True)
 class Target:
-    """One target of issue 10 on one log: met or not, and the numbers that say so."""
+    """One map-quality target on one log: met or not, and the numbers that say so."""
 
     name: str
     met: bool

@@ -5,7 +5,7 @@
                                    [--planners a,b] [--repeats N] [--no-http]
                                                             (from the repository root)
 
-Two sections: the synthetic maps below (issue 3), then maps of real buildings (issue 13, at the end).
+Two sections: the synthetic maps below, then maps of real buildings (at the end).
 
 Three 400 x 400 maps at 0.05 m (20 m x 20 m), generated from a fixed seed:
 
@@ -30,7 +30,7 @@ is measured as ``plan`` uses it (compiled into OMPL, ``planning/native.py``) and
 subclass it falls back to; a plain-Python length objective shows the floor any Python objective
 pays; and the number and rate of motionCost calls.
 
-Real maps (issue 13, ``bench/_real_plans.py``): a map per CARMEN log of the data directory
+Real maps (``bench/_real_plans.py``): a map per CARMEN log of the data directory
 (``--data DIR``, ``bench/_data.py``; ``--logs``, default
 belgioioso, csail and orebro: 1.4-2.0 M cells of 0.05 m), every scan fused with the default engine;
 ``--pairs`` queries between far-apart poses the robot drove (``_plan_audit.pick_pairs``). Printed:
@@ -341,7 +341,7 @@ def objective_overhead(field: RiskField, iterations: int, seconds: float, repeat
     print(f"risk objective: {calls / done:.1f} motionCost calls per iteration")
 
 
-# ---------------------------------------------------------------- real maps (issue 13)
+# ---------------------------------------------------------------- real maps
 
 
 def _md(headers: list[str], rows: list[list[str]]) -> str:
@@ -392,7 +392,7 @@ def real_maps(logs: list[str], pairs: int, planners: list[str], time_limit: floa
     import os
     import platform
 
-    print("## Real maps (issue 13)\n")
+    print("## Real maps\n")
     now = datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
     try:
         from bench._client import machine
@@ -581,10 +581,10 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=2024, help="map generator seed")
     parser.add_argument("--runs", type=int, default=None, help="runs per planner and map")
     parser.add_argument("--time-limit", type=float, default=1.0, help="seconds per plan")
-    real = parser.add_argument_group("real maps (issue 13): run after the synthetic maps unless told otherwise")
+    real = parser.add_argument_group("real maps: run after the synthetic maps unless told otherwise")
     part = real.add_mutually_exclusive_group()
     part.add_argument("--real-only", action="store_true", help="only the real-map section")
-    part.add_argument("--synthetic-only", action="store_true", help="only the synthetic maps (the issue 3 bench)")
+    part.add_argument("--synthetic-only", action="store_true", help="only the synthetic maps")
     _data.add_option(real)
     real.add_argument("--logs", default=None,
                       help=f"logs of the data directory, comma-separated (default {','.join(_real_plans.DEFAULT_LOGS)}; "
@@ -625,7 +625,7 @@ def main() -> None:
 
 
 def synthetic(args: argparse.Namespace) -> None:
-    """The synthetic maps (issue 3): planners against the grid optimum, and the objective's overhead."""
+    """The synthetic maps: planners against the grid optimum, and the objective's overhead."""
     runs = args.runs or (2 if args.quick else 5)
     planners = list(QUICK_PLANNERS) if args.quick else [p for p in available_planners() if p != "grid"]
     rng = np.random.default_rng(args.seed)

@@ -1,4 +1,4 @@
-"""OccupancyGrid of a 4M-cell map as CDR and MCAP against the JSON OccupancyGrid (issue 12: CDR <= 150 ms).
+"""OccupancyGrid of a 4M-cell map as CDR and MCAP against the JSON OccupancyGrid (CDR <= 150 ms).
 
 Run: ``python3 dev.py bench rosout`` (or ``.venv/bin/python -m bench.bench_rosout [--runs N]``).
 

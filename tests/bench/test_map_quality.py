@@ -1,4 +1,4 @@
-"""Map quality against OctoMap (issue 10), CI-sized: the instrument, and the targets on the smallest recorded log.
+"""Map quality against OctoMap, CI-sized: the instrument, and the targets on the smallest recorded log.
 
 The instrument tests check what ``bench/bench_maps.py`` measures with: the held-out scoring on
 hand-made numbers, our march and OctoMap's ``castRay`` on a synthetic wall and against each other
@@ -170,7 +170,7 @@ def test_plan_pairs_are_driven_poses_far_apart() -> None:
 # ------------------------------------------------------------------ the targets
 @pytest.fixture(scope="module")
 def orebro_report() -> bench_maps.LogReport:
-    """Issue 10's figures on orebro's first 120 scans: ours (the default preset) and OctoMap in the same run."""
+    """The map-quality figures of ``bench maps`` on orebro's first 120 scans: ours (the default preset) and OctoMap in the same run."""
     return bench_maps.evaluate_log(orebro(), DEFAULT_PRESET, scan_limit=bench_maps.QUICK_SCANS,
                                    trials=bench_maps.QUICK_TRIALS, pairs=bench_maps.QUICK_PAIRS,
                                    reproducible_plans=True)  # RRTstar on an iteration count: the same paths under load

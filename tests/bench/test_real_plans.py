@@ -1,4 +1,4 @@
-"""Planning on a real map (issue 13), CI-sized: what ``bench planning``'s real-map section measures with.
+"""Planning on a real map, CI-sized: what ``bench planning``'s real-map section measures with.
 
 One small real map, orebro's first 120 scans fused with the default engine (as
 ``tests/bench/test_map_quality.py`` takes them), 3 queries between far-apart poses the robot drove
@@ -55,7 +55,7 @@ def test_grid_and_rrtstar_are_exact_and_clear_of_occupied_cells(plans: list[_rea
     assert {r.label for r in plans} == labels and len(plans) == len(labels) * PAIRS
     for r in plans:
         # what a user gets (the grid planner, RRTstar as plan() runs it) reaches the goal; the sampler on its own
-        # need not (issue 13: it misses doors the cell graph finds, why plan() seeds it), but it keeps clear
+        # need not (it misses doors the cell graph finds, why plan() seeds it), but it keeps clear
         assert r.exact or (r.alone and r.status == "approximate"), (r.planner, r.pair, r.status, r.message)
         assert r.clearance >= CLEAR, (r.planner, r.pair, r.clearance)
         assert math.isfinite(r.cost) and r.cost >= r.length > 0

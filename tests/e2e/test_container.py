@@ -110,7 +110,7 @@ print(json.dumps(sorted(files)))
 
 
 def test_the_environment_is_trimmed_in_the_build_stage_of_nothing_the_service_loads() -> None:
-    """Issue 15 (an image of at most 450 MB): the build stage removes what the service never loads, after the
+    """An image of at most 450 MB: the build stage removes what the service never loads, after the
     dependencies and before the sources, so the final image never gets it; and none of it is what the service
     loads, here with the same locked versions: no module, no shared library, nothing under a test suite."""
     build = _stage(0)

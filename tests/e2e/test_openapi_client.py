@@ -1,5 +1,5 @@
-"""A client generated from the service's OpenAPI document by openapi-python-client drives every operation
-(issue 12 item 6): the document is one a generator can use, and what the generated code sends and parses
+"""A client generated from the service's OpenAPI document by openapi-python-client drives every operation:
+the document is one a generator can use, and what the generated code sends and parses
 is what the service answers.
 
 The client is generated from the live server's ``/openapi.json``, as a user would, into a temporary

@@ -1,5 +1,5 @@
 """Slow clients against the real server (``python -m app``): request headers trickled byte by byte do not
-hold a connection for ever (issue 11); a client that sends its headers in time is served as before."""
+hold a connection for ever; a client that sends its headers in time is served as before."""
 
 from __future__ import annotations
 

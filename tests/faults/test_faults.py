@@ -69,7 +69,7 @@ def test_full_disk_applies_no_refused_batch_and_corrupts_nothing(storage: Storag
 
 
 def test_a_map_can_be_deleted_while_the_disk_is_full(storage: StorageReport) -> None:
-    # issue 11: DELETE answered 503 on a full disk, so space could not be freed through the API
+    # DELETE answered 503 on a full disk, so space could not be freed through the API
     assert storage.delete_while_full.startswith("204"), storage.delete_while_full
 
 

@@ -1,5 +1,5 @@
 """CI-sized replica kills (``bench/bench_faults.py --replicas 2`` at 4 kills): two real replica processes on
-one PostgreSQL database (issue 14).
+one PostgreSQL database.
 
 Writers post batches for the same maps through both replicas; one replica at a time is killed -9 at a
 random moment and restarted. Nothing acknowledged is lost (the database's log holds every acknowledged

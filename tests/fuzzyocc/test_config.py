@@ -1,4 +1,4 @@
-"""GridSpec and SensorModel refuse what would make a map meaningless, before any work (issue 11)."""
+"""GridSpec and SensorModel refuse what would make a map meaningless, before any work."""
 
 from __future__ import annotations
 

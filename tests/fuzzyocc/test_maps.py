@@ -364,7 +364,7 @@ def test_bayes_updates_every_cell_a_large_scan_clears() -> None:
 @pytest.mark.parametrize("model", [FuzzyMap, BayesMap])
 @pytest.mark.parametrize("ndim", [2, 3])
 def test_a_batch_cast_in_chunks_gives_the_map_of_one_cast(model, ndim, monkeypatch) -> None:
-    # issue 11: a whole batch cast at once held an entry per (scan, cell): memory grew with the batch
+    # a whole batch cast at once held an entry per (scan, cell): memory grew with the batch
     import fuzzyocc.maps as maps_module
 
     rng = np.random.default_rng(4)
@@ -405,7 +405,7 @@ def _awkward_scan(rng: np.random.Generator, n: int, k: int) -> LaserScan:
 @pytest.mark.parametrize("model", [FuzzyMap, BayesMap])
 @pytest.mark.parametrize("ndim", [2, 3])
 def test_a_scan_cast_in_parts_gives_the_map_of_one_cast(model, ndim, monkeypatch) -> None:
-    # issue 11: the rays of every beam of a scan were made at once (about 300 bytes a beam): two scans of
+    # the rays of every beam of a scan were made at once (about 300 bytes a beam): two scans of
     # 2 M beams fused side by side took 1 GB; a huge scan is now made and cast a part at a time
     import fuzzyocc.maps as maps_module
 
@@ -453,7 +453,7 @@ def test_the_rays_of_a_scans_parts_are_the_rays_of_the_whole_scan(usable: str) -
 
 @pytest.mark.parametrize("usable", ["all", "at the ends only"])
 def test_fusing_a_huge_scan_takes_memory_for_its_readings_not_for_its_rays(usable: str) -> None:
-    # "at the ends only": every part's no-return cut reads the whole scan for its neighbours (review of issue 11:
+    # "at the ends only": every part's no-return cut reads the whole scan for its neighbours (
     # each of the 16 parts then made the whole scan's incidence, 10x the time and 200 MB)
     import tracemalloc
 
@@ -479,7 +479,7 @@ def test_fusing_a_huge_scan_takes_memory_for_its_readings_not_for_its_rays(usabl
 
 @pytest.mark.parametrize("model", [FuzzyMap, BayesMap])
 def test_a_map_is_freed_as_soon_as_it_is_let_go(model) -> None:
-    # without the cyclic garbage collector: no reference cycle (issue 11: a map's storage held a bound
+    # without the cyclic garbage collector: no reference cycle (a map's storage held a bound
     # method of the map, so a map let go lingered until the collector ran)
     import gc
     import weakref
@@ -501,7 +501,7 @@ def test_a_map_is_freed_as_soon_as_it_is_let_go(model) -> None:
 
 def test_beam_angles_past_float_range_are_refused_before_any_cast() -> None:
     # a scan whose last beam's angle overflowed to inf cast NaN directions; the kernel then handed out cell ids
-    # it never wrote and the service segfaulted, at every restart too (review of issue 11)
+    # it never wrote and the service segfaulted, at every restart too
     with pytest.raises(ValueError, match="angles"):
         LaserScan(pose=(0.0, 0.0, 0.0), angle_min=0.0, angle_increment=1e308, ranges=[1.0] * 5000, range_min=0.1,
                   range_max=10.0)

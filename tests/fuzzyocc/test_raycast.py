@@ -257,7 +257,7 @@ def test_block_numbering_reaches_the_same_cells_with_the_same_evidence(spec: Gri
 
 
 def test_the_work_estimate_never_overflows_into_a_small_number() -> None:
-    # issue 11 review: one beam of a range_max near the largest float made the sum of its coordinates inf, and
+    # one beam of a range_max near the largest float made the sum of its coordinates inf, and
     # the compiled estimate wrapped to a negative count that let any batch through its budget
     spec = GridSpec(origin=(0.0, 0.0), size=(1.0, 1.0), resolution=0.1)
     far = np.array([[1.5e308 * 0.7, 1.5e308 * 0.7]])

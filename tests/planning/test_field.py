@@ -96,7 +96,7 @@ def test_valid_mask_combines_max_risk_and_unknown_space() -> None:
 
 
 def test_max_risk_bounds_what_was_observed_and_allow_unknown_what_was_not() -> None:
-    # issue 10: a surface hit once and seen through twice is an observed cell at 0.5; with max_risk 0.6 the
+    # a surface hit once and seen through twice is an observed cell at 0.5; with max_risk 0.6 the
     # planner drove past it 0.10 m away (infinite-corridor), where OctoMap holds it occupied
     risk = np.full((30, 30), 0.4, np.float32)  # one net level of free evidence
     risk[10, 10] = 0.5  # observed: evidence for and against that cancels out

@@ -1,4 +1,4 @@
-"""One error body for every error (issue 12 item 6): whoever answers, the client reads ``{code, message,
+"""One error body for every error: whoever answers, the client reads ``{code, message,
 details}``, and the OpenAPI document declares that body for every status the operation can answer."""
 
 from __future__ import annotations
@@ -118,7 +118,7 @@ def test_range_tokens_are_a_pattern_not_an_enum_with_colliding_names(client: Tes
 
 
 def test_a_client_that_goes_away_mid_body_is_not_a_server_error() -> None:
-    # issue 11: every such client was logged as "Exception in ASGI application" (ClientDisconnect)
+    # every such client was logged as "Exception in ASGI application" (ClientDisconnect)
     app = FastAPI()
     install_error_handlers(app)
 

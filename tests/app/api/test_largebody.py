@@ -1,4 +1,4 @@
-"""Big response bodies go out a MiB at a time (issue 11: one 16 MB write held the event loop)."""
+"""Big response bodies go out a MiB at a time (one 16 MB write held the event loop)."""
 
 from __future__ import annotations
 

@@ -55,7 +55,7 @@ def test_the_right_key_works_and_probes_stay_open(locked: TestClient, kit: Any) 
 
 def test_the_key_is_checked_before_the_body_is_read(locked: TestClient) -> None:
     # a body far over every limit, with no key or the wrong one: 401, not 413 (nor a parse of it:
-    # issue 11, a 66 MB query body with a wrong key was parsed before its 401)
+    # a 66 MB query body with a wrong key was once parsed before its 401)
     huge = b'{"points": [' + b"[0.0, 0.0]," * 2_000_000 + b"[0.0, 0.0]]}"
     for headers in ({}, {"Authorization": f"Bearer {KEY}x"}):
         response = locked.post("/maps/lab/risk/query", content=huge, headers={"Content-Type": "application/json",
@@ -148,7 +148,7 @@ def test_the_cells_of_all_maps_together_are_capped_before_any_memory_is_taken(ma
     assert small.status_code == 201
 
 
-# ---------------------------------------------------------------- bodies in flight (issue 11 item 3)
+# ---------------------------------------------------------------- bodies in flight
 
 
 async def _drain(scope: dict, receive: Any, send: Any) -> None:
@@ -213,7 +213,7 @@ def test_bodies_in_flight_share_one_budget_and_a_refused_one_gives_its_bytes_bac
 
 
 def test_one_maps_bodies_leave_half_of_the_budget_to_the_others() -> None:
-    # issue 11 (bench abuse row 3): forty uploads to one map held the whole budget, and every other map's
+    # bench abuse row 3: forty uploads to one map held the whole budget, and every other map's
     # scans answered 503 with Retry-After 1 s
     budget = BodyBudgetMiddleware(ExceptionMiddleware(_drain), max_bytes=10_000, read_timeout_s=5.0)
 
@@ -259,7 +259,7 @@ def test_the_service_runs_the_budget_from_its_settings(make_client: Any, kit: An
 
 
 def test_a_batch_that_would_walk_too_many_cells_is_refused_before_it_is_stored(make_client: Any, kit: Any) -> None:
-    # issue 11: a small request of long rays on a fine map held a fusion thread for minutes, and every
+    # a small request of long rays on a fine map held a fusion thread for minutes, and every
     # restart replayed it; the work is estimated from the rays before the batch is stored
     client = make_client(max_batch_cells=200_000)
     assert client.post("/maps", json=kit.MAP_2D).status_code == 201  # 10 m x 10 m at 0.1 m
@@ -274,7 +274,7 @@ def test_a_batch_that_would_walk_too_many_cells_is_refused_before_it_is_stored(m
 
 def test_a_beam_of_an_enormous_range_max_does_not_let_a_batch_past_its_work_budget(make_client: Any,
                                                                                     kit: Any) -> None:
-    # issue 11 review: range_max 1.5e308 (finite, accepted) overflowed the compiled estimate to a negative count,
+    # range_max 1.5e308 (finite, accepted) overflowed the compiled estimate to a negative count,
     # and a batch over FUZZYRISK_MAX_BATCH_CELLS was fused
     from fuzzyocc import GridSpec, cast_work
 
@@ -315,7 +315,7 @@ def test_the_cast_work_estimate_follows_what_the_cast_walks() -> None:
 
 
 def test_a_trickled_body_answers_408_once_the_whole_body_is_late() -> None:
-    # issue 11 (bench abuse row 4b): a byte every few seconds passed the per-chunk timeout for ever
+    # bench abuse row 4b: a byte every few seconds passed the per-chunk timeout for ever
     budget = BodyBudgetMiddleware(ExceptionMiddleware(_drain), max_bytes=10_000, read_timeout_s=1.0,
                                   body_timeout_s=0.3)
     scope = {"type": "http", "method": "POST", "path": "/maps/a/scans", "headers": []}

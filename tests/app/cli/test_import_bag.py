@@ -1,4 +1,4 @@
-"""Bags in (issue 12 item 1): ``python -m app.import_bag`` and ``POST /maps/{name}/bags``.
+"""Bags in: ``python -m app.import_bag`` and ``POST /maps/{name}/bags``.
 
 Bags are written here with rosbags (ROS 1, rosbag2 with mcap and sqlite3 storage, Humble and Jazzy
 message definitions). The expected map is built by posting the same scans as JSON with poses computed

@@ -1,4 +1,4 @@
-"""Large JSON batches are parsed in a process of their own (issue 11): the same maps and the same errors as in
+"""Large JSON batches are parsed in a process of their own: the same maps and the same errors as in
 the server's threads, and the process ends with the service or is replaced when it dies."""
 
 from __future__ import annotations

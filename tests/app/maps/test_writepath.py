@@ -308,7 +308,7 @@ def test_the_query_is_checked_before_the_content_type_and_for_json_too(lab: Test
 @pytest.mark.parametrize("headers", [{}, {"content-type": ""}])
 def test_a_scan_upload_without_a_content_type_is_refused_and_changes_nothing(lab: TestClient, kit: Any,
                                                                              headers: dict) -> None:
-    # what a web page's no-cors fetch sends, with no preflight: it must not reach the map (issue 11)
+    # what a web page's no-cors fetch sends, with no preflight: it must not reach the map
     body = json.dumps(_bodies(kit, 1)[0]).encode()
     response = lab.post("/maps/lab/scans", content=body, headers=headers)
     assert response.status_code == 415 and "needs a Content-Type" in error_message(response)
@@ -317,7 +317,7 @@ def test_a_scan_upload_without_a_content_type_is_refused_and_changes_nothing(lab
 
 def test_the_scan_query_is_documented_as_before(client: TestClient) -> None:
     params = client.get("/openapi.json").json()["paths"]["/maps/{name}/scans"]["post"]["parameters"]
-    # point_step (issue 12): raw binary points state their stride
+    # point_step: raw binary points state their stride
     assert [p["name"] for p in params] == ["name", "x", "y", "z", "theta", "qx", "qy", "qz", "qw", "angle_min",
                                            "angle_increment", "range_min", "range_max", "registration_sigma",
                                            "point_step"]
@@ -544,7 +544,7 @@ def _hold_applies(service: Any, monkeypatch: pytest.MonkeyPatch, name: str) -> t
 def test_a_read_of_one_map_does_not_wait_behind_the_fusion_of_another(make_client: Any, kit: Any,
                                                                       monkeypatch: pytest.MonkeyPatch) -> None:
     # every fusion thread busy with map a (held here, as a scan of millions of beams would be): a read
-    # of map b is answered at once (issue 11: a read of a third map waited 297 s behind two fusions)
+    # of map b is answered at once (a read of a third map waited 297 s behind two fusions)
     client = make_client(fusion_threads=1)
     for name in ("a", "b"):
         assert client.post("/maps", json={**kit.MAP_2D, "name": name}).status_code == 201
@@ -565,7 +565,7 @@ def test_a_read_of_one_map_does_not_wait_behind_the_fusion_of_another(make_clien
 
 def test_ready_shows_the_fusion_backlog_while_reads_are_served(make_client: Any, kit: Any,
                                                               monkeypatch: pytest.MonkeyPatch) -> None:
-    # issue 11 item 5: two fusions of minutes stalled every map while /health stayed green and nothing said why
+    # two fusions of minutes stalled every map while /health stayed green and nothing said why
     client = make_client(fusion_threads=1)
     assert client.post("/maps", json=kit.MAP_2D).status_code == 201
     service = client.app.state.service  # type: ignore[attr-defined]
@@ -589,7 +589,7 @@ def test_ready_shows_the_fusion_backlog_while_reads_are_served(make_client: Any,
 
 def test_a_read_of_a_small_map_does_not_wait_behind_big_reads(make_client: Any, kit: Any,
                                                               monkeypatch: pytest.MonkeyPatch) -> None:
-    # issue 11 (bench abuse row 10): two readers of a 16 M-cell map's OccupancyGrid held both read threads, and
+    # bench abuse row 10: two readers of a 16 M-cell map's OccupancyGrid held both read threads, and
     # another map's reads waited (p99 13 -> 232 ms)
     from app.formats import exports
     from app.reads import service as reads
@@ -622,7 +622,7 @@ def test_a_read_of_a_small_map_does_not_wait_behind_big_reads(make_client: Any, 
 
 def test_big_reads_take_turns_and_those_beyond_the_queue_are_refused(make_client: Any, kit: Any,
                                                                    monkeypatch: pytest.MonkeyPatch) -> None:
-    # issue 11 (bench abuse row 10): big reads side by side each held a copy of the grid while they waited for
+    # bench abuse row 10: big reads side by side each held a copy of the grid while they waited for
     # their render, and took both cores from the other clients; now one at a time, and a bounded queue
     from app.formats import exports
     from app.reads import service as reads
@@ -662,7 +662,7 @@ def test_big_reads_take_turns_and_those_beyond_the_queue_are_refused(make_client
 
 
 def test_uploads_still_arriving_count_against_their_maps_line(make_client: Any, kit: Any) -> None:
-    # issue 11: bodies read side by side all passed a check that counted only batches already in line
+    # bodies read side by side all passed a check that counted only batches already in line
     client = make_client(max_pending_batches=2)
     for name in ("lab", "other"):
         assert client.post("/maps", json={**kit.MAP_2D, "name": name}).status_code == 201
@@ -679,7 +679,7 @@ def test_uploads_still_arriving_count_against_their_maps_line(make_client: Any, 
 
 def test_a_light_batch_is_not_held_behind_heavy_batches_of_other_maps(make_client: Any, kit: Any,
                                                                       monkeypatch: pytest.MonkeyPatch) -> None:
-    # issue 11: two 2 M-beam scans held both fusion threads for 3-4 s; every other map's batch waited, and so
+    # two 2 M-beam scans held both fusion threads for 3-4 s; every other map's batch waited, and so
     # did the reads of those maps (behind their apply lock)
     client = make_client(fusion_threads=1)
     for name in ("heavy", "light"):

@@ -112,7 +112,7 @@ def test_a_plan_out_of_time_answers_200_with_nav2s_timeout(planner: TestClient) 
         ({"robot_radius": -1}, "robot_radius"),
         ({"seed": -1}, "seed"),
         ({"state_space": "Dubins", "start": [0, 0, 0], "goal": [1, 0, 0]}, "turning_radius"),
-        # bounded by what the map makes sensible, before any work (issue 11: 1e6 was a MemoryError)
+        # bounded by what the map makes sensible, before any work (1e6 was a MemoryError)
         ({"robot_radius": 1e6}, "robot_radius"),
         ({"state_space": "ReedsShepp", "start": [-1.5, 0, 0], "goal": [2.0, 0.5, 0], "turning_radius": 1e300},
          "turning_radius"),

@@ -87,7 +87,7 @@ def test_plans_beyond_workers_and_queue_are_refused_after_the_wait_for_room() ->
         finally:
             pool.shutdown()
 
-    # issue 11 (bench abuse row 9): answered at once, ten clients that ignored Retry-After asked 90 times a second
+    # bench abuse row 9: answered at once, ten clients that ignored Retry-After asked 90 times a second
     assert planworker.ROOM_WAIT_S - 0.05 <= asyncio.run(scenario()) < 2.5
 
 
@@ -193,7 +193,7 @@ def test_one_map_holds_at_most_half_the_queue(short_room_wait: float) -> None:
 
 
 def test_a_map_flooded_with_plans_leaves_a_worker_to_the_others() -> None:
-    # issue 11 (bench abuse row 9): ten clients' plans on one map held both workers, so another map's plan
+    # bench abuse row 9: ten clients' plans on one map held both workers, so another map's plan
     # waited for one of its solves, and both cores solved while the innocent's scans waited for CPU
     async def scenario() -> None:
         pool = PlanPool(workers=2, queue=8)
@@ -295,7 +295,7 @@ def _niceness() -> int:
 
 
 def test_plans_run_at_a_lower_priority_than_the_server() -> None:
-    # issue 11 (bench abuse rows 7 and 9): a 30 s plan, and ten clients' plans on both cores, made an innocent
+    # bench abuse rows 7 and 9: a 30 s plan, and ten clients' plans on both cores, made an innocent
     # client's map reads 2.6x slower; a plan now takes the CPU that scans and reads leave
     async def scenario() -> int:
         pool = PlanPool(workers=1, queue=1)

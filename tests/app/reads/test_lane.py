@@ -1,4 +1,4 @@
-"""The big reads' lane (issue 11, bench abuse row 10): one at a time, a rest after each, a bounded queue."""
+"""The big reads' lane (bench abuse row 10): one at a time, a rest after each, a bounded queue."""
 
 from __future__ import annotations
 

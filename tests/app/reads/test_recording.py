@@ -1,4 +1,4 @@
-"""The MCAP export of a map (issue 12 item 4): its grid and the scans of its batch log, for offline viewing.
+"""The MCAP export of a map: its grid and the scans of its batch log, for offline viewing.
 
 The file is read twice, as a viewer would: with the ``mcap`` package's reader (topics, schemas, log
 times, the raw CDR) and with rosbags' ``AnyReader`` (a single ``.mcap`` file; messages deserialized

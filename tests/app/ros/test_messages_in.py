@@ -1,4 +1,4 @@
-"""POST /maps/{name}/scans with CDR-serialized sensor_msgs LaserScan and PointCloud2 bodies (issue 12 item 2).
+"""POST /maps/{name}/scans with CDR-serialized sensor_msgs LaserScan and PointCloud2 bodies.
 
 Each accepted body must give the map, bit for bit, that posting the same scan as JSON (or binary) gives;
 the expected poses and points are computed here, independently of app.ros.messages_in.

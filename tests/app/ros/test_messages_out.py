@@ -1,4 +1,4 @@
-"""ROS-shaped outputs (issue 12 item 3): plans as nav_msgs/Path, a frame per map, OccupancyGrid as CDR and
+"""ROS-shaped outputs: plans as nav_msgs/Path, a frame per map, OccupancyGrid as CDR and
 MCAP, the map version on every read, ETags and 304s on the grid routes, stamps of the map's last batch.
 
 The messages are checked with ROS's own definitions through rosbags' typestore: an answer converts to a
@@ -377,7 +377,7 @@ def test_the_grid_stamp_is_the_time_of_the_maps_last_batch(lab: TestClient, kit:
 
 def test_an_occupancy_grid_too_big_for_json_is_refused_with_the_binary_ways_named(client: TestClient,
                                                                                   kit: Any) -> None:
-    # issue 11: two readers of a 16 M-cell JSON OccupancyGrid held the GIL 1-3 s a read, stalling every client
+    # two readers of a 16 M-cell JSON OccupancyGrid held the GIL 1-3 s a read, stalling every client
     big = {**kit.MAP_2D, "name": "hall", "origin": [0.0, 0.0], "size": [205.0, 205.0]}  # 2050 x 2050 cells
     assert client.post("/maps", json=big).status_code == 201
     refused = client.get("/maps/hall/occupancy_grid")

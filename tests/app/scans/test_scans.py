@@ -325,7 +325,7 @@ def test_a_single_beam_rangefinder_needs_no_angle_increment(lab: TestClient, kit
 
 def test_a_scan_whose_angles_overflow_is_refused_and_nothing_is_stored(lab: TestClient, kit: Any) -> None:
     # angle_increment 1e308 is finite, but the beams' angles overflow: the cast wrote outside the map (a
-    # segfault, replayed at every restart) before this check (review of issue 11)
+    # segfault, replayed at every restart) before this check
     body = {"scans": [{**kit.laser(beams=5000), "angle_increment": 1e308}]}
     refused = lab.post("/maps/lab/scans", json=body)
     assert refused.status_code == 422 and "angles" in error_message(refused)

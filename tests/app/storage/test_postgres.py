@@ -1,4 +1,4 @@
-"""Replicas of the service on one PostgreSQL database (issue 14): every replica serves every map.
+"""Replicas of the service on one PostgreSQL database: every replica serves every map.
 
 Each test runs two services (two apps, their own data directories) on one fresh database of a real
 PostgreSQL server (``tests/pgserver.py``), as two replicas behind a load balancer would.

@@ -117,7 +117,7 @@ def _hold_snapshot_writes(monkeypatch: pytest.MonkeyPatch) -> tuple[threading.Ev
 
 def test_a_batch_is_acknowledged_before_its_snapshot_is_written_and_a_delete_waits_for_it(
         make_client: Any, make_settings: Any, kit: Any, monkeypatch: pytest.MonkeyPatch) -> None:
-    # issue 11: the batch that made a snapshot due waited for its deflate and fsync (one scan in every 200 was
+    # the batch that made a snapshot due waited for its deflate and fsync (one scan in every 200 was
     # an innocent client's slowest in bench abuse)
     writing, release = _hold_snapshot_writes(monkeypatch)
     client = make_client(snapshot_every=2)
@@ -226,7 +226,7 @@ def test_a_batch_that_fails_while_applied_is_not_kept(make_settings: Any, kit: A
 def test_the_map_a_failed_batch_replaced_is_freed_at_once(make_settings: Any, kit: Any,
                                                          monkeypatch: pytest.MonkeyPatch) -> None:
     # the traceback's frames held the replaced map (a cycle with the error): after a MemoryError, that map
-    # stayed in memory until the cyclic collector ran (review of issue 11)
+    # stayed in memory until the cyclic collector ran
     import gc
     import weakref
 
@@ -250,7 +250,7 @@ def test_the_map_a_failed_batch_replaced_is_freed_at_once(make_settings: Any, ki
 
 def test_a_batch_that_fails_half_way_leaves_the_live_map_as_a_restart_rebuilds_it(
         make_settings: Any, kit: Any, monkeypatch: pytest.MonkeyPatch) -> None:
-    # issue 11: a MemoryError after part of a batch was fused left the live map changed in part
+    # a MemoryError after part of a batch was fused left the live map changed in part
     settings = make_settings()
     original = FuzzyMap.integrate_batch
     with TestClient(create_app(settings), raise_server_exceptions=False) as client:
@@ -304,7 +304,7 @@ def _flip_a_bit(data_dir: Path, table: str, key: str, name: str) -> None:
 def test_a_damaged_row_quarantines_its_map_and_the_others_start(make_settings: Any, kit: Any, table: str,
                                                                  key: str, what: str,
                                                                  monkeypatch: pytest.MonkeyPatch) -> None:
-    # issue 11: a flipped bit in a stored batch was fused as if nothing happened; a damaged snapshot
+    # a flipped bit in a stored batch was fused as if nothing happened; a damaged snapshot
     # stopped the whole service
     settings = make_settings(snapshot_every=2)
     _keep_the_log_at_shutdown(monkeypatch)
@@ -398,7 +398,7 @@ def test_a_backup_taken_while_the_service_runs_serves_the_same_maps(make_setting
 
 
 def test_a_start_holds_one_map_at_a_time(make_client: Any, make_settings: Any, kit: Any) -> None:
-    # issue 11: a start read every batch of every map at once (377 MB of log peaked at 1.1 GB); now
+    # a start read every batch of every map at once (377 MB of log peaked at 1.1 GB); now
     # maps load one at a time, so the peak follows the largest map, not their sum
     import asyncio
     import tracemalloc
@@ -447,7 +447,7 @@ def test_a_start_holds_one_map_at_a_time(make_client: Any, make_settings: Any, k
 
 def test_a_map_is_snapshotted_once_its_log_holds_the_byte_limit(make_client: Any, make_settings: Any,
                                                                 kit: Any) -> None:
-    # issue 11: the log of one map was bounded by a count of batches only (200 x 64 MiB = 12.5 GiB)
+    # the log of one map was bounded by a count of batches only (200 x 64 MiB = 12.5 GiB)
     client = make_client(snapshot_every=1000, snapshot_log_bytes=20_000)
     data_dir = make_settings().data_dir
     client.post("/maps", json=kit.MAP_2D)
@@ -473,7 +473,7 @@ def test_a_map_is_snapshotted_once_its_log_holds_the_byte_limit(make_client: Any
 def test_rows_deleted_behind_the_services_back_quarantine_the_map(make_settings: Any, kit: Any, snapshot_every: int,
                                                                   delete: str, message: str,
                                                                   monkeypatch: pytest.MonkeyPatch) -> None:
-    # issue 11: a deleted snapshot row left a map without batches 1-2 reporting version 3; a gap inside the
+    # a deleted snapshot row left a map without batches 1-2 reporting version 3; a gap inside the
     # log was replayed over
     settings = make_settings(snapshot_every=snapshot_every)
     _keep_the_log_at_shutdown(monkeypatch)
@@ -491,7 +491,7 @@ def test_rows_deleted_behind_the_services_back_quarantine_the_map(make_settings:
 
 
 
-# --- the store itself, SQLite and PostgreSQL alike (issue 14: replicas of the service on one PostgreSQL) ---
+# --- the store itself, SQLite and PostgreSQL alike (replicas of the service on one PostgreSQL) ---
 
 
 class Backend:
@@ -796,7 +796,7 @@ def test_rows_deleted_behind_the_stores_back_are_damage_but_tombstones_are_not(b
 
 
 def test_a_batch_deleted_from_the_middle_of_the_log_is_damage(backend: Backend) -> None:
-    # issue 11: a gap inside the log was replayed over as if nothing were missing (only the tail was checked)
+    # a gap inside the log was replayed over as if nothing were missing (only the tail was checked)
     store = backend.open()
     _make(store)
     for k in range(1, 6):
@@ -1058,7 +1058,7 @@ def test_a_database_from_before_replicas_serves_the_same_maps(make_settings: Any
 
 def test_a_map_is_snapshotted_once_its_log_walks_the_cell_limit(make_client: Any, make_settings: Any,
                                                                 kit: Any) -> None:
-    # issue 11: 28 scans of 2 M beams, under the byte limit, made a restart replay 52-56 s of fusion
+    # 28 scans of 2 M beams, under the byte limit, made a restart replay 52-56 s of fusion
     bodies = [{"scans": [kit.laser(beams=2_000, wall=2.0 + 0.1 * k)]} for k in range(6)]
     spec = GridSpec(origin=tuple(kit.MAP_2D["origin"]), size=tuple(kit.MAP_2D["size"]),
                     resolution=kit.MAP_2D["resolution"])

@@ -127,7 +127,7 @@ def test_a_size_that_is_not_whole_cells_is_rounded_up_and_reported_as_built(clie
 
 
 def test_a_deleted_maps_memory_is_freed_at_the_delete(lab: TestClient, kit: Any) -> None:
-    # issue 11: every map was a reference cycle (its storage held a bound method of the map), so a deleted
+    # every map was a reference cycle (its storage held a bound method of the map), so a deleted
     # map stayed in memory until the cyclic garbage collector ran, after the delete had returned its
     # memory to the system: 25 maps of 16 M cells made and deleted, round after round, kept up to 400 MiB
     assert lab.post("/maps/lab/scans", json={"scans": [kit.laser()]}).status_code == 200
