@@ -1,4 +1,4 @@
-# fuzzyrisk: the service in a container, beside a robot's software (README: "Beside a ROS 2 robot").
+# fuzzyrisk: the service in a container, beside a robot's software (docs/operations.md, docs/ros2.md).
 #   docker build -t fuzzyrisk .                            (a fleet's replicas: --build-arg EXTRAS=postgres)
 #   docker run -d --name fuzzyrisk --read-only -p 8000:8000 -v fuzzyrisk-data:/data \
 #              -e FUZZYRISK_API_KEY=... fuzzyrisk
@@ -18,7 +18,7 @@ RUN python -m venv /opt/fuzzyrisk
 WORKDIR /src
 # 1. the dependencies, at the versions of constraints.txt (the lock CI tests with): this layer is rebuilt
 #    only when one of these two files changes, not at every change of the code
-#    EXTRAS: optional dependencies too, comma-separated: postgres (a fleet on PostgreSQL, README: "Running a fleet")
+#    EXTRAS: optional dependencies too, comma-separated: postgres (a fleet on PostgreSQL, docs/fleet.md)
 ARG EXTRAS=""
 COPY pyproject.toml constraints.txt ./
 RUN python -c "import os, tomllib; p = tomllib.load(open('pyproject.toml', 'rb'))['project']; \
