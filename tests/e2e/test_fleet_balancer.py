@@ -1,4 +1,4 @@
-"""The README's fleet, for real: two replicas on one PostgreSQL behind nginx with ``deploy/fleet/nginx.conf``.
+"""The fleet of docs/fleet.md, for real: two replicas on one PostgreSQL behind nginx with ``deploy/fleet/nginx.conf``.
 
 nginx (Debian's package) runs the very configuration the compose file mounts, its two upstream
 names pointed at the replicas on loopback. Each map's requests reach one replica (the hash of
