@@ -1,4 +1,4 @@
-"""Map resources: the contract of DESIGN.md section 7 (create, list, get, delete) and its 4xx answers."""
+"""Map resources: create, list, get, delete (docs/api.md) and its 4xx answers."""
 
 from __future__ import annotations
 
