@@ -44,7 +44,7 @@
 
    * acknowledged batches lost: an acknowledged version missing from the log (or above the map's
      version, or discarded); stored with other content: the batch committed as that version is not
-     the one acknowledged (``app.scans.batches.encode`` of the scans sent, byte for byte) (both 0)
+     the one acknowledged (``app.maps.logcodec.encode`` of the scans sent, byte for byte) (both 0)
    * versions acknowledged twice, version gaps, committed versions that were never acknowledged and
      are not a batch whose request a kill cut (0)
    * divergent replicas: one (map, version) whose ``.npy`` bytes or ETag differ between replicas
@@ -959,13 +959,13 @@ def replica_kill_loop(kills: int, *, seed: int, database_url: str, log: Callable
 def _verify_replicas(database_url: str, procs: Replicas, names: list[str], batch_list: list[Batch], book: _Book,
                      counts: ReplicaKillCounts, kill_times: list[tuple[int, float]]) -> None:
     """The end of ``replica_kill_loop`` (every writer stopped): the books against the log, the replicas, a replay."""
-    from app.scans import batches as codec
+    from app.maps import logcodec as codec
     from app.storage.postgres import PostgresStorage
 
     payloads: dict[int, bytes] = {}
 
     def sent(index: int) -> bytes:
-        """Batch ``index`` as the service stores it (``app.scans.batches.encode`` of its scans)."""
+        """Batch ``index`` as the service stores it (``app.maps.logcodec.encode`` of its scans)."""
         if index not in payloads:
             payloads[index] = codec.encode(batch_list[index].laser_scans())
         return payloads[index]
@@ -1013,7 +1013,7 @@ def _verify_map(name: str, stored: Any, rows: dict[int, AuditedBatch], snapshots
     """One map: (a) every acknowledged batch stored as sent, (b) replicas alike, (c) reads = the replay of the log."""
     from collections import Counter
 
-    from app.scans import batches as codec
+    from app.maps import logcodec as codec
     from app.maps.state import UNLIMITED_CELLS, build_map, restore
 
     for _, writer in snapshots:

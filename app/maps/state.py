@@ -20,7 +20,8 @@ from typing import Any, Protocol, TypeVar
 
 import numpy as np
 
-from app.scans import batches
+from app.maps import logcodec
+from app.scans import Scan, ScanView
 from app.formats import etags
 from app.schemas import engines
 from app.formats import exports
@@ -47,7 +48,7 @@ class MapObserver(Protocol):
     ``frame_id`` is the map's frame (``MapEntry.frame_id``), what its messages carry.
     """
 
-    def batch_applied(self, name: str, version: int, last_scan: batches.Scan, frame_id: str) -> None: ...
+    def batch_applied(self, name: str, version: int, last_scan: Scan, frame_id: str) -> None: ...
 
     def plan_made(self, name: str, result: PlanResult, frame_id: str) -> None: ...
 
@@ -168,8 +169,8 @@ class MapEntry:
     line: Line = field(default_factory=Line)
     apply_lock: asyncio.Lock = field(default_factory=asyncio.Lock)
     #: the last scan fused; its view for the web page is built when first asked for
-    last_scan: batches.Scan | None = None
-    last_view: batches.ScanView | None = None
+    last_scan: Scan | None = None
+    last_view: ScanView | None = None
     #: version at the last failed snapshot attempt (the next attempt waits snapshot_every batches more)
     snapshot_failed_version: int = 0
     deleted: bool = False
@@ -370,7 +371,7 @@ class Replayed:
 
     version: int = 0
     updated: str = ""
-    last_scan: batches.Scan | None = None
+    last_scan: Scan | None = None
     #: (version, bytes, cells walked) of the batches replayed, for ``MapEntry.log``
     log: list[tuple[int, int, int]] = field(default_factory=list)
 
@@ -384,8 +385,8 @@ def replay(built: OccupancyMap, stored: StoredMap, *, after: int, up_to: int | N
         if up_to is not None and version > up_to:
             break
         try:
-            scans = batches.decode(payload)
-        except batches.CorruptBatch as exc:
+            scans = logcodec.decode(payload)
+        except logcodec.CorruptBatch as exc:
             # an acknowledged batch: never dropped silently; the service refuses to start and says where
             raise RuntimeError(f"map {stored.name!r}: stored batch {version} is corrupt ({exc}); the database "
                                f"needs repair (restore a backup, or delete that row to drop the batch)") from exc

@@ -52,7 +52,8 @@ from collections.abc import AsyncIterator, Callable, Mapping
 import numpy as np
 from fastapi.exceptions import RequestValidationError
 
-from app.scans import batches
+from app.maps import logcodec
+from app.scans import Limits, Scan
 from app.maps import ingest
 from app.storage.committer import GroupCommitter
 from app.config import Settings
@@ -99,13 +100,13 @@ class WritePath:
         self._grids = grids
         self._notify = notify
         self._committer = GroupCommitter(storage, metrics)
-        self._limits = batches.Limits(max_scans=settings.max_scans_per_batch, max_rays=settings.max_rays_per_scan)
+        self._limits = Limits(max_scans=settings.max_scans_per_batch, max_rays=settings.max_rays_per_scan)
         self._parse_process = ParseProcess()
         #: snapshots taken beside the lines, also of maps no longer held (``stop`` waits for them all)
         self._snapshots: set[asyncio.Task[None]] = set()
 
     @property
-    def limits(self) -> batches.Limits:
+    def limits(self) -> Limits:
         """The scans of one batch and the rays of one scan the service takes (``FUZZYRISK_MAX_SCANS_PER_BATCH``,
         ``FUZZYRISK_MAX_RAYS_PER_SCAN``)."""
         return self._limits
@@ -207,14 +208,14 @@ class WritePath:
 
     def _prepare(
         self, entry: MapEntry, body: bytes, content_type: str, query: Mapping[str, str]
-    ) -> tuple[list[batches.Scan], bytes, int]:
+    ) -> tuple[list[Scan], bytes, int]:
         """Parse, validate (query and body) and encode a batch, with its cast work (no lock held: it touches no
         map state). In a parsing thread, or on the event loop for a small body (``INLINE_PARSE_BYTES``).
         """
         return ingest.prepare(body, content_type, query, entry.spec.ndim, self._limits, entry.spec,
                                  self.settings.max_batch_cells)
 
-    def _apply(self, entry: MapEntry, version: int, scans: list[batches.Scan]) -> BatchResult:
+    def _apply(self, entry: MapEntry, version: int, scans: list[Scan]) -> BatchResult:
         """Fuse a committed batch (in a fusion thread; the caller holds the apply turn and the apply lock)."""
         started = time.perf_counter()
         try:
@@ -304,7 +305,7 @@ class WritePath:
             elif wants(body, content_type):
                 payload, work = await self._parse_process.prepare(
                     body, content_type, query, entry.spec.ndim, self._limits, entry.spec, self.settings.max_batch_cells)
-                scans = await self._workers.run_parser(batches.decode, payload)  # 8 x 2 M ranges: 0.2 s
+                scans = await self._workers.run_parser(logcodec.decode, payload)  # 8 x 2 M ranges: 0.2 s
             else:
                 scans, payload, work = await self._workers.run_parser(self._prepare, entry, body, content_type,
                                                                       query)
@@ -317,7 +318,7 @@ class WritePath:
         # batch committed but not applied
         return await shielded(self._write(entry, ticket, scans, payload, work))
 
-    async def add_parsed_scans(self, name: str, scans: list[batches.Scan], *, uid: int,
+    async def add_parsed_scans(self, name: str, scans: list[Scan], *, uid: int,
                                admitted: bool = False) -> BatchResult:
         """Fuse one batch of scans validated by the caller for map ``name`` (a bag upload's), as ``add_scans`` does.
 
@@ -341,10 +342,10 @@ class WritePath:
             raise
         return await shielded(self._write(entry, ticket, scans, payload, work))
 
-    def _checked_payload(self, entry: MapEntry, scans: list[batches.Scan]) -> tuple[bytes, int]:
+    def _checked_payload(self, entry: MapEntry, scans: list[Scan]) -> tuple[bytes, int]:
         return ingest.checked_payload(entry.spec, scans, self.settings.max_batch_cells)
 
-    async def _write(self, entry: MapEntry, ticket: int, scans: list[batches.Scan], payload: bytes,
+    async def _write(self, entry: MapEntry, ticket: int, scans: list[Scan], payload: bytes,
                      work: int) -> BatchResult:
         """Commit, then apply, a parsed batch in its turns; gives both turns up when done, whatever happens.
 
@@ -473,5 +474,5 @@ class WritePath:
 
 
 
-def _rays(scan: batches.Scan) -> int:
+def _rays(scan: Scan) -> int:
     return len(scan.ranges) if isinstance(scan, LaserScan) else len(scan.points)

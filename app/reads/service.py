@@ -10,7 +10,7 @@ from typing import Any, Literal, TypeVar
 
 import numpy as np
 
-from app.scans import batches
+from app.scans import scan_view
 from app.formats import etags
 from app.formats import exports
 from app.ros import messages_out
@@ -72,7 +72,7 @@ class MapReads:
             raise NotFound(f"map {name!r} has fused no scan since the service started")
         if view is None:
             # most batches are never drawn; a big cloud's view takes a while, so off the event loop
-            view = await self._workers.run_read(batches.scan_view, scan)
+            view = await self._workers.run_read(scan_view, scan)
             if entry.last_scan is scan:  # not replaced by a newer batch meanwhile
                 entry.last_view = view
         return LastScan(origin=view.origin, endpoints=view.endpoints, hit=view.hit, version=version)
