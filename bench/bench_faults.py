@@ -52,7 +52,7 @@
      behind the database's version after a read (0)
    * half-applied: a read (any replica, any moment: survivors', restarted replica's, the reader's,
      the final ones) whose risk differs from an in-process replay of every committed batch up to
-     its version, or ``scans_fused`` differing from it; and ``app.maps.state.restore(load_map)``
+     its version, or ``scans_fused`` differing from it; and ``app.maps.stored.restore(load_map)``
      (snapshot + log) differing from the replay of every batch (0)
    * survivor reads slower than 1 s after a kill; unexpected answers (any non-200, or a connection
      error from a replica that was not being killed); ``level=ERROR`` records in the logs (0)
@@ -1014,7 +1014,7 @@ def _verify_map(name: str, stored: Any, rows: dict[int, AuditedBatch], snapshots
     from collections import Counter
 
     from app.maps import logcodec as codec
-    from app.maps.state import UNLIMITED_CELLS, build_map, restore
+    from app.maps import UNLIMITED_CELLS, build_map, restore
 
     for _, writer in snapshots:
         counts.snapshots_by[writer] = counts.snapshots_by.get(writer, 0) + 1

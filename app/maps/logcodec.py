@@ -1,7 +1,7 @@
 """The batch log's record: a batch of checked scans as the bytes stored, and back, bit for bit.
 
 Storage keeps these bytes opaque (versioned payloads with their checksums); the maps write them
-before a batch is applied (``app.maps.ingest``) and replay them at a restart (``app.maps.restore``).
+before a batch is applied (``app.maps.ingest``) and replay them at a restart (``app.maps.stored``).
 """
 
 from __future__ import annotations

@@ -14,15 +14,9 @@ from app.config import Settings
 from app.storage.diskreserve import DiskReserve
 from app.errors import Conflict, InsufficientStorage, Invalid, NotFound, Unavailable
 from app.ops.process_setup import give_back_freed_memory
-from app.maps.state import (
-    UNLIMITED_CELLS,
-    MapEntry,
-    build_map,
-    now,
-    restore,
-    shielded,
-    stored_info,
-)
+from app.maps.entry import UNLIMITED_CELLS, MapEntry, now, stored_info
+from app.maps.line import shielded
+from app.maps.stored import build_map, restore
 from app.ops.metrics import Metrics
 from app.maps.shared_grids import PlanGrids
 from app.schemas import MapCreate, MapInfo

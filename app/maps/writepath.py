@@ -65,7 +65,9 @@ from app.errors import (
     Unavailable,
     UnsupportedMediaType,
 )
-from app.maps.state import MapEntry, now, npz, replay, restore, shielded
+from app.maps.entry import MapEntry, now
+from app.maps.line import shielded
+from app.maps.stored import npz, replay, restore
 from app.ops.metrics import Metrics
 from app.maps.ingest_process import ParseProcess, wants
 from app.maps.shared_grids import PlanGrids

@@ -54,7 +54,7 @@ from app.ros import msgtypes as rostypes
 from app.errors import TooLarge, Unavailable
 from app.formats.exports import NAV2_FREE_THRESH, NAV2_OCCUPIED_THRESH
 from app.ros.msgtypes import typestore
-from app.maps.state import GridSnapshot
+from app.maps import GridSnapshot
 from app.storage import StoredMap
 from fuzzyocc import LaserScan
 

@@ -17,7 +17,7 @@ from app.ros import messages_out
 from app.ros import msgtypes
 from app.config import Settings
 from app.errors import Invalid, NotFound, TooLarge, Unavailable
-from app.maps.state import GridSnapshot, GridStamp, MapEntry
+from app.maps import GridSnapshot, GridStamp, MapEntry
 from app.reads.lane import ReadLane, Turn
 from app.schemas import LastScan, MapInfo, OccupancyGrid, RiskGridJSON, RiskValues
 from app.storage import Storage, StoredMap
