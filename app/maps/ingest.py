@@ -34,7 +34,7 @@ def parse(body: bytes, content_type: str, query: Mapping[str, str], dims: int,
         return messages_in.from_cdr(body, media, params, dims, limits)
     if media != "application/json":
         # none at all is refused too: a web page can send a body without one, and without a
-        # CORS preflight (issue 11: a browser's no-cors fetch injected scans)
+        # CORS preflight (a browser's no-cors fetch could inject scans)
         given = f"Content-Type {media!r} is not accepted" if media else "a scan upload needs a Content-Type"
         raise UnsupportedMediaType(
             f"{given}: send application/json, or a binary scan as {' or '.join(BINARY_TYPES)}, "

@@ -60,7 +60,7 @@ class MapRegistry:
 
     async def load_all(self) -> None:
         """Load every stored map (snapshot + replay), one at a time: a start holds one map's snapshot and
-        log, not every map's (issue 11: 377 MB of log read at once peaked at 1.1 GB).
+        log, not every map's (377 MB of log read at once peaked at 1.1 GB).
 
         With a shared database, nothing: a replica loads a map at its first request (``held``).
         """

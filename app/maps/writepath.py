@@ -191,7 +191,7 @@ class WritePath:
         walks ``FUZZYRISK_SNAPSHOT_LOG_CELLS``.
 
         The bytes bound the disk a map takes (its snapshot, plus at most that much log and a batch):
-        200 batches of 64 MiB would otherwise be 12.5 GiB of log for one map (issue 11). The cells bound
+        200 batches of 64 MiB would otherwise be 12.5 GiB of log for one map. The cells bound
         the fusion a restart replays: 28 scans of 2 M beams (8 MB each, under the bytes) took 52-56 s.
         """
         if entry.snapshotting is not None:
@@ -243,7 +243,7 @@ class WritePath:
         return BatchResult(scans_fused=stats.scans, rays=stats.rays, cells_updated=stats.cells_updated, version=version)
 
     def _rebuild(self, entry: MapEntry) -> None:
-        """Put back the map a failed batch may have changed in part: all or nothing (issue 11).
+        """Put back the map a failed batch may have changed in part: all or nothing.
 
         The map is rebuilt from the store up to its current version, as a restart would rebuild
         it; should that fail too, the map is left as it is and the failure logged.
@@ -268,7 +268,7 @@ class WritePath:
         its body arrives; ``add_scans`` checks the line again as the batch joins it.
 
         Uploads read side by side would all pass a check that counts only the batches already in
-        line: 40 bodies of 60 MB for one map were all read at once (issue 11). Counted from the
+        line: 40 bodies of 60 MB for one map were all read at once. Counted from the
         first byte, one map's uploads hold at most ``FUZZYRISK_MAX_PENDING_BATCHES`` bodies, the
         others' share of the bodies-in-flight budget stays theirs. Yields the map as it is held now.
         """
@@ -353,7 +353,7 @@ class WritePath:
 
         A batch whose rays walk more than ``HEAVY_BATCH_CELLS`` is fused in the heavy batches' threads: two
         scans of 2 M beams held both fusion threads for 3-4 s, and every other map's batch (and the reads of
-        that map, behind its apply lock) waited for them (issue 11).
+        that map, behind its apply lock) waited for them.
         """
         version = 0
         try:
@@ -394,7 +394,7 @@ class WritePath:
                     run = self._workers.run_heavy if work > HEAVY_BATCH_CELLS else self._workers.run
                     result = await run(self._apply, entry, version, scans)
                 except BaseException:
-                    # the map may have changed in part (issue 11): a grid published for its
+                    # the map may have changed in part: a grid published for its
                     # current version would no longer be that map
                     self._grids.retire(entry.uid)
                     # and a later catch-up must not apply it (its row stays if its removal failed)

@@ -163,7 +163,7 @@ def occupancy_grid_cdr_parts(message: Any) -> tuple[bytes, memoryview]:
 
     The fields before ``data`` are serialized by rosbags with an empty ``data``, whose length is
     the message's last 4 bytes; the cells follow that length, int8 needing no alignment. Each
-    copy of 16 M cells held the GIL while every other request waited (issue 11: rosbags
+    copy of 16 M cells held the GIL while every other request waited (rosbags
     zero-fills a buffer and copies them in, about 19 ms; joining the pieces into one bytes
     object, a few ms more): the service sends the pieces as they are. Joined, equal to
     rosbags' serialization of the whole message (tested).

@@ -127,7 +127,7 @@ def _raw_points(body: bytes, point_step: float | None, limits: Limits) -> np.nda
     """(N, 3) float64 points of a raw body: ``point_step`` bytes a point, x, y, z little-endian float32 first.
 
     Raw bytes do not say their layout, and guessing 12 bytes a point read a 16-byte-stride
-    PointCloud2 (x, y, z, intensity) as 400 garbage points instead of 300 (issue 12): the stride
+    PointCloud2 (x, y, z, intensity) as 400 garbage points instead of 300: the stride
     is stated or the body refused.
     """
     if not body:

@@ -26,7 +26,7 @@ def scan_view(scan: Scan) -> ScanView:
     """Beam ends of a scan in the map frame, evenly thinned to at most ``MAX_VIEW_BEAMS`` of its rays.
 
     Made part by part (``fuzzyocc.maps.scan_parts``): the rays of a whole scan of millions of beams
-    take about 150 bytes a beam (issue 11).
+    take about 150 bytes a beam.
     """
     n = scan.beam_count
     rays_in_all = scan.usable(slice(0, n)) if isinstance(scan, LaserScan) else n
