@@ -44,7 +44,7 @@
 
    * acknowledged batches lost: an acknowledged version missing from the log (or above the map's
      version, or discarded); stored with other content: the batch committed as that version is not
-     the one acknowledged (``app.scans.batches.encode`` of the scans sent, byte for byte) (both 0)
+     the one acknowledged (``app.maps.logcodec.encode`` of the scans sent, byte for byte) (both 0)
    * versions acknowledged twice, version gaps, committed versions that were never acknowledged and
      are not a batch whose request a kill cut (0)
    * divergent replicas: one (map, version) whose ``.npy`` bytes or ETag differ between replicas
@@ -52,7 +52,7 @@
      behind the database's version after a read (0)
    * half-applied: a read (any replica, any moment: survivors', restarted replica's, the reader's,
      the final ones) whose risk differs from an in-process replay of every committed batch up to
-     its version, or ``scans_fused`` differing from it; and ``app.maps.state.restore(load_map)``
+     its version, or ``scans_fused`` differing from it; and ``app.maps.stored.restore(load_map)``
      (snapshot + log) differing from the replay of every batch (0)
    * survivor reads slower than 1 s after a kill; unexpected answers (any non-200, or a connection
      error from a replica that was not being killed); ``level=ERROR`` records in the logs (0)
@@ -959,13 +959,13 @@ def replica_kill_loop(kills: int, *, seed: int, database_url: str, log: Callable
 def _verify_replicas(database_url: str, procs: Replicas, names: list[str], batch_list: list[Batch], book: _Book,
                      counts: ReplicaKillCounts, kill_times: list[tuple[int, float]]) -> None:
     """The end of ``replica_kill_loop`` (every writer stopped): the books against the log, the replicas, a replay."""
-    from app.scans import batches as codec
+    from app.maps import logcodec as codec
     from app.storage.postgres import PostgresStorage
 
     payloads: dict[int, bytes] = {}
 
     def sent(index: int) -> bytes:
-        """Batch ``index`` as the service stores it (``app.scans.batches.encode`` of its scans)."""
+        """Batch ``index`` as the service stores it (``app.maps.logcodec.encode`` of its scans)."""
         if index not in payloads:
             payloads[index] = codec.encode(batch_list[index].laser_scans())
         return payloads[index]
@@ -1013,8 +1013,8 @@ def _verify_map(name: str, stored: Any, rows: dict[int, AuditedBatch], snapshots
     """One map: (a) every acknowledged batch stored as sent, (b) replicas alike, (c) reads = the replay of the log."""
     from collections import Counter
 
-    from app.scans import batches as codec
-    from app.maps.state import UNLIMITED_CELLS, build_map, restore
+    from app.maps import logcodec as codec
+    from app.maps import UNLIMITED_CELLS, build_map, restore
 
     for _, writer in snapshots:
         counts.snapshots_by[writer] = counts.snapshots_by.get(writer, 0) + 1

@@ -14,15 +14,9 @@ from app.config import Settings
 from app.storage.diskreserve import DiskReserve
 from app.errors import Conflict, InsufficientStorage, Invalid, NotFound, Unavailable
 from app.ops.process_setup import give_back_freed_memory
-from app.maps.state import (
-    UNLIMITED_CELLS,
-    MapEntry,
-    build_map,
-    now,
-    restore,
-    shielded,
-    stored_info,
-)
+from app.maps.entry import UNLIMITED_CELLS, MapEntry, now, stored_info
+from app.maps.line import shielded
+from app.maps.stored import build_map, restore
 from app.ops.metrics import Metrics
 from app.maps.shared_grids import PlanGrids
 from app.schemas import MapCreate, MapInfo
@@ -66,7 +60,7 @@ class MapRegistry:
 
     async def load_all(self) -> None:
         """Load every stored map (snapshot + replay), one at a time: a start holds one map's snapshot and
-        log, not every map's (issue 11: 377 MB of log read at once peaked at 1.1 GB).
+        log, not every map's (377 MB of log read at once peaked at 1.1 GB).
 
         With a shared database, nothing: a replica loads a map at its first request (``held``).
         """

@@ -52,7 +52,8 @@ from collections.abc import AsyncIterator, Callable, Mapping
 import numpy as np
 from fastapi.exceptions import RequestValidationError
 
-from app.scans import batches
+from app.maps import logcodec
+from app.scans import Limits, Scan
 from app.maps import ingest
 from app.storage.committer import GroupCommitter
 from app.config import Settings
@@ -64,7 +65,9 @@ from app.errors import (
     Unavailable,
     UnsupportedMediaType,
 )
-from app.maps.state import MapEntry, now, npz, replay, restore, shielded
+from app.maps.entry import MapEntry, now
+from app.maps.line import shielded
+from app.maps.stored import npz, replay, restore
 from app.ops.metrics import Metrics
 from app.maps.ingest_process import ParseProcess, wants
 from app.maps.shared_grids import PlanGrids
@@ -99,13 +102,13 @@ class WritePath:
         self._grids = grids
         self._notify = notify
         self._committer = GroupCommitter(storage, metrics)
-        self._limits = batches.Limits(max_scans=settings.max_scans_per_batch, max_rays=settings.max_rays_per_scan)
+        self._limits = Limits(max_scans=settings.max_scans_per_batch, max_rays=settings.max_rays_per_scan)
         self._parse_process = ParseProcess()
         #: snapshots taken beside the lines, also of maps no longer held (``stop`` waits for them all)
         self._snapshots: set[asyncio.Task[None]] = set()
 
     @property
-    def limits(self) -> batches.Limits:
+    def limits(self) -> Limits:
         """The scans of one batch and the rays of one scan the service takes (``FUZZYRISK_MAX_SCANS_PER_BATCH``,
         ``FUZZYRISK_MAX_RAYS_PER_SCAN``)."""
         return self._limits
@@ -188,7 +191,7 @@ class WritePath:
         walks ``FUZZYRISK_SNAPSHOT_LOG_CELLS``.
 
         The bytes bound the disk a map takes (its snapshot, plus at most that much log and a batch):
-        200 batches of 64 MiB would otherwise be 12.5 GiB of log for one map (issue 11). The cells bound
+        200 batches of 64 MiB would otherwise be 12.5 GiB of log for one map. The cells bound
         the fusion a restart replays: 28 scans of 2 M beams (8 MB each, under the bytes) took 52-56 s.
         """
         if entry.snapshotting is not None:
@@ -207,14 +210,14 @@ class WritePath:
 
     def _prepare(
         self, entry: MapEntry, body: bytes, content_type: str, query: Mapping[str, str]
-    ) -> tuple[list[batches.Scan], bytes, int]:
+    ) -> tuple[list[Scan], bytes, int]:
         """Parse, validate (query and body) and encode a batch, with its cast work (no lock held: it touches no
         map state). In a parsing thread, or on the event loop for a small body (``INLINE_PARSE_BYTES``).
         """
         return ingest.prepare(body, content_type, query, entry.spec.ndim, self._limits, entry.spec,
                                  self.settings.max_batch_cells)
 
-    def _apply(self, entry: MapEntry, version: int, scans: list[batches.Scan]) -> BatchResult:
+    def _apply(self, entry: MapEntry, version: int, scans: list[Scan]) -> BatchResult:
         """Fuse a committed batch (in a fusion thread; the caller holds the apply turn and the apply lock)."""
         started = time.perf_counter()
         try:
@@ -240,7 +243,7 @@ class WritePath:
         return BatchResult(scans_fused=stats.scans, rays=stats.rays, cells_updated=stats.cells_updated, version=version)
 
     def _rebuild(self, entry: MapEntry) -> None:
-        """Put back the map a failed batch may have changed in part: all or nothing (issue 11).
+        """Put back the map a failed batch may have changed in part: all or nothing.
 
         The map is rebuilt from the store up to its current version, as a restart would rebuild
         it; should that fail too, the map is left as it is and the failure logged.
@@ -265,7 +268,7 @@ class WritePath:
         its body arrives; ``add_scans`` checks the line again as the batch joins it.
 
         Uploads read side by side would all pass a check that counts only the batches already in
-        line: 40 bodies of 60 MB for one map were all read at once (issue 11). Counted from the
+        line: 40 bodies of 60 MB for one map were all read at once. Counted from the
         first byte, one map's uploads hold at most ``FUZZYRISK_MAX_PENDING_BATCHES`` bodies, the
         others' share of the bodies-in-flight budget stays theirs. Yields the map as it is held now.
         """
@@ -304,7 +307,7 @@ class WritePath:
             elif wants(body, content_type):
                 payload, work = await self._parse_process.prepare(
                     body, content_type, query, entry.spec.ndim, self._limits, entry.spec, self.settings.max_batch_cells)
-                scans = await self._workers.run_parser(batches.decode, payload)  # 8 x 2 M ranges: 0.2 s
+                scans = await self._workers.run_parser(logcodec.decode, payload)  # 8 x 2 M ranges: 0.2 s
             else:
                 scans, payload, work = await self._workers.run_parser(self._prepare, entry, body, content_type,
                                                                       query)
@@ -317,7 +320,7 @@ class WritePath:
         # batch committed but not applied
         return await shielded(self._write(entry, ticket, scans, payload, work))
 
-    async def add_parsed_scans(self, name: str, scans: list[batches.Scan], *, uid: int,
+    async def add_parsed_scans(self, name: str, scans: list[Scan], *, uid: int,
                                admitted: bool = False) -> BatchResult:
         """Fuse one batch of scans validated by the caller for map ``name`` (a bag upload's), as ``add_scans`` does.
 
@@ -341,16 +344,16 @@ class WritePath:
             raise
         return await shielded(self._write(entry, ticket, scans, payload, work))
 
-    def _checked_payload(self, entry: MapEntry, scans: list[batches.Scan]) -> tuple[bytes, int]:
+    def _checked_payload(self, entry: MapEntry, scans: list[Scan]) -> tuple[bytes, int]:
         return ingest.checked_payload(entry.spec, scans, self.settings.max_batch_cells)
 
-    async def _write(self, entry: MapEntry, ticket: int, scans: list[batches.Scan], payload: bytes,
+    async def _write(self, entry: MapEntry, ticket: int, scans: list[Scan], payload: bytes,
                      work: int) -> BatchResult:
         """Commit, then apply, a parsed batch in its turns; gives both turns up when done, whatever happens.
 
         A batch whose rays walk more than ``HEAVY_BATCH_CELLS`` is fused in the heavy batches' threads: two
         scans of 2 M beams held both fusion threads for 3-4 s, and every other map's batch (and the reads of
-        that map, behind its apply lock) waited for them (issue 11).
+        that map, behind its apply lock) waited for them.
         """
         version = 0
         try:
@@ -391,7 +394,7 @@ class WritePath:
                     run = self._workers.run_heavy if work > HEAVY_BATCH_CELLS else self._workers.run
                     result = await run(self._apply, entry, version, scans)
                 except BaseException:
-                    # the map may have changed in part (issue 11): a grid published for its
+                    # the map may have changed in part: a grid published for its
                     # current version would no longer be that map
                     self._grids.retire(entry.uid)
                     # and a later catch-up must not apply it (its row stays if its removal failed)
@@ -473,5 +476,5 @@ class WritePath:
 
 
 
-def _rays(scan: batches.Scan) -> int:
+def _rays(scan: Scan) -> int:
     return len(scan.ranges) if isinstance(scan, LaserScan) else len(scan.points)

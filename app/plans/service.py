@@ -10,9 +10,8 @@ from app.ros import messages_out
 from app.ros import msgtypes
 from app.config import Settings
 from app.errors import Invalid, PlanRejected
-from app.maps.state import GridSnapshot, MapEntry, is_current
+from app.maps import GridSnapshot, Lease, MapEntry, PlanGrids, is_current
 from app.ops.metrics import Metrics
-from app.maps.shared_grids import Lease, PlanGrids
 from app.plans.pool import PlanPool
 from app.plans.worker import run_plan, run_shared_plan
 from app.reads.service import MapReads

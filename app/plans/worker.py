@@ -16,7 +16,7 @@ from typing import Any, TypeVar
 import numpy as np
 
 from app.ops import process_setup
-from app.maps.shared_grids import FieldCache, GridRef
+from app.maps import FieldCache, GridRef
 
 LOG = logging.getLogger("fuzzyrisk.plans")
 T = TypeVar("T")

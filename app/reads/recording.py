@@ -45,7 +45,8 @@ from typing import Any
 import numpy as np
 from mcap.writer import CompressionType, Writer
 
-from app.scans import batches
+from app.maps import logcodec
+from app.scans import Scan
 from app.formats import etags
 from app.formats import exports
 from app.ros import messages_out
@@ -53,7 +54,7 @@ from app.errors import TooLarge, Unavailable
 from app.formats.exports import NAV2_FREE_THRESH, NAV2_OCCUPIED_THRESH
 from app.ros import msgtypes
 from app.ros.msgtypes import typestore
-from app.maps.state import GridSnapshot
+from app.maps import GridSnapshot
 from app.storage import StoredMap
 from fuzzyocc import LaserScan
 
@@ -146,12 +147,12 @@ def grid_cdr(grid: GridSnapshot) -> bytes:
 # ---------------------------------------------------------------- the file
 
 
-def _scans(log: Sequence[tuple[int, bytes]]) -> Iterator[batches.Scan]:
+def _scans(log: Sequence[tuple[int, bytes]]) -> Iterator[Scan]:
     """The scans of the log in recorded order, one batch decoded at a time."""
     for version, payload in log:
         try:
-            yield from batches.decode(payload)
-        except batches.CorruptBatch as exc:
+            yield from logcodec.decode(payload)
+        except logcodec.CorruptBatch as exc:
             raise Unavailable(f"the map's stored batch {version} is corrupt ({exc}): it cannot be exported") from None
 
 

@@ -10,14 +10,14 @@ from typing import Any, Literal, TypeVar
 
 import numpy as np
 
-from app.scans import batches
+from app.scans import scan_view
 from app.formats import etags
 from app.formats import exports
 from app.ros import messages_out
 from app.ros import msgtypes
 from app.config import Settings
 from app.errors import Invalid, NotFound, TooLarge, Unavailable
-from app.maps.state import GridSnapshot, GridStamp, MapEntry
+from app.maps import GridSnapshot, GridStamp, MapEntry
 from app.reads.lane import ReadLane, Turn
 from app.schemas import LastScan, MapInfo, OccupancyGrid, RiskGridJSON, RiskValues
 from app.storage import Storage, StoredMap
@@ -72,7 +72,7 @@ class MapReads:
             raise NotFound(f"map {name!r} has fused no scan since the service started")
         if view is None:
             # most batches are never drawn; a big cloud's view takes a while, so off the event loop
-            view = await self._workers.run_read(batches.scan_view, scan)
+            view = await self._workers.run_read(scan_view, scan)
             if entry.last_scan is scan:  # not replaced by a newer batch meanwhile
                 entry.last_view = view
         return LastScan(origin=view.origin, endpoints=view.endpoints, hit=view.hit, version=version)

@@ -28,7 +28,7 @@ from rosbags.rosbag2 import ReaderError as Ros2ReaderError
 from rosbags.serde import SerdeError
 
 from app.ros import messages_in
-from app.scans.batches import Limits, Scan
+from app.scans import Limits, Scan
 from app.config import Settings
 from app.errors import ServiceError
 from app.ros.msgtypes import ns_of_ros_time

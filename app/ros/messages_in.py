@@ -38,8 +38,8 @@ import numpy as np
 from pydantic import ValidationError
 from rosbags.serde import SerdeError
 
-from app.scans import batches
-from app.errors import Invalid, TooLarge
+from app.scans import Limits, Scan, check_rays, laser_scan, point_cloud
+from app.errors import Invalid
 from app.ros.msgtypes import typestore
 from app.schemas import Pose2D, Pose3D
 from fuzzyocc.quaternion import rotate_points
@@ -161,8 +161,8 @@ class PlanarScan:
     range_min: float
     range_max: float
 
-    def to_scan(self, name: str, *, registration_sigma: float, dims: int, limits: batches.Limits) -> batches.Scan:
-        return batches.laser_scan(
+    def to_scan(self, name: str, *, registration_sigma: float, dims: int, limits: Limits) -> Scan:
+        return laser_scan(
             name, self.pose, angle_min=self.angle_min, angle_increment=self.angle_increment, ranges=self.ranges,
             range_min=self.range_min, range_max=self.range_max, registration_sigma=registration_sigma, dims=dims,
             limits=limits,
@@ -188,8 +188,8 @@ class SensorCloud:
     points: np.ndarray
     range_max: float
 
-    def to_scan(self, name: str, *, registration_sigma: float, dims: int, limits: batches.Limits) -> batches.Scan:
-        return batches.point_cloud(name, self.pose, self.points, range_max=self.range_max,
+    def to_scan(self, name: str, *, registration_sigma: float, dims: int, limits: Limits) -> Scan:
+        return point_cloud(name, self.pose, self.points, range_max=self.range_max,
                                    registration_sigma=registration_sigma, dims=dims, limits=limits)
 
     def to_json(self, registration_sigma: float = 0.0) -> dict[str, Any]:
@@ -205,12 +205,6 @@ class SensorCloud:
 SensorScan = PlanarScan | SensorCloud
 
 
-def _check_count(name: str, count: int, limits: batches.Limits) -> None:
-    if count > limits.max_rays:
-        raise TooLarge(f"{name} has {count} beams, more than the limit of {limits.max_rays} per scan "
-                       "(FUZZYRISK_MAX_RAYS_PER_SCAN): split it into several scans")
-
-
 def _finite(name: str, value: float) -> float:
     value = float(value)
     if not math.isfinite(value):
@@ -218,9 +212,9 @@ def _finite(name: str, value: float) -> float:
     return value
 
 
-def _laser(msg: Any, pose: SensorPose, name: str, dims: int, limits: batches.Limits) -> SensorScan:
+def _laser(msg: Any, pose: SensorPose, name: str, dims: int, limits: Limits) -> SensorScan:
     ranges32 = np.asarray(msg.ranges)
-    _check_count(f"{name}.ranges", ranges32.size, limits)
+    check_rays(f"{name}.ranges", ranges32.size, limits)
     with np.errstate(invalid="ignore"):  # a signalling NaN is a NaN reading all the same
         ranges = ranges32.astype(np.float64)
     angle_min, increment = float(msg.angle_min), float(msg.angle_increment)
@@ -271,14 +265,14 @@ def _field_dtype(msg: Any, name: str, dims: int) -> np.dtype:
     return np.dtype({"names": list(wanted), "formats": formats, "offsets": offsets, "itemsize": step})
 
 
-def cloud_points(msg: Any, name: str, dims: int, limits: batches.Limits) -> np.ndarray:
+def cloud_points(msg: Any, name: str, dims: int, limits: Limits) -> np.ndarray:
     """(N, 3) float64 sensor-frame points of a PointCloud2, row by row (z is 0 for a 2-D cloud on a 2-D map).
 
     Every size is checked before a byte of ``data`` is read: the point count against the limit,
     ``point_step`` against the fields, ``row_step`` against the row, ``data`` against ``row_step * height``.
     """
     height, width = int(msg.height), int(msg.width)
-    _check_count(f"{name}.points", height * width, limits)  # Python ints: 2**32 squared cannot overflow
+    check_rays(f"{name}.points", height * width, limits)  # Python ints: 2**32 squared cannot overflow
     step, row_step, data = int(msg.point_step), int(msg.row_step), np.asarray(msg.data, dtype=np.uint8)
     if height * width == 0:
         return np.zeros((0, 3))
@@ -298,7 +292,7 @@ def cloud_points(msg: Any, name: str, dims: int, limits: batches.Limits) -> np.n
     return np.column_stack(columns)
 
 
-def sensor_scan(msg: Any, msgtype: str, pose: SensorPose, *, dims: int, limits: batches.Limits,
+def sensor_scan(msg: Any, msgtype: str, pose: SensorPose, *, dims: int, limits: Limits,
                 range_max: float | None = None, name: str = "body") -> SensorScan:
     """What a LaserScan or PointCloud2 message taken at ``pose`` is on a map of ``dims`` dimensions.
 
@@ -375,7 +369,7 @@ def encode(msg: Any, msgtype: str) -> bytes:
 
 
 def from_cdr(body: bytes, media: str, params: Mapping[str, Any], dims: int,
-             limits: batches.Limits) -> list[batches.Scan]:
+             limits: Limits) -> list[Scan]:
     """The one scan of a CDR body of Content-Type ``media`` (a key of ``MEDIA_TYPES``), pose in ``params``."""
     msgtype = MEDIA_TYPES[media]
     pose = pose_from_query(params)
@@ -388,7 +382,7 @@ def from_cdr(body: bytes, media: str, params: Mapping[str, Any], dims: int,
     # counts the body could not hold are not a PointCloud2's (other bytes, another type): rosbags says so
     if counts is not None and counts[0] * counts[1] <= len(body) and counts[2] <= len(body):
         height, width, fields = counts
-        _check_count("body.points", height * width, limits)
+        check_rays("body.points", height * width, limits)
         if fields > MAX_POINT_FIELDS:
             raise Invalid(f"body: the PointCloud2 declares {fields} fields, more than {MAX_POINT_FIELDS}")
     msg = decode(body, msgtype)

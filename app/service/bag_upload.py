@@ -40,7 +40,7 @@ from app.errors import (
     error_body_of,
 )
 from app.ros.bags import BagOptions, BagScan, BagStream, BagUnreadable
-from app.maps.state import in_use
+from app.maps import in_use
 from app.formats.mediatypes import MCAP, OCTET_STREAM, ROSBAG, X_MCAP
 from app.schemas import BagImportResult, ErrorBody
 from app.service.mapservice import MapService

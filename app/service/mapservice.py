@@ -25,17 +25,15 @@ from app.ops import warmup
 from app.config import Settings
 from app.storage.diskreserve import DiskReserve
 from app.ops.process_setup import give_back_freed_memory
-from app.maps.state import MapObserver
+from app.maps import MapObserver, MapRegistry, PlanGrids, WritePath
+from app.maps.shared_grids import DIRECTORY as PLAN_GRIDS_DIRECTORY
 from app.ops.metrics import Metrics
-from app.maps.shared_grids import DIRECTORY as PLAN_GRIDS_DIRECTORY, PlanGrids
 from app.plans.service import MapPlans
 from app.plans.pool import PlanPool
 from app.reads.service import MapReads
-from app.maps.registry import MapRegistry
 from app.schemas import Readiness
 from app.storage import Storage
 from app.ops.threads import Workers
-from app.maps.writepath import WritePath
 
 LOG = logging.getLogger("fuzzyrisk.maps")
 

@@ -15,7 +15,7 @@ from app.api.largebody import bytes_response
 from app.formats.exports import NAV2_FREE_THRESH, NAV2_OCCUPIED_THRESH
 from app.formats.mediatypes import MCAP, OCTET_STREAM
 from app.schemas import OccupancyGrid, RiskQuery, RiskValues
-from app.maps.state import GridSnapshot, GridStamp
+from app.maps import GridSnapshot, GridStamp
 from app.service.mapservice import MapService
 
 router = APIRouter(prefix="/maps", tags=["risk"])

@@ -7,7 +7,7 @@ from typing import Any
 from fastapi import APIRouter, Request, Response
 
 from app.formats import etags
-from app.scans.batches import BINARY_TYPES
+from app.scans import BINARY_TYPES
 from app.api.deps import MapNamePath, ServiceDep
 from app.ros.messages_in import MSGTYPES, media_type
 from app.schemas import EXAMPLE_CLOUD, EXAMPLE_LASER, SCAN_QUERY_DOC, SCAN_QUERY_FIELDS, BatchResult, LastScan

@@ -281,7 +281,7 @@ def test_a_beam_of_an_enormous_range_max_does_not_let_a_batch_past_its_work_budg
     wall = kit.laser(beams=90)
     spec = GridSpec(origin=tuple(kit.MAP_2D["origin"]), size=tuple(kit.MAP_2D["size"]),
                     resolution=kit.MAP_2D["resolution"])
-    from app.scans.batches import Limits, from_json
+    from app.scans import Limits, from_json
     from app.schemas import ScanBatch
 
     work = cast_work(spec, from_json(ScanBatch.model_validate({"scans": [wall]}), 2, Limits(256, 10_000)))

@@ -407,22 +407,22 @@ def _same_scans(a: Sequence[Any], b: Sequence[Any]) -> bool:
 
 
 def test_a_stored_batch_decodes_to_the_same_scans_bit_for_bit() -> None:
-    from app.scans import batches
+    from app.maps import logcodec
 
     scans = _mixed_scans()
-    payload = batches.encode(scans)
+    payload = logcodec.encode(scans)
     assert payload.startswith(b"FRB\x01")
-    assert _same_scans(scans, batches.decode(payload))
+    assert _same_scans(scans, logcodec.decode(payload))
     assert len(payload) < 500 * 4 + 300 * 8 + 40 * 2 * 8 + 1000  # float32 where that loses nothing
     with pytest.raises(ValueError, match="after its last scan"):
-        batches.decode(payload + b"\0")
+        logcodec.decode(payload + b"\0")
 
 
 def test_batches_stored_as_npz_by_earlier_versions_still_decode_and_replay(make_settings: Any, kit: Any) -> None:
-    from app.scans import batches
+    from app.maps import logcodec
 
     legacy = [_mixed_scans()[0], _mixed_scans()[2]]  # the old encoder stored laser ranges as float32
-    assert _same_scans(legacy, batches.decode(_legacy_npz(legacy)))
+    assert _same_scans(legacy, logcodec.decode(_legacy_npz(legacy)))
     settings = make_settings()
     bodies = _bodies(kit, 3)
     with TestClient(create_app(settings)) as client:
@@ -446,23 +446,23 @@ def test_batches_stored_as_npz_by_earlier_versions_still_decode_and_replay(make_
 
 
 def test_a_stored_batch_keeps_every_bit_of_odd_floats() -> None:
-    from app.scans import batches
+    from app.maps import logcodec
 
     ranges = np.array([1.5, -0.0, 5e-324, 1e300, np.inf, np.nan, np.nan])
     ranges.view(np.uint64)[6] = 0x7FF8000000000001  # a NaN with payload bits float32 cannot hold
     scan = LaserScan(pose=(0.0, 0.0, 0.0), angle_min=0.0, angle_increment=0.01, ranges=ranges, range_min=0.1,
                      range_max=8.0)
-    (back,) = batches.decode(batches.encode([scan]))
+    (back,) = logcodec.decode(logcodec.encode([scan]))
     assert back.ranges.view(np.uint64).tolist() == ranges.view(np.uint64).tolist()
 
 
 def test_a_corrupt_stored_batch_is_named_as_such_and_never_read_past_its_end() -> None:
-    from app.scans import batches
+    from app.maps import logcodec
 
-    payload = batches.encode(_mixed_scans())
+    payload = logcodec.encode(_mixed_scans())
     for cut in range(len(payload)):  # truncated anywhere
-        with pytest.raises(batches.CorruptBatch):
-            batches.decode(payload[:cut])
+        with pytest.raises(logcodec.CorruptBatch):
+            logcodec.decode(payload[:cut])
     header_end = payload.index(b"]}") + 2
     for bad, good in [(b'"shape": [-1]', b'"shape": [500]'), (b'"scalars": -1', b'"scalars": 8'),
                       (b'"kind": "sonar"', b'"kind": "laser"')]:
@@ -470,8 +470,8 @@ def test_a_corrupt_stored_batch_is_named_as_such_and_never_read_past_its_end() -
         assert forged != payload[:header_end]
         length = len(forged) - len(payload[:8])
         forged = payload[:4] + struct.pack("<I", length) + forged[8:] + payload[header_end:]
-        with pytest.raises(batches.CorruptBatch):
-            batches.decode(forged)
+        with pytest.raises(logcodec.CorruptBatch):
+            logcodec.decode(forged)
 
 
 def test_a_batch_whose_removal_from_the_log_fails_after_its_fusion_failed_does_not_block_the_next(

@@ -16,7 +16,7 @@ pytest.importorskip("foxglove", reason="the foxglove extra (foxglove-sdk) is not
 from app.reads import foxglove as live
 from app.config import Settings
 from app.ops.process_setup import StartupError, foxglove_sdk_missing
-from app.maps.state import GridSnapshot
+from app.maps import GridSnapshot
 from fuzzyocc.config import GridSpec
 
 

@@ -161,7 +161,7 @@ def test_a_2d_point_cloud_is_recorded_in_the_map_frame(lab: TestClient, kit: Any
     assert cloud.header.frame_id == "map" and (cloud.height, cloud.width, cloud.point_step) == (1, 3, 12)
     assert [(f.name, f.offset, f.datatype) for f in cloud.fields] == [("x", 0, 7), ("y", 4, 7), ("z", 8, 7)]
     xyz = np.frombuffer(cloud.data.tobytes(), dtype="<f4").reshape(-1, 3)
-    c, s = math.cos(pose["theta"]), math.sin(pose["theta"])  # as app.scans.batches puts the points in the map frame
+    c, s = math.cos(pose["theta"]), math.sin(pose["theta"])  # as app.scans.scan puts the points in the map frame
     expected = np.array(points_sensor[:3]) @ np.array([[c, -s], [s, c]]).T + [pose["x"], pose["y"]]
     np.testing.assert_array_equal(xyz[:, :2], expected.astype(np.float32))
     assert not xyz[:, 2].any()

@@ -15,7 +15,7 @@ from fastapi.testclient import TestClient
 from scipy.spatial.transform import Rotation
 
 from app.ros import messages_in
-from app.scans.batches import Limits
+from app.scans import Limits
 from tests.app._ros import (
     CLOUD_CT,
     LASER_CT,

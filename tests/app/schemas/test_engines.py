@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
-from app.scans import batches
+from app.maps import logcodec
 from app.storage import BatchRecord, SqliteStorage
 from fuzzyocc import FuzzyEngine, FuzzyMap, GridSpec, LaserScan, SensorModel, presets
 from fuzzyocc.engine import even_output_mfs
@@ -241,7 +241,7 @@ def test_a_map_stored_before_engines_keeps_the_papers_engine(make_settings: Any,
     now = datetime.now(UTC).isoformat(timespec="milliseconds")
     storage.create_map("lab", {**old_meta, "created": now}, now)
     body = scans(kit, 1)[0]
-    storage.append_batches([BatchRecord("lab", None, batches.encode([as_scan(body)]), now, 1)])
+    storage.append_batches([BatchRecord("lab", None, logcodec.encode([as_scan(body)]), now, 1)])
     storage.close()
 
     client = make_client()

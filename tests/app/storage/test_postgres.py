@@ -22,7 +22,7 @@ from fastapi.testclient import TestClient
 
 from app.ros import bagsize
 from app.api.factory import create_app
-from app.maps.state import restore
+from app.maps import restore
 from app.storage.postgres import PostgresStorage
 from tests.app.cli.test_import_bag import laser_scenario, upload, write_bag
 from tests.conftest import error_message

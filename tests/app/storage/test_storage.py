@@ -403,7 +403,8 @@ def test_a_start_holds_one_map_at_a_time(make_client: Any, make_settings: Any, k
     import asyncio
     import tracemalloc
 
-    from app.scans import batches
+    from app.maps import logcodec
+    from app.scans import Limits, from_json
     from app.ops.metrics import Metrics
     from app.schemas import ScanBatch
     from app.service.mapservice import MapService
@@ -415,9 +416,9 @@ def test_a_start_holds_one_map_at_a_time(make_client: Any, make_settings: Any, k
         assert client.post("/maps", json={**kit.MAP_2D, "name": name}).status_code == 201
     client.__exit__(None, None, None)
     settings = make_settings()
-    limits = batches.Limits(max_scans=256, max_rays=settings.max_rays_per_scan)
+    limits = Limits(max_scans=256, max_rays=settings.max_rays_per_scan)
     # many small batches: the log's bytes, not one batch's fusion scratch, make the peak
-    payload = batches.encode(batches.from_json(ScanBatch.model_validate({"scans": [kit.laser(beams=20_000)]}), 2,
+    payload = logcodec.encode(from_json(ScanBatch.model_validate({"scans": [kit.laser(beams=20_000)]}), 2,
                                                limits))
     per_map = 50
     storage = SqliteStorage(settings.database_path)

@@ -12,7 +12,7 @@ import pytest
 from fastapi.testclient import TestClient
 
 from app.errors import STORAGE_UNAVAILABLE_DETAIL
-from app.maps.state import Turns
+from app.maps.line import Turns
 from app.storage import BatchRecord, SqliteStorage, StorageUnavailable
 
 

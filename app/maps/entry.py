@@ -1,0 +1,187 @@
+"""A map held in memory (``MapEntry``), with what the service knows about it, and what ``GET /maps/{name}`` shows.
+
+Shared by the write path (``app.maps.writepath``), the reads (``app.reads.service``), the registry of maps
+(``app.maps.registry``) and the plans (``app.plans.service``); it knows nothing of HTTP.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import collections
+import contextlib
+import functools
+import time
+from collections.abc import Iterator, Mapping
+from dataclasses import dataclass, field
+from datetime import UTC, datetime
+from typing import Any, Protocol
+
+from app.formats import etags
+from app.maps import shared_grids
+from app.maps.line import Line
+from app.maps.snapshot import GridStamp
+from app.scans import Scan, ScanView
+from app.schemas import DEFAULT_FRAME_ID, EngineInfo, MapInfo, PlanResult, SensorIn
+from app.schemas import engines
+from app.storage import MapHead
+from fuzzyocc import BayesMap, FuzzyMap, GridSpec
+
+
+#: Cells a stored map may have whatever ``FUZZYRISK_MAX_MAP_CELLS`` says now: a limit lowered since the map
+#: was made must not lose the map
+UNLIMITED_CELLS = 2**62
+
+OccupancyMap = FuzzyMap | BayesMap
+
+
+class MapObserver(Protocol):
+    """Told of each change right after it happened (a live view: ``app.reads.foxglove``).
+
+    Called on the event loop, the batch's apply lock held: a method must return at once (hand the
+    work to a thread of its own) and should not raise (what it raises is logged, never answered).
+    ``frame_id`` is the map's frame (``MapEntry.frame_id``), what its messages carry.
+    """
+
+    def batch_applied(self, name: str, version: int, last_scan: Scan, frame_id: str) -> None: ...
+
+    def plan_made(self, name: str, result: PlanResult, frame_id: str) -> None: ...
+
+    def map_deleted(self, name: str) -> None: ...
+
+
+def now() -> str:
+    """The time now as a map's ``updated`` carries it (ISO 8601, UTC, milliseconds)."""
+    return datetime.now(UTC).isoformat(timespec="milliseconds")
+
+
+@dataclass
+class MapEntry:
+    """A map held in memory, with what the service knows about it."""
+
+    meta: dict[str, Any]
+    map: OccupancyMap
+    version: int
+    snapshot_version: int
+    scans_fused: int
+    updated: str
+    line: Line = field(default_factory=Line)
+    apply_lock: asyncio.Lock = field(default_factory=asyncio.Lock)
+    #: the last scan fused; its view for the web page is built when first asked for
+    last_scan: Scan | None = None
+    last_view: ScanView | None = None
+    #: version at the last failed snapshot attempt (the next attempt waits snapshot_every batches more)
+    snapshot_failed_version: int = 0
+    deleted: bool = False
+    #: uploads for this map whose bodies are still arriving (they count against its line: ``receiving``)
+    arriving: int = 0
+    #: (version, bytes, cells walked) of each batch in the log after the latest snapshot: the log is bounded
+    #: in bytes (the disk) and in cells (the replay at a restart) too
+    log: collections.deque[tuple[int, int, int]] = field(default_factory=collections.deque)
+    #: names this map among every map the process held (a deleted map's name may come back; its uid does not)
+    uid: int = field(default_factory=shared_grids.new_uid)
+    #: ``time.monotonic()`` of the last request that used the map (a replica drops maps idle for long)
+    last_used: float = field(default_factory=time.monotonic)
+    #: versions this replica committed and has not applied yet (a read need not wait for them: not acknowledged)
+    inflight: set[int] = field(default_factory=set)
+    #: the newest stored version caught up to: versions up to it that were not applied are discarded batches
+    checked: int = 0
+    #: requests that hold the map across awaits without a place in its line (a bag import between its batches):
+    #: the map is not dropped from memory meanwhile
+    users: int = 0
+    #: reads waiting in the line to apply other replicas' batches (not batches: ``_admit`` leaves them out)
+    catching_up: int = 0
+    #: the snapshot being taken beside the line, if any (``WritePath._snapshot_beside``)
+    snapshotting: asyncio.Task[None] | None = None
+
+    async def snapshot_done(self) -> None:
+        """Wait for the snapshot being taken, if any (it logs its own failure; its cancellation is not ours)."""
+        if self.snapshotting is not None:
+            await asyncio.wait([self.snapshotting])
+
+    @property
+    def batches_in_line(self) -> int:
+        """Batches in its line or arriving, not yet applied (reads catching up are not batches)."""
+        return self.line.outstanding - self.catching_up + self.arriving
+
+    @property
+    def incarnation(self) -> str | None:
+        """Tells this map apart from another stored under its name before or after it (None: a map from before)."""
+        value = self.meta.get("incarnation")
+        return None if value is None else str(value)
+
+    @property
+    def name(self) -> str:
+        return str(self.meta["name"])
+
+    @property
+    def spec(self) -> GridSpec:
+        return self.map.spec
+
+    @property
+    def frame_id(self) -> str:
+        """The map's ROS frame (maps stored before frames could be chosen are in ``map``)."""
+        return str(self.meta.get("frame_id", DEFAULT_FRAME_ID))
+
+    @functools.cached_property
+    def etag_seed(self) -> str:
+        """Tells this map apart from another of the same name, across restarts (``etags.map_seed``)."""
+        return etags.map_seed(self.meta)
+
+    def stamp(self) -> GridStamp:
+        """This version's ``GridStamp`` (read it under ``apply_lock``, with the cells it stamps)."""
+        return GridStamp(self.spec, self.version, self.frame_id, self.updated, self.etag_seed)
+
+    @functools.cached_property
+    def engine_info(self) -> EngineInfo | None:
+        """The fuzzy engine as ``MapInfo`` shows it (once: a map's engine never changes)."""
+        if not isinstance(self.map, FuzzyMap):
+            return None
+        return EngineInfo(**engines.describe(self.map.engine))
+
+    def info(self) -> MapInfo:
+        return map_info(self.meta, self.spec, self.engine_info, scans_fused=self.scans_fused, version=self.version,
+                        updated=self.updated)
+
+
+def map_info(meta: Mapping[str, Any], spec: GridSpec, engine: EngineInfo | None, *, scans_fused: int, version: int,
+             updated: str) -> MapInfo:
+    """What ``GET /maps/{name}`` shows of a map, held in memory or only stored."""
+    return MapInfo(
+        name=str(meta["name"]),
+        dimensions=spec.ndim,
+        resolution=spec.resolution,
+        origin=list(spec.origin),
+        size=[float(f"{n * spec.resolution:.12g}") for n in spec.shape],  # as built: whole cells
+        shape=list(spec.shape),
+        model=meta["model"],
+        sensor=SensorIn(**meta["sensor"]),
+        engine=engine,
+        frame_id=str(meta.get("frame_id", DEFAULT_FRAME_ID)),
+        scans_fused=scans_fused,
+        version=version,
+        created=meta["created"],
+        updated=updated,
+    )
+
+
+def stored_info(head: MapHead) -> MapInfo:
+    """``map_info`` of a map this replica does not hold, from its stored row (no map built)."""
+    spec = GridSpec(origin=head.meta["origin"], size=head.meta["size"], resolution=head.meta["resolution"],
+                    max_cells=UNLIMITED_CELLS)
+    engine = EngineInfo(**engines.describe(engines.from_meta(head.meta))) if head.meta["model"] == "fuzzy" else None
+    return map_info(head.meta, spec, engine, scans_fused=head.scans, version=head.version, updated=head.updated)
+
+
+@contextlib.contextmanager
+def in_use(entry: MapEntry) -> Iterator[MapEntry]:
+    """Hold ``entry`` in memory across awaits outside its line (``MapEntry.users``)."""
+    entry.users += 1
+    try:
+        yield entry
+    finally:
+        entry.users -= 1
+
+
+def is_current(entry: MapEntry, version: int) -> bool:
+    """Is ``version`` still the version of the map that ``entry`` holds?"""
+    return not entry.deleted and entry.version == version

@@ -1,0 +1,130 @@
+"""The batch log's record: a batch of checked scans as the bytes stored, and back, bit for bit.
+
+Storage keeps these bytes opaque (versioned payloads with their checksums); the maps write them
+before a batch is applied (``app.maps.ingest``) and replay them at a restart (``app.maps.stored``).
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import math
+import struct
+from collections.abc import Sequence
+
+import numpy as np
+
+from app.scans import Scan
+from fuzzyocc import LaserScan, PointCloud
+
+#: A stored batch: this magic, a little-endian uint32 header length, a JSON header, then per scan its
+#: float64 scalars and its values, raw little-endian. Batches stored before it are ``.npz`` files
+#: (they start with ``PK``, the zip magic) and still decode.
+_MAGIC = b"FRB\x01"
+_HEADER_LENGTH = struct.Struct("<I")
+_VALUE_DTYPES = {"<f4": np.dtype("<f4"), "<f8": np.dtype("<f8")}
+
+
+def _compact(values: np.ndarray) -> np.ndarray:
+    """float32 when that loses nothing (binary uploads, float32 drivers), else float64 (little-endian)."""
+    values = np.asarray(values, dtype="<f8")
+    with np.errstate(over="ignore", invalid="ignore"):  # too big for float32: then not exact anyway
+        as32 = values.astype("<f4")
+    # exact iff every value's bits come back from float32 unchanged (NaN payloads and -0.0 included)
+    exact = bool(np.array_equal(as32.astype("<f8").view(np.uint64), values.view(np.uint64)))
+    return as32 if exact else values
+
+
+def _parts(scan: Scan) -> tuple[str, np.ndarray, np.ndarray]:
+    if isinstance(scan, LaserScan):
+        scalars = [*scan.pose, scan.angle_min, scan.angle_increment, scan.range_min, scan.range_max,
+                   scan.registration_sigma]
+        return "laser", np.array(scalars, dtype="<f8"), _compact(scan.ranges)
+    return "cloud", np.array([*scan.origin, scan.range_max, scan.registration_sigma], dtype="<f8"), _compact(scan.points)
+
+
+def encode(scans: Sequence[Scan]) -> bytes:
+    """A validated batch as bytes that :func:`decode` turns back into equal scans (bit for bit).
+
+    Framed raw arrays rather than an ``.npz``: writing a zip archive cost more than parsing the
+    request (it ran for every batch, on the event loop for small bodies).
+    """
+    parts = [_parts(scan) for scan in scans]
+    header = json.dumps({"scans": [
+        {"kind": kind, "scalars": int(scalars.size), "dtype": values.dtype.str, "shape": list(values.shape)}
+        for kind, scalars, values in parts
+    ]}).encode()
+    chunks = [_MAGIC, _HEADER_LENGTH.pack(len(header)), header]
+    for _, scalars, values in parts:
+        chunks.append(scalars.tobytes())
+        chunks.append(np.ascontiguousarray(values).tobytes())
+    return b"".join(chunks)
+
+
+def _scan(kind: str, scalars: list[float], values: np.ndarray) -> Scan:
+    if kind == "laser":
+        x, y, theta, angle_min, increment, range_min, range_max, reg = scalars
+        return LaserScan(pose=(x, y, theta), angle_min=angle_min, angle_increment=increment, ranges=values,
+                         range_min=range_min, range_max=range_max, registration_sigma=reg,
+                         max_rays=max(values.size, 1))
+    *origin, range_max, reg = scalars
+    return PointCloud(points=values, origin=tuple(origin), range_max=range_max, registration_sigma=reg,
+                      max_rays=max(values.shape[0], 1))
+
+
+class CorruptBatch(ValueError):
+    """A stored batch whose bytes do not decode (the message says where)."""
+
+
+_SCALARS = {"laser": (8,), "cloud": (4, 5)}  # laser: pose, angles, ranges, sigma; cloud: origin (2 or 3), max, sigma
+
+
+def decode(payload: bytes) -> list[Scan]:
+    """The scans of an :func:`encode` blob, or of a batch stored as ``.npz`` by an earlier version.
+
+    Raises :class:`CorruptBatch` for bytes that are not such a blob, never reading past them.
+    """
+    try:
+        if not payload.startswith(_MAGIC):
+            return _decode_npz(payload)
+        return _decode_framed(payload)
+    except CorruptBatch:
+        raise
+    except Exception as exc:  # noqa: BLE001 - any failure to decode is corruption, named as such
+        raise CorruptBatch(f"stored batch does not decode: {type(exc).__name__}: {exc}") from exc
+
+
+def _take(payload: bytes, offset: int, dtype: np.dtype, count: int) -> np.ndarray:
+    if count < 0 or offset + count * dtype.itemsize > len(payload):
+        raise CorruptBatch(f"stored batch is truncated or its header is wrong ({count} values at byte {offset})")
+    return np.frombuffer(payload, dtype=dtype, count=count, offset=offset)
+
+
+def _decode_framed(payload: bytes) -> list[Scan]:
+    offset = len(_MAGIC)
+    (length,) = _HEADER_LENGTH.unpack_from(payload, offset)
+    offset += _HEADER_LENGTH.size
+    if offset + length > len(payload):
+        raise CorruptBatch("stored batch is truncated inside its header")
+    header = json.loads(payload[offset:offset + length])
+    offset += length
+    scans: list[Scan] = []
+    for item in header["scans"]:
+        kind, count, shape = str(item["kind"]), int(item["scalars"]), tuple(int(n) for n in item["shape"])
+        if count not in _SCALARS.get(kind, ()) or any(n < 0 for n in shape) or len(shape) != (1 if kind == "laser" else 2):
+            raise CorruptBatch(f"stored batch has a malformed scan header: {item!r}")
+        scalars = _take(payload, offset, np.dtype("<f8"), count)
+        offset += scalars.nbytes
+        values = _take(payload, offset, _VALUE_DTYPES[item["dtype"]], math.prod(shape)).reshape(shape)
+        offset += values.nbytes
+        scans.append(_scan(kind, scalars.tolist(), values.astype(np.float64)))
+    if offset != len(payload):
+        raise CorruptBatch(f"stored batch has {len(payload) - offset} bytes after its last scan")
+    return scans
+
+
+def _decode_npz(payload: bytes) -> list[Scan]:
+    with np.load(io.BytesIO(payload), allow_pickle=False) as archive:
+        kinds = [str(k) for k in archive["kinds"]]
+        return [_scan(kind, archive[f"s{i}_scalars"].tolist(), archive[f"s{i}_values"].astype(np.float64))
+                for i, kind in enumerate(kinds)]

@@ -1,0 +1,118 @@
+"""A map from what is stored of it: its metadata, its snapshot's arrays (``npz`` / ``unnpz``), its log replayed.
+
+``restore`` rebuilds a held map from its snapshot and the batches after it, in order; fusion is
+deterministic, so the map is bit for bit the one acknowledged. ``build_map`` is a new map too: what is
+stored is what runs.
+"""
+
+from __future__ import annotations
+
+import io
+import logging
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from app.maps import logcodec
+from app.maps.entry import UNLIMITED_CELLS, MapEntry, OccupancyMap
+from app.scans import Scan
+from app.schemas import engines
+from app.storage import StoredMap
+from fuzzyocc import BayesMap, FuzzyMap, GridSpec, SensorModel, cast_work
+
+LOG = logging.getLogger("fuzzyrisk.maps")
+
+
+def npz(arrays: Mapping[str, np.ndarray]) -> bytes:
+    """A map's arrays (``to_arrays``) as a snapshot's bytes."""
+    out = io.BytesIO()
+    # snapshots are mostly unknown cells: deflate shrinks them many times over
+    np.savez_compressed(out, allow_pickle=False, **arrays)
+    return out.getvalue()
+
+
+def unnpz(payload: bytes) -> dict[str, np.ndarray]:
+    """The arrays of a snapshot's bytes (``npz``)."""
+    with np.load(io.BytesIO(payload), allow_pickle=False) as archive:
+        return {key: archive[key] for key in archive.files}
+
+
+def build_map(meta: Mapping[str, Any], *, max_cells: int) -> OccupancyMap:
+    """An empty map as ``meta`` describes it (a new map is built from its meta too: what is stored is what runs)."""
+    spec = GridSpec(origin=meta["origin"], size=meta["size"], resolution=meta["resolution"], max_cells=max_cells)
+    sensor = SensorModel(**meta["sensor"])
+    if meta["model"] == "fuzzy":
+        return FuzzyMap(spec, sensor, engines.from_meta(meta))
+    return BayesMap(spec, sensor)
+
+
+def restore(stored: StoredMap, up_to: int | None = None) -> MapEntry:
+    """A map from its snapshot and the batches after it (replayed in order: bit-identical risk).
+
+    ``up_to``: replay only the batches up to that version (a live map's rebuild: later batches
+    may be committed and still waiting for their turn to be applied).
+    """
+    if stored.damage:
+        raise RuntimeError(f"map {stored.name!r}: {'; '.join(stored.damage)}")
+    try:
+        built = build_map(stored.meta, max_cells=UNLIMITED_CELLS)
+    except ValueError as exc:
+        raise RuntimeError(f"map {stored.name!r}: its stored metadata cannot be used ({exc}); the database "
+                           "needs repair") from exc
+    if stored.snapshot is not None:
+        arrays = unnpz(stored.snapshot)
+        if isinstance(built, FuzzyMap):
+            built = FuzzyMap.from_arrays(built.spec, built.sensor, arrays, built.engine)
+        else:
+            built = BayesMap.from_arrays(built.spec, built.sensor, arrays)
+    entry = MapEntry(
+        dict(stored.meta), built, stored.snapshot_version, stored.snapshot_version, built.scans_fused,
+        stored.stamps.get(stored.snapshot_version, stored.updated),
+    )
+    progress = replay(entry.map, stored, after=entry.version, up_to=up_to)
+    entry.version, entry.scans_fused, entry.updated = progress.version or entry.version, built.scans_fused, \
+        progress.updated or entry.updated
+    entry.last_scan = progress.last_scan
+    entry.log.extend(progress.log)
+    # versions up to the stored one that were not replayed are discarded batches (tombstones)
+    entry.checked = stored.version if up_to is None else min(stored.version, up_to)
+    return entry
+
+
+@dataclass
+class Replayed:
+    """What ``replay`` brought a map to: its newest version replayed (0: none), that batch's ``updated``, ..."""
+
+    version: int = 0
+    updated: str = ""
+    last_scan: Scan | None = None
+    #: (version, bytes, cells walked) of the batches replayed, for ``MapEntry.log``
+    log: list[tuple[int, int, int]] = field(default_factory=list)
+
+
+def replay(built: OccupancyMap, stored: StoredMap, *, after: int, up_to: int | None = None) -> Replayed:
+    """Fuse ``stored``'s batches above version ``after`` (and at most ``up_to``) into ``built``, in order."""
+    progress = Replayed()
+    for version, payload in stored.batches:
+        if version <= after:
+            continue
+        if up_to is not None and version > up_to:
+            break
+        try:
+            scans = logcodec.decode(payload)
+        except logcodec.CorruptBatch as exc:
+            # an acknowledged batch: never dropped silently; the service refuses to start and says where
+            raise RuntimeError(f"map {stored.name!r}: stored batch {version} is corrupt ({exc}); the database "
+                               f"needs repair (restore a backup, or delete that row to drop the batch)") from exc
+        progress.log.append((version, len(payload), cast_work(built.spec, scans)))
+        try:
+            built.integrate_batch(scans)
+        except ValueError:
+            # cannot happen for a batch that was acknowledged (it was applied before the 200)
+            LOG.exception("map %s: batch %d cannot be replayed; skipped", stored.name, version)
+            continue
+        progress.version, progress.last_scan = version, scans[-1]
+        progress.updated = stored.stamps.get(version, stored.updated)
+    return progress
