@@ -24,7 +24,7 @@ from contextlib import contextmanager
 from pathlib import Path
 
 import app.storage.committer
-import app.storage
+import app.storage.sqlite
 from app.storage.committer import GroupCommitter
 from app.ops.metrics import Metrics
 from app.storage import BatchRecord, SqliteStorage
@@ -34,12 +34,13 @@ SMALL, BIG, BIG_EVERY_S, SMALL_EVERY_S = 2_000, 8_000_000, 0.5, 0.05
 
 @contextmanager
 def _inline_limit(limit: int) -> Iterator[None]:
-    saved = app.storage.INLINE_BYTES
-    app.storage.INLINE_BYTES = app.storage.committer.INLINE_BYTES = limit
+    # set in the modules that read it: the SQLite store (a payload to a file or its row) and the committer
+    saved = app.storage.sqlite.INLINE_BYTES
+    app.storage.sqlite.INLINE_BYTES = app.storage.committer.INLINE_BYTES = limit
     try:
         yield
     finally:
-        app.storage.INLINE_BYTES = app.storage.committer.INLINE_BYTES = saved
+        app.storage.sqlite.INLINE_BYTES = app.storage.committer.INLINE_BYTES = saved
 
 
 def _window(directory: Path, seconds: float, big: bool) -> list[float]:

@@ -12,7 +12,7 @@ transforms do not cover is skipped, and the summary counts why. Each message is 
 :mod:`app.ros.messages_in`, the code the service runs on a CDR body, so the three ways in (fused here,
 posted as CDR bodies, posted as JSON batches) give the same map bit for bit.
 
-``POST /maps/{name}/bags`` (``app/bag_upload.py``) reads an uploaded bag with a :class:`BagStream` too.
+``POST /maps/{name}/bags`` (``app/service/bag_upload.py``) reads an uploaded bag with a :class:`BagStream` too.
 Progress goes to stderr, a one-line summary to stdout; errors exit 1 with a message.
 """
 
@@ -21,20 +21,31 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
-import math
-import os
 import sys
 import time
 from collections import Counter
 from collections.abc import Callable, Mapping
 from pathlib import Path
-from typing import Any, TextIO
+from typing import Any
 from urllib.parse import quote, urlencode
 
-import numpy as np
 from rosbags.highlevel import AnyReader
 
-from app.formats import exports
+from app.cli.common import (
+    ImportFailed,
+    Progress,
+    ServiceClient,
+    add_output_options,
+    add_service_options,
+    create_map,
+    download_outputs,
+    import_main,
+    name_taken,
+    non_negative,
+    positive,
+    write_outputs,
+)
+from app.config import Settings
 from app.ros import messages_in
 from app.ros.bags import (
     BAG_ERRORS,
@@ -46,29 +57,13 @@ from app.ros.bags import (
     BagUnreadable,
     grid_for,
 )
-from app.config import Settings
-from app.cli.import_log import ImportFailed, ServiceClient, _non_negative, _positive, run_command
 from app.schemas import DEFAULT_FRAME_ID
-from fuzzyocc import BayesMap, FuzzyMap, GridSpec, SensorModel
+from fuzzyocc import BayesMap, FuzzyMap, GridSpec
 
 PROG = "fuzzyrisk-import-bag"
 
 
 # ---------------------------------------------------------------- the command
-
-
-class Progress:
-    """A line on a stream at most once a second, and the last one (``final``)."""
-
-    def __init__(self, stream: TextIO, started: float, every_s: float = 1.0) -> None:
-        self.stream, self.started, self.every_s = stream, started, every_s
-        self._last = -math.inf
-
-    def __call__(self, what: str, done: int, total: int, *, final: bool = False) -> None:
-        now = time.perf_counter()
-        if now - self._last >= self.every_s or final:
-            self._last = now
-            print(f"{PROG}: {done}/{total} {what}, {now - self.started:.1f} s", file=self.stream, flush=True)
 
 
 @dataclasses.dataclass
@@ -91,20 +86,7 @@ def _in_process(args: argparse.Namespace, spec: GridSpec) -> tuple[_Sink, Callab
         return int(occupancy.integrate_batch([s.scan for s in batch]).rays)
 
     def finish() -> str:
-        risk, observed = occupancy.risk(), occupancy.observed()
-        if args.png or args.nav2:
-            flat, seen = (risk, observed) if spec.ndim == 2 else exports.project_z(
-                risk, observed, origin_z=spec.origin[2], resolution=spec.resolution)
-            if args.png:
-                text = {"source": args.bag.name, "resolution": repr(spec.resolution),
-                        "origin": repr(list(spec.origin))}
-                args.png.write_bytes(exports.risk_png(flat, seen, scale=args.scale, text=text))
-            if args.nav2:
-                args.nav2.write_bytes(exports.nav2_zip(flat, seen, resolution=spec.resolution,
-                                                       origin_xy=(spec.origin[0], spec.origin[1]),
-                                                       mode=args.nav2_mode, image_format=args.nav2_format))
-        if args.npy:
-            args.npy.write_bytes(exports.npy_bytes(np.asarray(risk, dtype=np.float32)))
+        write_outputs(args, spec, occupancy.risk(), occupancy.observed(), args.bag.name)
         return f"{args.model} map in-process"
 
     return fuse, finish
@@ -123,14 +105,10 @@ def _spec_of(info: Mapping[str, Any]) -> GridSpec:
 
 def _create(client: ServiceClient, args: argparse.Namespace, spec: GridSpec, map_frame: str) -> dict[str, Any]:
     """Create the map (in ``--map-frame``: its ``frame_id``); a name taken without ``--append`` fails."""
-    request = {"name": args.map, "dimensions": spec.ndim, "resolution": spec.resolution, "origin": list(spec.origin),
-               "size": list(spec.size), "model": args.model, "sensor": dataclasses.asdict(SensorModel()),
-               "frame_id": map_frame}
-    status, data = client.call("POST", "/maps", json.dumps(request).encode(), ok=(201, 409))
-    if status == 201:
-        return dict(json.loads(data))
-    raise ImportFailed(f"a map named {args.map!r} exists on {client.url}: pass --append to add the scans to it, "
-                       "or choose another --map")
+    created = create_map(client, args, spec, frame_id=map_frame)
+    if created is None:
+        raise name_taken(client, args.map)
+    return created
 
 
 def _through_service(args: argparse.Namespace, client: ServiceClient,
@@ -165,15 +143,7 @@ def _through_service(args: argparse.Namespace, client: ServiceClient,
         return rays
 
     def finish() -> str:
-        downloads = [
-            (args.png, f"/maps/{name}/risk?" + urlencode({"format": "png", "scale": args.scale})),
-            (args.nav2, f"/maps/{name}/export/nav2?" + urlencode({"mode": args.nav2_mode,
-                                                                  "format": args.nav2_format})),
-            (args.npy, f"/maps/{name}/risk?format=npy"),
-        ]
-        for path, target in downloads:
-            if path:
-                path.write_bytes(client.call("GET", target)[1])
+        download_outputs(client, args, name)
         return f"{info.get('model', args.model)} map {args.map!r} version {version} on {client.url}"
 
     return send, finish
@@ -195,58 +165,35 @@ def _parser() -> argparse.ArgumentParser:
                    "PoseWithCovarianceStamped or Odometry topic instead of /tf for its frame")
     r.add_argument("--pose-frame", default="base_link",
                    help="the frame a PoseStamped pose topic places (default base_link; Odometry names its own)")
-    r.add_argument("--cloud-range-max", type=_positive(float), default=DEFAULT_CLOUD_RANGE_MAX_M, metavar="M",
+    r.add_argument("--cloud-range-max", type=positive(float), default=DEFAULT_CLOUD_RANGE_MAX_M, metavar="M",
                    help="a PointCloud2's range, metres: points beyond are no-returns "
                         f"(default {DEFAULT_CLOUD_RANGE_MAX_M:g})")
-    r.add_argument("--every", type=_positive(int), default=1, metavar="N", help="take every Nth scan (default 1)")
+    r.add_argument("--every", type=positive(int), default=1, metavar="N", help="take every Nth scan (default 1)")
     g = p.add_argument_group("map")
     g.add_argument("--dimensions", type=int, choices=(2, 3), default=None,
                    help="2 or 3 (default: 3 if a PointCloud2 topic is read, else 2)")
-    g.add_argument("--resolution", type=_positive(float), default=0.05, help="cell edge, metres (default 0.05)")
-    g.add_argument("--margin", type=_non_negative, default=1.0,
+    g.add_argument("--resolution", type=positive(float), default=0.05, help="cell edge, metres (default 0.05)")
+    g.add_argument("--margin", type=non_negative, default=1.0,
                    help="padding around the sensor positions and hits, metres (default 1)")
     g.add_argument("--origin", type=float, nargs="+", metavar="X",
                    help="the map's corner (x y [z]), metres, with --size: a fixed box instead of the data's")
-    g.add_argument("--size", type=_positive(float), nargs="+", metavar="W", help="the map's extent (x y [z]), metres")
+    g.add_argument("--size", type=positive(float), nargs="+", metavar="W", help="the map's extent (x y [z]), metres")
     g.add_argument("--model", choices=("fuzzy", "bayes"), default="fuzzy", help="map model (default fuzzy)")
-    g.add_argument("--batch", type=_positive(int), default=32,
+    g.add_argument("--batch", type=positive(int), default=32,
                    help="scans per fusion batch / JSON request (default 32)")
-    o = p.add_argument_group("output")
-    o.add_argument("--png", type=Path, help="write the risk picture (PNG; a 3-D map's max-risk projection) here")
-    o.add_argument("--scale", type=_positive(int), default=1, help="PNG pixels per cell (default 1)")
-    o.add_argument("--nav2", type=Path, metavar="FILE.zip", help="write a Nav2 map_server zip here")
-    o.add_argument("--nav2-mode", choices=("trinary", "scale", "raw"), default="trinary", help="default trinary")
-    o.add_argument("--nav2-format", choices=("pgm", "png"), default="pgm", help="default pgm")
-    o.add_argument("--npy", type=Path, help="write the risk grid (float32 .npy) here")
-    s = p.add_argument_group("through the service")
-    s.add_argument("--url", help="the service, e.g. http://127.0.0.1:8000 (default: fuse in-process)")
-    s.add_argument("--map", help="name of the map to create on the service")
-    s.add_argument("--api-key", default=os.environ.get("FUZZYRISK_API_KEY") or None,
-                   help="the service's API key (default: $FUZZYRISK_API_KEY)")
-    s.add_argument("--append", action="store_true", help="add the scans to the map if it exists")
+    add_output_options(p, png="write the risk picture (PNG; a 3-D map's max-risk projection) here")
+    s = add_service_options(p, append="add the scans to the map if it exists")
     s.add_argument("--body", choices=("cdr", "json"), default="cdr",
                    help="post each message as its CDR body with its pose (default), or JSON batches of --batch scans")
     return p
 
 
-def _check_options(p: argparse.ArgumentParser, args: argparse.Namespace) -> None:
-    if args.url and not args.map:
-        p.error("--url needs --map NAME")
+def _check_box(p: argparse.ArgumentParser, args: argparse.Namespace) -> None:
+    """``--origin`` and ``--size`` (and ``--dimensions``) agree."""
     if (args.origin is None) != (args.size is None) or (args.origin and len(args.origin) != len(args.size)):
         p.error("--origin and --size go together, with as many values each (2 for a 2-D map, 3 for a 3-D map)")
     if args.origin and args.dimensions and len(args.origin) != args.dimensions:
         p.error(f"--origin and --size need {args.dimensions} values for --dimensions {args.dimensions}")
-    if not args.url and (args.map or args.append):
-        p.error("--map and --append need --url (without it the map is built in-process)")
-    if args.nav2 is not None:
-        try:
-            exports.check_nav2_format(args.nav2_mode, args.nav2_format)
-        except ValueError as exc:
-            p.error(f"--nav2-mode {args.nav2_mode} --nav2-format {args.nav2_format}: {exc}")
-    for option in ("png", "nav2", "npy"):
-        path = getattr(args, option)
-        if path is not None and not path.parent.is_dir():
-            p.error(f"--{option}: directory {str(path.parent)!r} does not exist")
 
 
 def _dimensions(args: argparse.Namespace) -> int:
@@ -272,7 +219,7 @@ def _run(args: argparse.Namespace) -> str:
     """Read the bag in two passes (the first only to size the map: without ``--origin`` or an existing map),
     fusing or posting each batch as it is read: the bag is never held in memory."""
     started = time.perf_counter()
-    progress = Progress(sys.stderr, started)
+    progress = Progress(PROG, sys.stderr, started)
     dims = _dimensions(args)
     client = ServiceClient(args.url, args.api_key) if args.url else None
     existing = _existing_map(client, args.map) if client is not None and args.append else None
@@ -327,10 +274,7 @@ def _run(args: argparse.Namespace) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     """Run the command; the exit code (0 done, 1 failed with a message, 2 bad options)."""
-    parser = _parser()
-    args = parser.parse_args(argv)
-    _check_options(parser, args)
-    return run_command(PROG, lambda: _run(args), args.bag)
+    return import_main(_parser(), _run, argv, source="bag", own_checks=_check_box)
 
 
 if __name__ == "__main__":

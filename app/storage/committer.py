@@ -10,7 +10,7 @@ behind a fusion, and an fsync (waiting on the disk, not the CPU) never holds a f
 
 A batch of more than ``INLINE_BYTES`` is committed alone, on a second writer thread: its payload
 takes tens of milliseconds to reach the disk, and in the group it held every other map's commit
-for as long (an innocent's scan p99 of 42 ms beside two maps of 8 MB scans, issue 11). The store
+for as long (an innocent's scan p99 of 42 ms beside two maps of 8 MB scans). The store
 writes such a payload before it takes its own lock (``app.storage.payloadfiles``), so the small commits
 go on meanwhile. A map's batches still commit in order: its line lets one in at a time.
 """
@@ -23,7 +23,7 @@ from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 from app.ops.metrics import Metrics
-from app.storage import INLINE_BYTES, BatchRecord, CommitUncertain, Storage
+from app.storage.base import INLINE_BYTES, BatchRecord, CommitUncertain, Storage
 
 
 @dataclass

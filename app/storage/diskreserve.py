@@ -1,7 +1,7 @@
 """A file of reserved space in the data directory, given up so that a full disk can still be freed.
 
 On a full disk every SQLite write fails, the deletion of a map included (it appends to the WAL
-first): space could not be freed through the API (issue 11). The service keeps a file of
+first): space could not be freed through the API. The service keeps a file of
 ``FUZZYRISK_DISK_RESERVE_BYTES`` beside its database; when a deletion meets a full disk, the file
 goes, the deletion is tried again, and the file comes back once there is room.
 """

@@ -1,7 +1,7 @@
 """Big payloads of the SQLite store as files beside the database, written before the commit that names them.
 
 A commit of an 8 MB batch row took 35-134 ms on a VM disk (WAL, ``synchronous=FULL``), and every
-other map's commit waited behind it in the one writer (issue 11, row 6). Written here instead, by the
+other map's commit waited behind it in the one writer. Written here instead, by the
 thread that stores the batch and outside the database's lock, the payload costs the other commits
 only a share of the disk: it goes down in pieces, each made durable before the next, so a small
 commit's fsync never queues behind megabytes. The row that names the file commits after the file is

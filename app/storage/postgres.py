@@ -1,6 +1,6 @@
 """``Storage`` in PostgreSQL: several replicas of the service share one database.
 
-The tables are SQLite's (``app.storage``): meta as JSON text, payloads as ``bytea``,
+The tables are SQLite's (``app.storage.sqlite``): meta as JSON text, payloads as ``bytea``,
 CRC-32 checksums. What makes sharing safe is the ``maps`` row: every write to a
 map (append, discard, snapshot, delete) locks that row first, so two replicas'
 writes to one map are serialized there, and ``maps.version + 1`` gives each batch
@@ -21,7 +21,7 @@ import psycopg
 import psycopg.errors
 from psycopg_pool import ConnectionPool
 
-from app.storage import (
+from app.storage.base import (
     TOMBSTONE,
     BatchRecord,
     CommitUncertain,

@@ -10,7 +10,7 @@ from typing import Any
 
 import pytest
 
-from app.cli.backup import backup
+from app.storage.backup import backup
 from app.storage.committer import GroupCommitter
 from app.ops.metrics import Metrics
 from app.storage.payloadfiles import PayloadFiles, Prefetched
@@ -239,11 +239,11 @@ def test_a_backup_taken_while_big_batches_commit_and_snapshots_drop_them_is_comp
 def test_a_backup_keeps_the_files_a_snapshot_removes_while_it_copies(store: SqliteStorage, path: Path,
                                                                      tmp_path: Path, when: str,
                                                                      monkeypatch: pytest.MonkeyPatch) -> None:
-    import app.cli.backup
+    import app.storage.backup
 
     for k in range(3):
         _append(store, _payload(BIG, k))
-    real = getattr(app.cli.backup, when)
+    real = getattr(app.storage.backup, when)
 
     def then_snapshot(*args: Any) -> Any:  # the service snapshots over batches 1-3: their files go
         result = real(*args)
@@ -251,7 +251,7 @@ def test_a_backup_keeps_the_files_a_snapshot_removes_while_it_copies(store: Sqli
         _append(store, _payload(BIG, 4))
         return result
 
-    monkeypatch.setattr(app.cli.backup, when, then_snapshot)
+    monkeypatch.setattr(app.storage.backup, when, then_snapshot)
     target = tmp_path / "copy" / "fuzzyrisk.sqlite3"
     target.parent.mkdir()
     backup(path.parent, target)

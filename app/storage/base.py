@@ -1,0 +1,268 @@
+"""What both stores share: the ``Storage`` protocol, its records and errors, and the reader of a map's rows.
+
+``SqliteStorage`` (``app.storage.sqlite``) and ``PostgresStorage`` (``app.storage.postgres``) implement
+``Storage`` over the same tables, and load a map with the same ``read_map`` (``?`` placeholders, either dialect).
+``CommitUncertain`` and ``StorageUnavailable`` (``app.errors``) are re-exported: the errors a store raises.
+"""
+
+from __future__ import annotations
+
+import json
+import zlib
+from collections.abc import Callable, Iterable, Sequence
+from dataclasses import dataclass, field
+from typing import Any, NamedTuple, Protocol
+
+from app.errors import CommitUncertain, StorageUnavailable
+from app.storage.payloadfiles import PayloadSource, PayloadUnreadable
+
+__all__ = [
+    "INLINE_BYTES",
+    "NO_LIMIT",
+    "TOMBSTONE",
+    "BatchRecord",
+    "CommitUncertain",
+    "MapGone",
+    "MapHead",
+    "NameTaken",
+    "Storage",
+    "StorageUnavailable",
+    "StoredMap",
+    "checksum",
+    "head_of",
+    "read_map",
+]
+
+#: The SQLite store writes payloads (batches, snapshots) larger than this to files beside the database
+#: (``app.storage.payloadfiles``), before the transaction and outside its lock: a commit of 8 MB held the other
+#: maps' commits for 35-134 ms. The group committer commits such batches alone, on a thread
+#: of their own, for the same reason.
+INLINE_BYTES = 256 * 1024
+
+
+class NameTaken(Exception):
+    """A map with this name is already stored."""
+
+
+class MapGone(Exception):
+    """The map is no longer stored under that name and incarnation (deleted, or deleted and created again)."""
+
+
+def checksum(payload: bytes) -> int:
+    """The CRC-32 stored with each payload (damage on disk is then found, not replayed)."""
+    return zlib.crc32(payload)
+
+
+#: A discarded batch: its row stays (its version is never given again) with no payload.
+TOMBSTONE = b""
+
+
+@dataclass
+class StoredMap:
+    """Everything stored about one map, or the part of it a loader was asked for."""
+
+    name: str
+    meta: dict[str, Any]
+    updated: str
+    snapshot_version: int = 0
+    snapshot: bytes | None = None
+    batches: list[tuple[int, bytes]] = field(default_factory=list)  # (version, payload), ascending, no tombstones
+    damage: list[str] = field(default_factory=list)  # rows that failed their checksum: the map must not be served
+    incarnation: str | None = None
+    version: int = 0  # the newest committed version (tombstones included), whatever the loader returned
+    #: version -> ``updated`` of that batch (or of the snapshot's version), where stored: the map's
+    #: ``updated`` at that version, the same on every replica
+    stamps: dict[int, str] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class MapHead:
+    """A map's row without its payloads: what a replica compares with the version it holds."""
+
+    name: str
+    meta: dict[str, Any]
+    updated: str
+    version: int  # the newest committed, tombstones included
+    snapshot_version: int
+    scans: int  # scans of the stored batches (discarded ones excluded)
+    incarnation: str | None
+
+
+class BatchRecord(NamedTuple):
+    """One batch to append to the map ``name`` of that ``incarnation``; the store gives it its version."""
+
+    name: str
+    incarnation: str | None
+    payload: bytes
+    updated: str  # the map's new ``updated``
+    scans: int
+
+
+class Storage(Protocol):
+    """What the service needs from a store: SQLite (one process) or PostgreSQL (replicas sharing it).
+
+    Every write method raises ``StorageUnavailable`` when the store cannot take the write;
+    the store is then exactly as it was before the call.
+    """
+
+    def map_names(self) -> list[str]:
+        """The names of the stored maps, sorted (a start loads them one at a time: ``load_map``)."""
+
+    def map_head(self, name: str) -> MapHead | None:
+        """The map's row (no payloads, one indexed query); None when there is none of that name."""
+
+    def map_heads(self) -> list[MapHead]:
+        """Every map's row, sorted by name."""
+
+    def load_map(self, name: str) -> StoredMap | None:
+        """One map with its snapshot and every batch after it; None when there is none of that name."""
+
+    def load_since(self, name: str, after: int, up_to: int | None = None) -> StoredMap | None:
+        """What a holder of the map at version ``after`` needs to reach ``up_to`` (None: the newest).
+
+        When the stored snapshot is newer than ``after``: the snapshot and the batches after it;
+        else no snapshot (``snapshot_version`` still says the stored one) and the batches after
+        ``after``. Batches up to ``up_to`` only, ascending, without tombstones. The snapshot is
+        carried even when it is newer than ``up_to`` (the batches before it are gone).
+        """
+
+    def create_map(self, name: str, meta: dict[str, Any], updated: str) -> None:
+        """Store a new, empty map of incarnation ``meta.get("incarnation")``; ``NameTaken`` if the name is used."""
+
+    def delete_map(self, name: str, incarnation: str | None = None) -> None:
+        """Remove a map with its snapshot and batches; with ``incarnation``, only the map of that incarnation.
+
+        No error when there is none.
+        """
+
+    def append_batches(self, records: Sequence[BatchRecord]) -> list[int]:
+        """Durably store batches (of any maps) in one transaction, all or none; their versions, in their order.
+
+        Each takes its map's next version. ``MapGone`` (nothing stored) when a record's map is not
+        stored under that name and incarnation.
+        """
+
+    def discard_batch(self, name: str, version: int, incarnation: str | None = None) -> None:
+        """Make a batch that could not be applied a tombstone: its version stays taken, its scans uncounted.
+
+        With ``incarnation``, only in the map of that incarnation (no error otherwise).
+        """
+
+    def write_snapshot(self, name: str, version: int, payload: bytes, incarnation: str | None = None) -> None:
+        """Store the map's state at ``version`` and drop the batches it covers, atomically.
+
+        A no-op when the stored snapshot is as new or newer, or the map (of that incarnation) is gone.
+        """
+
+    def close(self) -> None:
+        """Flush and release the store."""
+
+
+#: What the loaders read first, in one query of either dialect (``?`` placeholders).
+_LOAD_HEAD = ("SELECT meta, updated, version, snapshot_version, incarnation,"
+             " (SELECT version FROM snapshots WHERE map = maps.name),"
+             " (SELECT MAX(seq) FROM batches WHERE map = maps.name)"
+             " FROM maps WHERE name = ?")
+#: Above every version: the bound of a range query that has none.
+NO_LIMIT = 2**62
+
+
+def head_of(row: Sequence[Any]) -> MapHead:
+    """A ``MapHead`` from (name, meta, updated, version, snapshot_version, scans, incarnation)."""
+    return MapHead(row[0], json.loads(row[1]), row[2], int(row[3]), int(row[4]), int(row[5]), row[6])
+
+
+def read_map(query: Callable[[str, tuple[Any, ...]], Iterable[Sequence[Any]]], name: str, after: int | None,
+             up_to: int | None, files: PayloadSource | None = None) -> StoredMap | None:
+    """``load_map`` (``after`` None) or ``load_since`` on a consistent view of a store: ``query(sql, args)``
+    runs one statement of either dialect (``?`` placeholders) and yields its rows. ``files``: where the
+    store keeps its big payloads (rows with a ``file`` column), if it does."""
+    file_column = "file" if files is not None else "NULL"
+    row = next(iter(query(_LOAD_HEAD, (name,))), None)
+    if row is None:
+        return None
+    meta, updated, version, snapshot_version, incarnation, snapshot_row, newest_seq = row
+    newest = max(snapshot_version or 0, snapshot_row or 0, newest_seq or 0)
+    stored = StoredMap(name, json.loads(meta), updated, snapshot_version=snapshot_row or 0,
+                       incarnation=incarnation, version=newest if version is None else version)
+    if snapshot_row is not None and (after is None or snapshot_row > after):
+        for snapshot in query(f"SELECT version, payload, crc, updated, {file_column} FROM snapshots WHERE map = ?",
+                              (name,)):
+            payload = _payload(stored, f"its snapshot (version {snapshot[0]})", snapshot[1], snapshot[4], files)
+            if payload is not None:
+                _take_snapshot(stored, snapshot[0], payload, snapshot[2])
+            if snapshot[3] is not None:
+                stored.stamps[snapshot[0]] = snapshot[3]
+    lower = -NO_LIMIT if after is None else max(after, snapshot_row or 0)
+    # (a recorded snapshot whose row is gone is reported as such below, not again as the batches it held)
+    previous = max(after or 0, snapshot_row or 0, snapshot_version or 0)
+    for seq, stored_payload, crc, stamp, file in query(
+            f"SELECT seq, payload, crc, updated, {file_column} FROM batches WHERE map = ? AND seq > ? AND seq <= ? "
+            "ORDER BY seq", (name, lower, NO_LIMIT if up_to is None else up_to)):
+        _check_gap(stored, previous, seq, stamp)
+        previous = seq
+        payload = _payload(stored, f"its stored batch {seq}", stored_payload, file, files)
+        if payload is not None:
+            _take_batch(stored, seq, payload, crc)
+        if stamp is not None:
+            stored.stamps[seq] = stamp
+    if up_to is not None and previous < up_to:  # a gap just below up_to shows only in the row above it
+        for seq, stamp in query("SELECT seq, updated FROM batches WHERE map = ? AND seq > ? ORDER BY seq LIMIT 1",
+                                (name, previous)):
+            _check_gap(stored, previous, seq, stamp)
+    _check_versions(stored, version, snapshot_version, snapshot_row or 0, newest_seq or 0)
+    return stored
+
+
+def _payload(stored: StoredMap, what: str, payload: bytes, file: str | None,
+             files: PayloadSource | None) -> bytes | None:
+    """A row's payload: its own bytes, or its file's; None (and damage) when the file is missing or unreadable."""
+    if file is None or files is None:
+        return bytes(payload)
+    try:
+        return files.read(file)
+    except PayloadUnreadable as exc:
+        stored.damage.append(f"{what}: {exc}")
+        return None
+
+
+def _check_gap(stored: StoredMap, previous: int, seq: int, stamp: str | None) -> None:
+    """Damage if the row after version ``previous`` is ``seq`` > ``previous + 1``.
+
+    Only before a row with its own stamp, written since discards became tombstones: nothing below
+    it may be missing (before, a discarded batch's row was deleted, so an older row may follow a gap).
+    """
+    if stamp is not None and seq > previous + 1:
+        stored.damage.append(f"its batches {previous + 1} to {seq - 1} are missing (the log jumps from "
+                             f"version {previous} to {seq})")
+
+
+def _take_snapshot(stored: StoredMap, version: int, payload: bytes, crc: int | None) -> None:
+    if crc is not None and crc != checksum(payload):
+        stored.damage.append(f"its snapshot (version {version}) fails its checksum")
+    stored.snapshot_version, stored.snapshot = version, payload
+
+
+def _take_batch(stored: StoredMap, seq: int, payload: bytes, crc: int | None) -> None:
+    if crc is not None and crc != checksum(payload):
+        stored.damage.append(f"its stored batch {seq} fails its checksum")
+    elif payload == TOMBSTONE:
+        return  # a discarded batch: nothing to replay (a damaged one is reported above, not skipped)
+    stored.batches.append((seq, payload))
+
+
+def _check_versions(stored: StoredMap, version: int | None, snapshot_version: int | None, snapshot_row: int,
+                    newest_seq: int) -> None:
+    """Rows deleted behind the service's back: the map's own record of its versions disagrees with its rows.
+
+    (A deleted snapshot row left a map without batches 1-10 reporting version 12; a deleted last batch
+    went unnoticed.) ``snapshot_row``/``newest_seq``: the stored snapshot's version and the newest
+    batch row, tombstones included (0: none). NULL record: a database from before it, not checked
+    until the next write.
+    """
+    if snapshot_version and snapshot_row != snapshot_version:
+        stored.damage.append(f"its snapshot (version {snapshot_version}) is missing"
+                             + (f"; version {snapshot_row} is stored" if snapshot_row else ""))
+    newest = max(snapshot_row, newest_seq)
+    if version is not None and newest < version:
+        stored.damage.append(f"its batches up to version {version} are missing (the newest stored is {newest})")
