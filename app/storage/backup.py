@@ -57,23 +57,35 @@ def backup(data_dir: Path, dest: Path) -> int:
     return pages
 
 
+#: Read transactions tried before missing payload files count as damage: a snapshot that commits between the
+#: transaction's first read and the opening of its files removes files that the transaction's rows still name.
+SNAPSHOT_TRIES = 5
+
+
 def _copy(source_path: Path, target_path: Path, files: PayloadFiles) -> None:
     """The database as of one read transaction, with the payload files its rows name put into those rows.
 
     The files are opened inside that transaction, before the pages are copied: a snapshot or a delete
-    that removes them afterwards cannot take them from the copy (an open file stays readable).
+    that removes them afterwards cannot take them from the copy (an open file stays readable). One that
+    removed them before they were opened (its rows are gone from a newer transaction) makes the backup
+    start again in a new transaction; files still missing there are damage.
     """
     # read-only: the backup never writes the service's database
     source = sqlite3.connect(f"file:{source_path}?mode=ro", uri=True, isolation_level=None)
     target = sqlite3.connect(target_path, isolation_level=None)
     opened: dict[str, BinaryIO] = {}
     try:
-        source.execute("BEGIN")
-        named, missing = _open_named(source, files, opened)
-        if missing:
-            raise BackupDamaged("the store's rows name payload files that cannot be read, so its maps "
-                                f"{sorted(missing)} are damaged (quarantined by the service); drop them "
-                                "(DELETE /maps/NAME) or restore an earlier backup: " + "; ".join(missing.values()))
+        for attempt in range(1, SNAPSHOT_TRIES + 1):
+            source.execute("BEGIN")
+            named, missing = _open_named(source, files, opened)
+            if not missing:
+                break
+            source.execute("ROLLBACK")
+            _close(opened)
+            if attempt == SNAPSHOT_TRIES:
+                raise BackupDamaged("the store's rows name payload files that cannot be read, so its maps "
+                                    f"{sorted(missing)} are damaged (quarantined by the service); drop them "
+                                    "(DELETE /maps/NAME) or restore an earlier backup: " + "; ".join(missing.values()))
         _copy_pages(source, target)
         source.execute("COMMIT")
         target.execute("PRAGMA journal_mode=DELETE")  # the copy is one file; and its log is not a second copy
@@ -84,10 +96,15 @@ def _copy(source_path: Path, target_path: Path, files: PayloadFiles) -> None:
                                (opened[file].read(), name, number))
         target.execute("COMMIT")
     finally:
-        for file in opened.values():
-            file.close()
+        _close(opened)
         target.close()
         source.close()
+
+
+def _close(opened: dict[str, BinaryIO]) -> None:
+    for file in opened.values():
+        file.close()
+    opened.clear()
 
 
 def _open_named(source: sqlite3.Connection, files: PayloadFiles, opened: dict[str, BinaryIO]

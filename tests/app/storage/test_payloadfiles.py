@@ -264,6 +264,30 @@ def test_a_backup_keeps_the_files_a_snapshot_removes_while_it_copies(store: Sqli
     assert stored.batches == [(k + 1, _payload(BIG, k)) for k in range(3)]
 
 
+def test_a_backup_whose_files_a_snapshot_removes_before_it_opens_them_starts_again(
+        store: SqliteStorage, path: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    for k in range(3):
+        _append(store, _payload(BIG, k))
+    real_open = PayloadFiles.open
+    snapshotted: list[bool] = []
+
+    def open_after_a_snapshot(self: PayloadFiles, name: str) -> Any:
+        if not snapshotted:  # between the backup's read of the rows and its opening of their files
+            snapshotted.append(True)
+            store.write_snapshot("m", 3, _payload(BIG, 10))
+        return real_open(self, name)
+
+    monkeypatch.setattr(PayloadFiles, "open", open_after_a_snapshot)
+    target = tmp_path / "copy" / "fuzzyrisk.sqlite3"
+    target.parent.mkdir()
+    backup(path.parent, target)
+    restored = SqliteStorage(target)
+    stored = restored.load_map("m")
+    restored.close()
+    assert stored is not None and stored.damage == [] and stored.version == 3
+    assert stored.snapshot is not None and stored.batches == []
+
+
 def test_a_backup_of_a_store_missing_a_payload_file_fails_and_leaves_no_copy(store: SqliteStorage, path: Path,
                                                                            tmp_path: Path,
                                                                            capsys: pytest.CaptureFixture[str]) -> None:
