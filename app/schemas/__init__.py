@@ -25,7 +25,7 @@ from pydantic import (
     model_validator,
 )
 
-from app.schemas import engines
+from app.schemas import engine_choice
 from app.errors import ErrorBody
 from fuzzyocc.presets import PRESETS
 from planning.field import DEFAULT_MAX_RISK
@@ -139,10 +139,10 @@ EXAMPLE_PLAN = {
 
 # ---------------------------------------------------------------- fuzzy engines
 # These models document the object form of ``MapCreate.engine`` in the OpenAPI document;
-# the request is checked by ``engines.parse`` (``fuzzyocc.engine_spec``), whose messages name
+# the request is checked by ``engine_choice.parse`` (``fuzzyocc.engine_spec``), whose messages name
 # the bad field by its path (``engine.input_mfs.PO.peak must be a finite number``).
 
-LabelName = Annotated[str, Field(min_length=1, max_length=engines.MAX_NAME_CHARS)]
+LabelName = Annotated[str, Field(min_length=1, max_length=engine_choice.MAX_NAME_CHARS)]
 
 
 class TriangleIn(BaseModel):
@@ -189,7 +189,7 @@ class RightShoulderIn(BaseModel):
 
 
 MembershipIn = Annotated[TriangleIn | TrapezoidIn | LeftShoulderIn | RightShoulderIn, Field(discriminator="type")]
-LabelMap = Annotated[dict[LabelName, MembershipIn], Field(min_length=2, max_length=engines.MAX_LABELS)]
+LabelMap = Annotated[dict[LabelName, MembershipIn], Field(min_length=2, max_length=engine_choice.MAX_LABELS)]
 
 
 class EngineDefinition(BaseModel):
@@ -197,7 +197,7 @@ class EngineDefinition(BaseModel):
 
     model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [EXAMPLE_ENGINE]})
 
-    labels: Annotated[list[LabelName], Field(min_length=2, max_length=engines.MAX_LABELS)] = Field(
+    labels: Annotated[list[LabelName], Field(min_length=2, max_length=engine_choice.MAX_LABELS)] = Field(
         description="state and output labels in increasing order of risk"
     )
     unknown: LabelName = Field(description="the label of unknown space (a new cell); alone it defuzzifies to 0.5")
@@ -226,10 +226,10 @@ class EngineDefinition(BaseModel):
 
 EnginePreset = Literal[tuple(PRESETS)]  # type: ignore[valid-type]
 
-#: ``MapCreate.engine``: validated (and built) by ``engines.parse``, documented as a preset or an EngineDefinition.
+#: ``MapCreate.engine``: validated (and built) by ``engine_choice.parse``, documented as a preset or an EngineDefinition.
 EngineField = Annotated[
-    engines.EngineChoice | None,
-    PlainValidator(engines.parse, json_schema_input_type=EnginePreset | EngineDefinition | None),
+    engine_choice.EngineChoice | None,
+    PlainValidator(engine_choice.parse, json_schema_input_type=EnginePreset | EngineDefinition | None),
 ]
 
 
