@@ -1,0 +1,113 @@
+"""A plan: the query (``PlanRequest``), the answer (``PlanResult``, a ``nav_msgs/Path`` with the plan's measures),
+and what a query may name (``Planners``).
+"""
+
+from __future__ import annotations
+
+from typing import Annotated, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, FiniteFloat
+
+from app.schemas.common import (
+    Header,
+    NonNegativeFinite,
+    PoseStamped,
+    PositiveFinite,
+    Vector,
+)
+from planning.field import DEFAULT_MAX_RISK
+
+EXAMPLE_PLAN = {
+    "start": [-1.0, 0.0],
+    "goal": [2.0, 0.0],
+    "state_space": "R2",
+    "planner": "RRTstar",
+    "time_limit": 1.0,
+    "robot_radius": 0.2,
+    "max_risk": DEFAULT_MAX_RISK,
+    "risk_weight": 1.0,
+    "allow_unknown": True,
+    "seed": 1,
+}
+
+
+class PlanRequest(BaseModel):
+    """A path query on the map's risk; valid: no observed cell under the robot above ``max_risk``, and never-observed
+    cells under it only with ``allow_unknown``."""
+
+    model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [EXAMPLE_PLAN]})
+
+    start: Vector = Field(description="[x, y] in R2, [x, y, theta] in SE2/Dubins/ReedsShepp, [x, y, z] in R3")
+    goal: Vector
+    state_space: str | None = Field(None, description="R2 (default on 2-D maps), SE2, Dubins, ReedsShepp, R3 (3-D)")
+    planner: str = "RRTstar"
+    time_limit: PositiveFinite = Field(
+        1.0, description="seconds; at most FUZZYRISK_MAX_PLAN_TIME_S. A seeded plan is ended by an iteration budget "
+        "that fits this on an idle machine, so that it repeats; its clock bound is 3 x time_limit")
+    robot_radius: NonNegativeFinite = 0.2
+    max_risk: Annotated[float, Field(
+        ge=0.0, le=1.0, allow_inf_nan=False,
+        description="the most risk an observed cell under the robot may have; default 0.45 (the exports' free "
+        "threshold): cells with net free evidence. An observed cell at 0.5 (a surface hit, then seen through as "
+        "often) is not free")] = DEFAULT_MAX_RISK
+    risk_weight: NonNegativeFinite = 1.0
+    allow_unknown: bool = Field(True, description="the robot may overlap never-observed cells (and leave the map), "
+                                "whatever max_risk; false: it may not")
+    seed: Annotated[int, Field(ge=0, lt=2**32)] | None = None
+    turning_radius: PositiveFinite | None = Field(None, description="metres; required by Dubins and ReedsShepp")
+    goal_tolerance: PositiveFinite | None = Field(None, description="reach the goal within this; default one cell")
+    goal_yaw: FiniteFloat | None = Field(
+        None, description="R2 and R3: the yaw (radians, REP 103) of the answer's last pose, as Nav2 gives the last "
+        "pose the goal's orientation; left out: the heading of the path's last step. SE2, Dubins and ReedsShepp "
+        "take the goal's yaw as its third value instead")
+
+
+class PlanResult(BaseModel):
+    status: Literal["exact", "approximate", "none"]
+    path: list[list[float]]
+    length: float | None
+    max_risk: float | None
+    mean_risk: float | None
+    cost: float | None
+    planner: str
+    state_space: str
+    planning_time: float
+    message: str = Field("", description="empty, or why the status is not exact")
+    error_code: Literal["TIMEOUT", "NO_VALID_PATH"] | None = Field(
+        None,
+        description="null when status is exact; else Nav2's ComputePathToPose name for why not: TIMEOUT (a "
+        "sampling planner's time limit, or a seeded plan's iteration budget, ended the search before it reached the "
+        "goal) or NO_VALID_PATH (the grid "
+        "planner's complete search found no path, or no candidate path passed verification)",
+    )
+    stopped_by: Literal["complete", "solution", "iterations", "time_limit"] = Field(
+        description="what ended the search: the grid search ran to its end (complete), a planner that stops at its "
+        "first solution found one (solution), the iteration budget ran out (iterations: a seeded plan's, which "
+        "makes it repeat), or the clock did (time_limit; a seeded plan's clock bound is 3 x time_limit)",
+    )
+    iterations: int = Field(description="planner iterations where the planner counts them, else 0")
+    first_solution_time: float | None = Field(
+        description="seconds until the planner first held a path (null without one)")
+    version: int = Field(description="the map version planned on")
+    header: Header = Field(
+        description="nav_msgs/Path header: frame_id is the map's frame; stamp is when the service took the plan "
+        "up (its clock as ROS time: Unix seconds and nanoseconds), as Nav2's planners stamp a path when they start it")
+    poses: list[PoseStamped] = Field(
+        description="nav_msgs/Path poses (with header, this answer is a nav_msgs/Path as rosbridge and Foxglove "
+        "write it in JSON): one per path point, each with the path's header; z = 0 on 2-D maps; orientation a yaw "
+        "about +z (REP 103): SE2, Dubins, ReedsShepp the planned yaw; R2 and R3 the heading of the step to the next "
+        "point over the ground (no pitch), the last pose that of the step before it, or goal_yaw when given")
+
+
+class PlannerInfo(BaseModel):
+    """One planner a plan request may name."""
+
+    name: str
+    optimizing: bool = Field(description="anytime optimizer: uses the whole time limit to lower the cost")
+
+
+class Planners(BaseModel):
+    """What ``POST /maps/{name}/plan`` accepts in ``planner`` and ``state_space``."""
+
+    planners: list[PlannerInfo]
+    state_spaces: list[str]
