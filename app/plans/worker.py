@@ -9,7 +9,6 @@ the plan (``run_plan``). Everything here takes and returns plain data: it crosse
 from __future__ import annotations
 
 import logging
-import math
 import os
 from typing import Any, TypeVar
 
@@ -50,11 +49,6 @@ def init_worker(native: bool, field_cache_bytes: int = DEFAULT_FIELD_CACHE_BYTES
 def worker_pid() -> int:
     """A task that starts a worker (its initializer warms the planner stack up); the worker's pid."""
     return os.getpid()
-
-
-def _number(value: Any) -> float | None:
-    value = float(value)
-    return value if math.isfinite(value) else None
 
 
 def run_plan(
@@ -102,22 +96,4 @@ def _plan_on(field: Any, params: dict[str, Any]) -> dict[str, Any]:
         return {"error": {"code": str(exc.code), "message": str(exc)}}
     except ValueError as exc:
         return {"invalid": str(exc)}
-    path = np.asarray(result.path, dtype=np.float64).reshape(-1, len(params["start"]))
-    return {
-        "result": {
-            "status": str(result.status),
-            "planner": str(result.planner),
-            "state_space": str(result.state_space),
-            "path": path.tolist(),
-            "length": _number(result.length),
-            "max_risk": _number(result.max_risk),
-            "mean_risk": _number(result.mean_risk),
-            "cost": _number(result.cost),
-            "planning_time": float(result.planning_time),
-            "message": str(result.message),
-            "error_code": str(result.error_code) or None,
-            "stopped_by": str(result.stopped_by),
-            "iterations": int(result.iterations),
-            "first_solution_time": _number(result.first_solution_time),
-        }
-    }
+    return {"result": result.to_json()}

@@ -4,18 +4,16 @@ and what a query may name (``Planners``).
 
 from __future__ import annotations
 
-from typing import Annotated, Literal
+import dataclasses
+import typing
+from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, FiniteFloat
+from pydantic import BaseModel, ConfigDict, Field, FiniteFloat, create_model
 
-from app.schemas.common import (
-    Header,
-    NonNegativeFinite,
-    PoseStamped,
-    PositiveFinite,
-    Vector,
-)
+from app.schemas.common import Header, NonNegativeFinite, PoseStamped, PositiveFinite, Vector
 from planning.field import DEFAULT_MAX_RISK
+from planning.result import RESULT_ERROR_CODES
+from planning.result import PlanResult as PlannerResult
 
 EXAMPLE_PLAN = {
     "start": [-1.0, 0.0],
@@ -62,32 +60,54 @@ class PlanRequest(BaseModel):
         "take the goal's yaw as its third value instead")
 
 
-class PlanResult(BaseModel):
-    status: Literal["exact", "approximate", "none"]
-    path: list[list[float]]
-    length: float | None
-    max_risk: float | None
-    mean_risk: float | None
-    cost: float | None
-    planner: str
-    state_space: str
-    planning_time: float
-    message: str = Field("", description="empty, or why the status is not exact")
-    error_code: Literal["TIMEOUT", "NO_VALID_PATH"] | None = Field(
+#: How the answer carries the fields of ``planning.PlanResult`` (``PlanResult.to_json``) where its JSON type is
+#: not the field's own (``None``: it is), and what the API says of them. The fields and their order are the
+#: dataclass's.
+_AS_ANSWERED: dict[str, tuple[Any, Any]] = {
+    "path": (list[list[float]], ...),
+    # the measures are NaN without a path; JSON has no NaN
+    "length": (float | None, ...),
+    "max_risk": (float | None, ...),
+    "mean_risk": (float | None, ...),
+    "cost": (float | None, ...),
+    "message": (None, Field("", description="empty, or why the status is not exact")),
+    "iterations": (None, Field(description="planner iterations where the planner counts them, else 0")),
+    "first_solution_time": (float | None, Field(
+        description="seconds until the planner first held a path (null without one)")),
+    "error_code": (Literal[RESULT_ERROR_CODES] | None, Field(  # type: ignore[valid-type]
         None,
         description="null when status is exact; else Nav2's ComputePathToPose name for why not: TIMEOUT (a "
         "sampling planner's time limit, or a seeded plan's iteration budget, ended the search before it reached the "
         "goal) or NO_VALID_PATH (the grid "
         "planner's complete search found no path, or no candidate path passed verification)",
-    )
-    stopped_by: Literal["complete", "solution", "iterations", "time_limit"] = Field(
+    )),
+    "stopped_by": (None, Field(
         description="what ended the search: the grid search ran to its end (complete), a planner that stops at its "
         "first solution found one (solution), the iteration budget ran out (iterations: a seeded plan's, which "
         "makes it repeat), or the clock did (time_limit; a seeded plan's clock bound is 3 x time_limit)",
-    )
-    iterations: int = Field(description="planner iterations where the planner counts them, else 0")
-    first_solution_time: float | None = Field(
-        description="seconds until the planner first held a path (null without one)")
+    )),
+}
+
+
+def _planner_fields() -> dict[str, Any]:
+    """The fields of ``planning.PlanResult`` as pydantic field definitions, as ``_AS_ANSWERED`` has them."""
+    types = typing.get_type_hints(PlannerResult)
+    names = [f.name for f in dataclasses.fields(PlannerResult)]
+    if unknown := set(_AS_ANSWERED) - set(names):
+        raise TypeError(f"_AS_ANSWERED names {sorted(unknown)}, which planning.PlanResult does not have")
+    definitions = {}
+    for name in names:
+        wire, field = _AS_ANSWERED.get(name, (None, ...))
+        definitions[name] = (types[name] if wire is None else wire, field)
+    return definitions
+
+
+#: What the planner answered, field by field (``PlanResult.to_json``).
+_PlannerAnswer: type[BaseModel] = create_model("_PlannerAnswer", **_planner_fields())
+
+
+class PlanResult(_PlannerAnswer):  # type: ignore[misc,valid-type]
+    # the planner's answer, and the map version and nav_msgs/Path the service adds
     version: int = Field(description="the map version planned on")
     header: Header = Field(
         description="nav_msgs/Path header: frame_id is the map's frame; stamp is when the service took the plan "
