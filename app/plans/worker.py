@@ -16,6 +16,7 @@ import numpy as np
 
 from app.ops import process_setup
 from app.maps.shared_grids import FieldCache, GridRef
+from planning.parameters import DEFAULT_ALLOW_UNKNOWN, DEFAULT_ROBOT_RADIUS
 
 LOG = logging.getLogger("fuzzyrisk.plans")
 T = TypeVar("T")
@@ -78,7 +79,8 @@ def run_shared_plan(ref: GridRef, params: dict[str, Any]) -> dict[str, Any]:
     try:
         return _plan_on(field, params)
     finally:
-        _FIELDS.used(ref, params.get("robot_radius", 0.2), params.get("allow_unknown", True))
+        _FIELDS.used(ref, params.get("robot_radius", DEFAULT_ROBOT_RADIUS),
+                     params.get("allow_unknown", DEFAULT_ALLOW_UNKNOWN))
 
 
 def worker_fields() -> dict[str, Any]:

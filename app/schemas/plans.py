@@ -5,13 +5,30 @@ and what a query may name (``Planners``).
 from __future__ import annotations
 
 import dataclasses
+import math
 import typing
 from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, FiniteFloat, create_model
 
-from app.schemas.common import Header, NonNegativeFinite, PoseStamped, PositiveFinite, Vector
+from app.schemas.common import Header, PoseStamped, Vector
+from planning.budget import SEEDED_CLOCK_FACTOR
 from planning.field import DEFAULT_MAX_RISK
+from planning.parameters import (
+    DEFAULT_ALLOW_UNKNOWN,
+    DEFAULT_PLANNER,
+    DEFAULT_RISK_WEIGHT,
+    DEFAULT_ROBOT_RADIUS,
+    DEFAULT_TIME_LIMIT,
+    GOAL_TOLERANCE,
+    MAX_RISK,
+    RISK_WEIGHT,
+    ROBOT_RADIUS,
+    SEEDS,
+    TIME_LIMIT,
+    TURNING_RADIUS,
+    Number,
+)
 from planning.result import RESULT_ERROR_CODES
 from planning.result import PlanResult as PlannerResult
 
@@ -29,6 +46,14 @@ EXAMPLE_PLAN = {
 }
 
 
+def _within(number: Number) -> Any:
+    """The pydantic constraints of a ``plan`` parameter's range (``planning.parameters``)."""
+    bounds: dict[str, float] = {"gt" if number.low_open else "ge": number.low}
+    if number.high < math.inf:
+        bounds["le"] = number.high
+    return Field(allow_inf_nan=False, **bounds)
+
+
 class PlanRequest(BaseModel):
     """A path query on the map's risk; valid: no observed cell under the robot above ``max_risk``, and never-observed
     cells under it only with ``allow_unknown``."""
@@ -38,22 +63,24 @@ class PlanRequest(BaseModel):
     start: Vector = Field(description="[x, y] in R2, [x, y, theta] in SE2/Dubins/ReedsShepp, [x, y, z] in R3")
     goal: Vector
     state_space: str | None = Field(None, description="R2 (default on 2-D maps), SE2, Dubins, ReedsShepp, R3 (3-D)")
-    planner: str = "RRTstar"
-    time_limit: PositiveFinite = Field(
-        1.0, description="seconds; at most FUZZYRISK_MAX_PLAN_TIME_S. A seeded plan is ended by an iteration budget "
-        "that fits this on an idle machine, so that it repeats; its clock bound is 3 x time_limit")
-    robot_radius: NonNegativeFinite = 0.2
-    max_risk: Annotated[float, Field(
-        ge=0.0, le=1.0, allow_inf_nan=False,
-        description="the most risk an observed cell under the robot may have; default 0.45 (the exports' free "
-        "threshold): cells with net free evidence. An observed cell at 0.5 (a surface hit, then seen through as "
-        "often) is not free")] = DEFAULT_MAX_RISK
-    risk_weight: NonNegativeFinite = 1.0
-    allow_unknown: bool = Field(True, description="the robot may overlap never-observed cells (and leave the map), "
-                                "whatever max_risk; false: it may not")
-    seed: Annotated[int, Field(ge=0, lt=2**32)] | None = None
-    turning_radius: PositiveFinite | None = Field(None, description="metres; required by Dubins and ReedsShepp")
-    goal_tolerance: PositiveFinite | None = Field(None, description="reach the goal within this; default one cell")
+    planner: str = DEFAULT_PLANNER
+    time_limit: Annotated[float, _within(TIME_LIMIT)] = Field(
+        DEFAULT_TIME_LIMIT, description="seconds; at most FUZZYRISK_MAX_PLAN_TIME_S. A seeded plan is ended by an "
+        "iteration budget that fits this on an idle machine, so that it repeats; its clock bound is "
+        f"{SEEDED_CLOCK_FACTOR:g} x time_limit")
+    robot_radius: Annotated[float, _within(ROBOT_RADIUS)] = DEFAULT_ROBOT_RADIUS
+    max_risk: Annotated[float, _within(MAX_RISK), Field(
+        description=f"the most risk an observed cell under the robot may have; default {DEFAULT_MAX_RISK:g} (the "
+        "exports' free threshold): cells with net free evidence. An observed cell at 0.5 (a surface hit, then seen "
+        "through as often) is not free")] = DEFAULT_MAX_RISK
+    risk_weight: Annotated[float, _within(RISK_WEIGHT)] = DEFAULT_RISK_WEIGHT
+    allow_unknown: bool = Field(DEFAULT_ALLOW_UNKNOWN, description="the robot may overlap never-observed cells (and "
+                                "leave the map), whatever max_risk; false: it may not")
+    seed: Annotated[int, Field(ge=SEEDS.start, lt=SEEDS.stop)] | None = None
+    turning_radius: Annotated[float, _within(TURNING_RADIUS)] | None = Field(
+        None, description="metres; required by Dubins and ReedsShepp")
+    goal_tolerance: Annotated[float, _within(GOAL_TOLERANCE)] | None = Field(
+        None, description="reach the goal within this; default one cell")
     goal_yaw: FiniteFloat | None = Field(
         None, description="R2 and R3: the yaw (radians, REP 103) of the answer's last pose, as Nav2 gives the last "
         "pose the goal's orientation; left out: the heading of the path's last step. SE2, Dubins and ReedsShepp "
@@ -84,7 +111,8 @@ _AS_ANSWERED: dict[str, tuple[Any, Any]] = {
     "stopped_by": (None, Field(
         description="what ended the search: the grid search ran to its end (complete), a planner that stops at its "
         "first solution found one (solution), the iteration budget ran out (iterations: a seeded plan's, which "
-        "makes it repeat), or the clock did (time_limit; a seeded plan's clock bound is 3 x time_limit)",
+        "makes it repeat), or the clock did (time_limit; a seeded plan's clock bound is "
+        f"{SEEDED_CLOCK_FACTOR:g} x time_limit)",
     )),
 }
 
