@@ -22,8 +22,9 @@ LOG = logging.getLogger("fuzzyrisk.plans")
 T = TypeVar("T")
 
 
-#: How much nicer than the server the planner workers run: a plan (seconds of CPU) takes what scans and reads leave (issue 11: a
-#: 30 s plan, and ten clients' plans on both cores, made an innocent client's map reads 2.6x slower)
+#: How much nicer than the server the planner workers run: a plan (seconds of CPU) takes what scans and reads
+#: leave (at the same priority, a 30 s plan, and ten clients' plans on both cores, made an innocent client's map
+#: reads 2.6x slower)
 PLAN_NICE = 5
 #: Bytes of fields a worker keeps when its pool is not told (``PlanPool(field_cache_bytes=...)``).
 DEFAULT_FIELD_CACHE_BYTES = 256 * 2**20

@@ -122,7 +122,8 @@ class EngineDefinition(BaseModel):
 
 EnginePreset = Literal[tuple(PRESETS)]  # type: ignore[valid-type]
 
-#: ``MapCreate.engine``: validated (and built) by ``engine_choice.parse``, documented as a preset or an EngineDefinition.
+#: ``MapCreate.engine``: validated (and built) by ``engine_choice.parse``, documented as a preset or an
+#: EngineDefinition.
 EngineField = Annotated[
     engine_choice.EngineChoice | None,
     PlainValidator(engine_choice.parse, json_schema_input_type=EnginePreset | EngineDefinition | None),

@@ -132,18 +132,13 @@ class ScanBatch(BaseModel):
     scans: Annotated[list[ScanIn], Field(min_length=1)]
 
 
-#: Query parameters of a binary scan upload (``POST /maps/{name}/scans``).
-SCAN_QUERY_FIELDS = (
-    "x", "y", "z", "theta", "qx", "qy", "qz", "qw", "angle_min", "angle_increment", "range_min", "range_max",
-    "registration_sigma", "point_step",
-)
 SCAN_QUERY_DOC = "binary uploads only; see the description"
 
 
 class ScanQuery(BaseModel):
     """The query of ``POST /maps/{name}/scans``: pose and scan parameters of a binary upload.
 
-    Validated with the body (off the event loop for a big body) rather than as 13 separate
+    Validated with the body (off the event loop for a big body) rather than as separate
     FastAPI query parameters, whose per-request resolution cost more than the rest of the
     route; the errors are FastAPI's (``loc: ["query", name]``) and so is the OpenAPI entry
     (``app.api.routes.scans``). Unknown parameters are ignored, as FastAPI does.
@@ -166,6 +161,10 @@ class ScanQuery(BaseModel):
     registration_sigma: FiniteFloat | None = None
     # raw float32 points: bytes per point (x, y, z float32 at its start), so a stride is never guessed
     point_step: Annotated[int, Field(ge=12, le=65536)] | None = None
+
+
+#: Query parameters of a binary scan upload (``POST /maps/{name}/scans``).
+SCAN_QUERY_FIELDS = tuple(ScanQuery.model_fields)
 
 
 class BatchResult(BaseModel):
