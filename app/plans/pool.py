@@ -32,7 +32,6 @@ from collections.abc import Callable
 from concurrent.futures.process import BrokenProcessPool
 from typing import Any, Literal, TypeVar
 
-
 from app.errors import Unavailable
 from app.ops.forkserver import ensure_forkserver, worker_context
 from app.plans.worker import DEFAULT_FIELD_CACHE_BYTES, init_worker, worker_pid
@@ -49,6 +48,8 @@ SHUTDOWN_GRACE_S = 2.0
 #: back for plans on one map made 90 requests a second, each refusal about 0.7 ms of the event loop, and an
 #: innocent client's reads of another map 3.2x slower at the 99th percentile (``bench/bench_abuse.py``, scenario 9).
 ROOM_WAIT_S = 1.0
+
+
 class _Worker:
     """One planner process (a one-process executor, started at its first task): replaced alone."""
 

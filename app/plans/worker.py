@@ -8,19 +8,14 @@ the plan (``run_plan``). Everything here takes and returns plain data: it crosse
 
 from __future__ import annotations
 
-import logging
 import os
-from typing import Any, TypeVar
+from typing import Any
 
 import numpy as np
 
 from app.ops import process_setup
 from app.maps.shared_grids import FieldCache, GridRef
 from planning.parameters import DEFAULT_ALLOW_UNKNOWN, DEFAULT_ROBOT_RADIUS
-
-LOG = logging.getLogger("fuzzyrisk.plans")
-T = TypeVar("T")
-
 
 #: How much nicer than the server the planner workers run: a plan (seconds of CPU) takes what scans and reads
 #: leave (at the same priority, a 30 s plan, and ten clients' plans on both cores, made an innocent client's map
