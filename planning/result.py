@@ -1,9 +1,10 @@
-"""What a plan returns, and how an unusable start or goal is refused."""
+"""What a plan returns (``PlanResult``, and its JSON form), and how an unusable start or goal is refused."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-from typing import Literal
+import math
+from dataclasses import dataclass, fields
+from typing import Any, Literal
 
 import numpy as np
 
@@ -19,6 +20,7 @@ PLAN_ERROR_CODES = (START_OUTSIDE_MAP, GOAL_OUTSIDE_MAP, START_OCCUPIED, GOAL_OC
 # ... and those of a plan that ran but did not reach the goal (PlanResult.error_code)
 TIMEOUT = "TIMEOUT"
 NO_VALID_PATH = "NO_VALID_PATH"
+RESULT_ERROR_CODES = (TIMEOUT, NO_VALID_PATH)
 
 
 class PlanError(Exception):
@@ -105,3 +107,24 @@ class PlanResult:
     first_solution_time: float = float("nan")
     error_code: str = ""
     stopped_by: StoppedBy = "complete"
+
+    def to_json(self) -> dict[str, Any]:
+        """This result as plain JSON data, every field by its name in the dataclass's order.
+
+        ``path`` as a list of states (lists of floats); a NaN measure (no path, no first solution) as
+        None, since JSON has no NaN; an empty ``error_code`` (exact) as None; numpy scalars as Python
+        numbers. Plain data crosses a process boundary and is the body of the service's answer.
+        """
+        plain = {f.name: _json_value(getattr(self, f.name)) for f in fields(self)}
+        plain["error_code"] = self.error_code or None
+        return plain
+
+
+def _json_value(value: Any) -> Any:
+    if isinstance(value, np.ndarray):
+        return value.astype(np.float64, copy=False).tolist()
+    if isinstance(value, float | np.floating):
+        return float(value) if math.isfinite(value) else None
+    if isinstance(value, int | np.integer):
+        return int(value)
+    return str(value)

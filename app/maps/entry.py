@@ -22,7 +22,7 @@ from app.maps.line import Line
 from app.maps.snapshot import GridStamp
 from app.scans import Scan, ScanView
 from app.schemas import DEFAULT_FRAME_ID, EngineInfo, MapInfo, PlanResult, SensorIn
-from app.schemas import engines
+from app.schemas import engine_choice
 from app.storage import MapHead
 from fuzzyocc import BayesMap, FuzzyMap, GridSpec
 
@@ -136,7 +136,7 @@ class MapEntry:
         """The fuzzy engine as ``MapInfo`` shows it (once: a map's engine never changes)."""
         if not isinstance(self.map, FuzzyMap):
             return None
-        return EngineInfo(**engines.describe(self.map.engine))
+        return EngineInfo(**engine_choice.describe(self.map.engine))
 
     def info(self) -> MapInfo:
         return map_info(self.meta, self.spec, self.engine_info, scans_fused=self.scans_fused, version=self.version,
@@ -168,7 +168,8 @@ def stored_info(head: MapHead) -> MapInfo:
     """``map_info`` of a map this replica does not hold, from its stored row (no map built)."""
     spec = GridSpec(origin=head.meta["origin"], size=head.meta["size"], resolution=head.meta["resolution"],
                     max_cells=UNLIMITED_CELLS)
-    engine = EngineInfo(**engines.describe(engines.from_meta(head.meta))) if head.meta["model"] == "fuzzy" else None
+    engine = (EngineInfo(**engine_choice.describe(engine_choice.from_meta(head.meta)))
+              if head.meta["model"] == "fuzzy" else None)
     return map_info(head.meta, spec, engine, scans_fused=head.scans, version=head.version, updated=head.updated)
 
 

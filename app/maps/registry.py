@@ -9,7 +9,7 @@ import uuid
 from collections.abc import Callable, Mapping
 from typing import Any, NamedTuple
 
-from app.schemas import engines
+from app.schemas import engine_choice
 from app.config import Settings
 from app.storage.diskreserve import DiskReserve
 from app.errors import Conflict, InsufficientStorage, Invalid, NotFound, Unavailable
@@ -299,7 +299,7 @@ class MapRegistry:
                 "incarnation": uuid.uuid4().hex,
             }
             if request.model == "fuzzy":
-                meta["engine"] = engines.to_meta(request.engine or engines.default())
+                meta["engine"] = engine_choice.to_meta(request.engine or engine_choice.default())
             stored = None
             if self.settings.shared_storage:  # every replica's maps
                 names = await self._workers.run_read(self.storage.map_names)

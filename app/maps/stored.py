@@ -18,7 +18,7 @@ import numpy as np
 from app.maps import logcodec
 from app.maps.entry import UNLIMITED_CELLS, MapEntry, OccupancyMap
 from app.scans import Scan
-from app.schemas import engines
+from app.schemas import engine_choice
 from app.storage import StoredMap
 from fuzzyocc import BayesMap, FuzzyMap, GridSpec, SensorModel, cast_work
 
@@ -44,7 +44,7 @@ def build_map(meta: Mapping[str, Any], *, max_cells: int) -> OccupancyMap:
     spec = GridSpec(origin=meta["origin"], size=meta["size"], resolution=meta["resolution"], max_cells=max_cells)
     sensor = SensorModel(**meta["sensor"])
     if meta["model"] == "fuzzy":
-        return FuzzyMap(spec, sensor, engines.from_meta(meta))
+        return FuzzyMap(spec, sensor, engine_choice.from_meta(meta))
     return BayesMap(spec, sensor)
 
 

@@ -32,7 +32,6 @@ from collections.abc import Callable
 from concurrent.futures.process import BrokenProcessPool
 from typing import Any, Literal, TypeVar
 
-
 from app.errors import Unavailable
 from app.ops.forkserver import ensure_forkserver, worker_context
 from app.plans.worker import DEFAULT_FIELD_CACHE_BYTES, init_worker, worker_pid
@@ -47,8 +46,10 @@ SHUTDOWN_GRACE_S = 2.0
 #: Seconds a plan that finds its share of the queue full waits for room before the 503 (its ``Retry-After``).
 #: A client that ignores ``Retry-After`` and asks again at once is paced by it: ten clients asking back to
 #: back for plans on one map made 90 requests a second, each refusal about 0.7 ms of the event loop, and an
-#: innocent client's reads of another map 3.2x slower at the 99th percentile (issue 11, bench abuse row 9).
+#: innocent client's reads of another map 3.2x slower at the 99th percentile (``bench/bench_abuse.py``, scenario 9).
 ROOM_WAIT_S = 1.0
+
+
 class _Worker:
     """One planner process (a one-process executor, started at its first task): replaced alone."""
 
@@ -85,8 +86,8 @@ class PlanPool:
     beyond that waits up to ``ROOM_WAIT_S`` for room, then 503.
 
     ``per_map`` (default ``default_per_map``): a map flooded with plans leaves a worker to the other maps,
-    whose plans then wait for no solve of it, and leaves a core to the service's scans and reads (issue 11,
-    bench abuse row 9: with both cores solving one map's plans, an innocent map's scan p99 was 2.1x).
+    whose plans then wait for no solve of it, and leaves a core to the service's scans and reads (with both
+    cores solving one map's plans, an innocent map's scan p99 was 2.1x: ``bench/bench_abuse.py``, scenario 9).
     ``field_cache_bytes``: what each worker may keep of the fields of published grids (``run_shared_plan``).
     """
 

@@ -79,8 +79,8 @@ class MapPlans:
                 raise Invalid(answer["invalid"])
             result = answer["result"]
             outcome = result["status"]
-            path_msg = messages_out.path_message(result["path"], state_space=result["state_space"], frame_id=entry.frame_id,
-                                           stamp=stamp, goal_yaw=request.goal_yaw)
+            path_msg = messages_out.path_message(result["path"], state_space=result["state_space"],
+                                                 frame_id=entry.frame_id, stamp=stamp, goal_yaw=request.goal_yaw)
             plan = PlanResult(**result, version=version, **path_msg)
             self._notify("plan_made", name, plan, entry.frame_id)
             return plan

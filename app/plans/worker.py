@@ -8,22 +8,18 @@ the plan (``run_plan``). Everything here takes and returns plain data: it crosse
 
 from __future__ import annotations
 
-import logging
-import math
 import os
-from typing import Any, TypeVar
+from typing import Any
 
 import numpy as np
 
 from app.ops import process_setup
-from app.maps import FieldCache, GridRef
+from app.maps.shared_grids import FieldCache, GridRef
+from planning.parameters import DEFAULT_ALLOW_UNKNOWN, DEFAULT_ROBOT_RADIUS
 
-LOG = logging.getLogger("fuzzyrisk.plans")
-T = TypeVar("T")
-
-
-#: How much nicer than the server the planner workers run: a plan (seconds of CPU) takes what scans and reads leave (issue 11: a
-#: 30 s plan, and ten clients' plans on both cores, made an innocent client's map reads 2.6x slower)
+#: How much nicer than the server the planner workers run: a plan (seconds of CPU) takes what scans and reads
+#: leave (at the same priority, a 30 s plan, and ten clients' plans on both cores, made an innocent client's map
+#: reads 2.6x slower)
 PLAN_NICE = 5
 #: Bytes of fields a worker keeps when its pool is not told (``PlanPool(field_cache_bytes=...)``).
 DEFAULT_FIELD_CACHE_BYTES = 256 * 2**20
@@ -50,11 +46,6 @@ def init_worker(native: bool, field_cache_bytes: int = DEFAULT_FIELD_CACHE_BYTES
 def worker_pid() -> int:
     """A task that starts a worker (its initializer warms the planner stack up); the worker's pid."""
     return os.getpid()
-
-
-def _number(value: Any) -> float | None:
-    value = float(value)
-    return value if math.isfinite(value) else None
 
 
 def run_plan(
@@ -84,7 +75,8 @@ def run_shared_plan(ref: GridRef, params: dict[str, Any]) -> dict[str, Any]:
     try:
         return _plan_on(field, params)
     finally:
-        _FIELDS.used(ref, params.get("robot_radius", 0.2), params.get("allow_unknown", True))
+        _FIELDS.used(ref, params.get("robot_radius", DEFAULT_ROBOT_RADIUS),
+                     params.get("allow_unknown", DEFAULT_ALLOW_UNKNOWN))
 
 
 def worker_fields() -> dict[str, Any]:
@@ -102,22 +94,4 @@ def _plan_on(field: Any, params: dict[str, Any]) -> dict[str, Any]:
         return {"error": {"code": str(exc.code), "message": str(exc)}}
     except ValueError as exc:
         return {"invalid": str(exc)}
-    path = np.asarray(result.path, dtype=np.float64).reshape(-1, len(params["start"]))
-    return {
-        "result": {
-            "status": str(result.status),
-            "planner": str(result.planner),
-            "state_space": str(result.state_space),
-            "path": path.tolist(),
-            "length": _number(result.length),
-            "max_risk": _number(result.max_risk),
-            "mean_risk": _number(result.mean_risk),
-            "cost": _number(result.cost),
-            "planning_time": float(result.planning_time),
-            "message": str(result.message),
-            "error_code": str(result.error_code) or None,
-            "stopped_by": str(result.stopped_by),
-            "iterations": int(result.iterations),
-            "first_solution_time": _number(result.first_solution_time),
-        }
-    }
+    return {"result": result.to_json()}

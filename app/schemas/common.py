@@ -1,0 +1,85 @@
+"""The vocabulary several bodies share: map names, ROS frame ids, bounded numbers and vectors, and the
+``std_msgs``/``geometry_msgs`` shapes a ``nav_msgs`` answer is made of (``OccupancyGrid``, ``Path``).
+"""
+
+from __future__ import annotations
+
+import re
+from typing import Annotated
+
+from pydantic import AfterValidator, BaseModel, Field, FiniteFloat
+
+NAME_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$"
+_NAME_RE = re.compile(NAME_PATTERN)
+NAME_RULE = "1 to 64 characters from A-Z a-z 0-9 _ . -, starting with a letter or a digit"
+
+
+def check_map_name(name: str) -> str:
+    """Return ``name`` when it is a valid map name, else raise ``ValueError`` saying the rule."""
+    if not _NAME_RE.fullmatch(name):
+        raise ValueError(f"map name {name!r} is not allowed: use {NAME_RULE}")
+    return name
+
+
+MapName = Annotated[str, AfterValidator(check_map_name)]
+
+#: A ROS frame id as tf2 takes it: no leading slash (tf2 refuses one), ROS name tokens joined by single
+#: slashes (a fleet's namespaces: ``robot1/map``).
+FRAME_ID_PATTERN = r"^[A-Za-z_][A-Za-z0-9_]*(/[A-Za-z_][A-Za-z0-9_]*)*$"
+_FRAME_ID_RE = re.compile(FRAME_ID_PATTERN)
+FRAME_ID_MAX_CHARS = 256
+DEFAULT_FRAME_ID = "map"
+FRAME_ID_RULE = ("tokens of A-Z a-z 0-9 _ that start with a letter or _, joined by single '/', with no leading or "
+                 f"trailing '/' (tf2 refuses a leading one), at most {FRAME_ID_MAX_CHARS} characters: e.g. "
+                 "'map' or 'robot1/map'")
+
+
+def check_frame_id(frame_id: str) -> str:
+    """Return ``frame_id`` when tf2 and ROS name rules accept it, else raise ``ValueError`` saying the rule."""
+    if len(frame_id) > FRAME_ID_MAX_CHARS or not _FRAME_ID_RE.fullmatch(frame_id):
+        raise ValueError(f"frame_id {frame_id[:80]!r} is not allowed: use {FRAME_ID_RULE}")
+    return frame_id
+
+
+FrameId = Annotated[str, AfterValidator(check_frame_id)]
+NonNegativeFinite = Annotated[float, Field(ge=0.0, allow_inf_nan=False)]
+PositiveFinite = Annotated[float, Field(gt=0.0, allow_inf_nan=False)]
+Vector = Annotated[list[FiniteFloat], Field(min_length=2, max_length=3)]
+
+
+# ---------------------------------------------------------------- nav_msgs parts (OccupancyGrid, Path)
+
+
+class Point(BaseModel):
+    x: float
+    y: float
+    z: float
+
+
+class Quaternion(BaseModel):
+    x: float
+    y: float
+    z: float
+    w: float
+
+
+class PoseMsg(BaseModel):
+    position: Point
+    orientation: Quaternion
+
+
+class Time(BaseModel):
+    sec: int
+    nanosec: int
+
+
+class Header(BaseModel):
+    stamp: Time
+    frame_id: str
+
+
+class PoseStamped(BaseModel):
+    """``geometry_msgs/PoseStamped``."""
+
+    header: Header
+    pose: PoseMsg

@@ -1,0 +1,112 @@
+"""A map as asked for (``MapCreate``) and as the service holds it (``MapInfo``)."""
+
+from __future__ import annotations
+
+from datetime import datetime
+from typing import Annotated, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+from app.schemas.common import (
+    DEFAULT_FRAME_ID,
+    FRAME_ID_MAX_CHARS,
+    FRAME_ID_PATTERN,
+    FRAME_ID_RULE,
+    FrameId,
+    MapName,
+    NonNegativeFinite,
+    PositiveFinite,
+    Vector,
+)
+from app.schemas.engine_definition import EngineField, EngineInfo
+
+EXAMPLE_MAP = {
+    "name": "lab",
+    "dimensions": 2,
+    "resolution": 0.05,
+    "origin": [-8.0, -5.0],
+    "size": [16.0, 10.0],
+    "model": "fuzzy",
+    "sensor": {"range_sigma": 0.03, "registration_sigma": 0.0},
+    "engine": "paper",
+}
+EXAMPLE_MAP_3D = {
+    "name": "hall3d",
+    "dimensions": 3,
+    "resolution": 0.1,
+    "origin": [-5.0, -5.0, 0.0],
+    "size": [10.0, 10.0, 3.0],
+    "model": "bayes",
+    "sensor": {"range_sigma": 0.05, "registration_sigma": 0.01},
+}
+
+
+class SensorIn(BaseModel):
+    """Range noise of the sensor and of the pose it is registered with (metres)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    range_sigma: NonNegativeFinite = 0.03
+    registration_sigma: NonNegativeFinite = 0.0
+    range_sigma_per_m: NonNegativeFinite = 0.0
+
+
+class MapCreate(BaseModel):
+    """A new map: a box of cells in its ROS frame (``frame_id``; origin = corner of cell 0, as in a Nav2 YAML)."""
+
+    model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [EXAMPLE_MAP, EXAMPLE_MAP_3D]})
+
+    name: MapName
+    dimensions: Literal[2, 3] | None = Field(None, description="2 or 3; taken from len(origin) when left out")
+    resolution: PositiveFinite = Field(description="cell edge, metres")
+    origin: Vector = Field(description="corner of cell 0 [x, y(, z)], metres")
+    size: Annotated[list[PositiveFinite], Field(min_length=2, max_length=3)] = Field(
+        description="extent [sx, sy(, sz)], metres, rounded up to whole cells"
+    )
+    model: Literal["fuzzy", "bayes"] = "fuzzy"
+    sensor: SensorIn = Field(default_factory=SensorIn)
+    engine: EngineField = Field(
+        None, description="fuzzy maps: a preset name, or an EngineDefinition; left out: the default preset"
+    )
+    frame_id: FrameId = Field(
+        DEFAULT_FRAME_ID, description="the ROS frame of the map (a fleet's namespaces: robot1/map): the frame_id of "
+        "its OccupancyGrid and of its plans' paths; " + FRAME_ID_RULE,
+        json_schema_extra={"pattern": FRAME_ID_PATTERN, "maxLength": FRAME_ID_MAX_CHARS},
+    )
+
+    @model_validator(mode="after")
+    def _dimensions_agree(self) -> MapCreate:
+        dims = self.dimensions or len(self.origin)
+        if len(self.origin) != dims:
+            raise ValueError(f"origin has {len(self.origin)} values but dimensions is {dims}")
+        if len(self.size) != dims:
+            raise ValueError(f"size has {len(self.size)} values but origin has {dims}")
+        self.dimensions = dims  # type: ignore[assignment]
+        return self
+
+    @model_validator(mode="after")
+    def _engine_is_fuzzy(self) -> MapCreate:
+        if self.engine is not None and self.model != "fuzzy":
+            raise ValueError(f"engine applies to fuzzy maps only; a {self.model} map has none: leave engine out")
+        return self
+
+
+class MapInfo(BaseModel):
+    """A map as the service holds it."""
+
+    name: str
+    dimensions: int
+    resolution: float
+    origin: list[float]
+    size: list[float] = Field(description="extent as built, shape x resolution (the requested size rounded up "
+                              "to whole cells), metres: the map covers origin .. origin + size")
+    shape: list[int] = Field(description="cells along x, y(, z)")
+    model: Literal["fuzzy", "bayes"]
+    sensor: SensorIn
+    engine: EngineInfo | None = Field(description="the fuzzy engine; null for a bayes map")
+    frame_id: str = Field(description="the map's ROS frame (maps made before frames could be chosen: map)")
+    scans_fused: int
+    version: int = Field(description="grows with every accepted scan batch: by one, except after a batch that "
+                         "failed inside the service after it was stored (its number is not reused)")
+    created: datetime
+    updated: datetime
