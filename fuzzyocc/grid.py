@@ -26,8 +26,9 @@ from collections.abc import Callable
 import numpy as np
 from numba import njit
 
+from fuzzyocc._engine_kernels import SLOPED, evidence_class, fuse_row, fuzzify_into
 from fuzzyocc.config import GridSpec
-from fuzzyocc.engine import SLOPED, Fuzzifier, evidence_class, fuse_row, fuzzify_into
+from fuzzyocc.engine import Fuzzifier
 
 RiskFn = Callable[[np.ndarray], np.ndarray]
 #: What :meth:`fuzzyocc.engine.FuzzyEngine.row_fusion` returns.
