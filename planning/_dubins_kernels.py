@@ -12,16 +12,7 @@ import math
 import numpy as np
 from numba import njit
 
-from planning._segment_kernels import (
-    H_INV_RES,
-    H_ORIGIN,
-    H_RHO,
-    H_SHAPE,
-    H_WEIGHT,
-    HEADER,
-    f64_ptr,
-    free_2d_ptr,
-)
+from planning._segment_kernels import H_INV_RES, H_ORIGIN, H_RHO, H_SHAPE, H_WEIGHT, HEADER, f64_ptr, free_2d_ptr
 
 DUBINS_EPS = 1e-6
 DUBINS_ZERO = -1e-7

@@ -7,13 +7,7 @@ import math
 import numpy as np
 from numba import njit
 
-from planning._segment_kernels import (
-    H_INV_RES,
-    H_NCELLS,
-    H_RISK_FLOOR,
-    H_SHAPE,
-    H_WEIGHT,
-)
+from planning._segment_kernels import H_INV_RES, H_NCELLS, H_RISK_FLOOR, H_SHAPE, H_WEIGHT
 
 _CLOSED = -2  # grid_search: pos of an expanded cell
 
