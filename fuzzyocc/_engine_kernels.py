@@ -80,14 +80,6 @@ def fuzzify_distances(
 
 
 
-@numba.njit(cache=True, nogil=True)
-def first_out_of_range(rows: np.ndarray, n: int) -> int:
-    for q in range(rows.shape[0]):
-        if rows[q] < 0 or rows[q] >= n:
-            return q
-    return -1
-
-
 @numba.njit(cache=True, nogil=True, inline="always")
 def _minmax_row(
     state: np.ndarray, c: int, evidence: np.ndarray, n: int, rule: np.ndarray, acc: np.ndarray, active: np.ndarray
@@ -137,29 +129,6 @@ def fuse_row(
         _float_row(state, c, evidence, n, rule, float_ops[0], float_ops[1], float_ops[2], acc, out_row)
 
 
-@numba.njit(cache=True, nogil=True)
-def fuse_minmax(state: np.ndarray, evidence: np.ndarray, rule: np.ndarray, out: np.ndarray) -> None:
-    n_labels = state.shape[1]
-    acc = np.empty(n_labels, dtype=np.uint8)
-    active = np.empty(n_labels, dtype=np.int64)
-    for n in range(state.shape[0]):
-        _minmax_row(state, n, evidence, n, rule, acc, active)
-        for k in range(n_labels):
-            out[n, k] = acc[k]
-
-
-@numba.njit(cache=True, nogil=True)
-def fuse_minmax_at(state: np.ndarray, cells: np.ndarray, evidence: np.ndarray, rule: np.ndarray) -> None:
-    n_labels = state.shape[1]
-    acc = np.empty(n_labels, dtype=np.uint8)
-    active = np.empty(n_labels, dtype=np.int64)
-    for n in range(cells.shape[0]):
-        c = cells[n]
-        _minmax_row(state, c, evidence, n, rule, acc, active)  # reads the row before it is overwritten
-        for k in range(n_labels):
-            state[c, k] = acc[k]
-
-
 @numba.njit(cache=True, nogil=True, inline="always")
 def _float_row(
     state: np.ndarray,
@@ -197,42 +166,19 @@ def _float_row(
 
 
 @numba.njit(cache=True, nogil=True)
-def fuse_float(
-    state: np.ndarray,
-    evidence: np.ndarray,
-    rule: np.ndarray,
-    product: bool,
-    probsum: bool,
-    normalize: bool,
+def fuse_rows(
+    state: np.ndarray, evidence: np.ndarray, rule: np.ndarray, float_ops: tuple[bool, bool, bool] | None,
     out: np.ndarray,
-) -> None:
+) -> None:  # pragma: no cover - compiled
+    """``out[n]`` = :func:`fuse_row` of ``state[n]`` with ``evidence[n]``, for every row."""
     n_labels = state.shape[1]
-    acc = np.zeros(n_labels)
     row = np.empty(n_labels, dtype=np.uint8)
+    acc = np.zeros(n_labels)
+    active = np.empty(n_labels, dtype=np.int64)
     for n in range(state.shape[0]):
-        _float_row(state, n, evidence, n, rule, product, probsum, normalize, acc, row)
+        fuse_row(state, n, evidence, n, rule, float_ops, row, acc, active)
         for k in range(n_labels):
             out[n, k] = row[k]
-
-
-@numba.njit(cache=True, nogil=True)
-def fuse_float_at(
-    state: np.ndarray,
-    cells: np.ndarray,
-    evidence: np.ndarray,
-    rule: np.ndarray,
-    product: bool,
-    probsum: bool,
-    normalize: bool,
-) -> None:
-    n_labels = state.shape[1]
-    acc = np.zeros(n_labels)
-    row = np.empty(n_labels, dtype=np.uint8)
-    for n in range(cells.shape[0]):
-        c = cells[n]
-        _float_row(state, c, evidence, n, rule, product, probsum, normalize, acc, row)
-        for k in range(n_labels):
-            state[c, k] = row[k]
 
 
 @numba.njit(cache=True, nogil=True)

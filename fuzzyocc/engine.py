@@ -25,17 +25,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from fuzzyocc._engine_kernels import (
-    UNKNOWN_RISK,
-    defuzzify_lut,
-    first_out_of_range,
-    fuse_float,
-    fuse_float_at,
-    fuse_minmax,
-    fuse_minmax_at,
-    fuzzify_distances,
-    pair_table,
-)
+from fuzzyocc._engine_kernels import UNKNOWN_RISK, defuzzify_lut, fuse_rows, fuzzify_distances, pair_table
 from fuzzyocc.membership import MembershipFunction, check_coverage, ladder
 
 __all__ = [
@@ -388,53 +378,8 @@ class FuzzyEngine:
         if evidence.shape != state.shape:
             raise ValueError(f"evidence must have the shape of state {state.shape}, got {evidence.shape}")
         out = np.empty_like(state)
-        if self._integer_fusion:
-            fuse_minmax(state, evidence, self._rule_index, out)
-        else:
-            product, probsum = self.and_op == "product", self.or_op == "probsum"
-            fuse_float(state, evidence, self._rule_index, product, probsum, bool(self.normalize), out)
+        fuse_rows(state, evidence, *self.row_fusion(), out)
         return out
-
-    def fuse_at(self, state: np.ndarray, cells: np.ndarray, evidence: np.ndarray) -> None:
-        """In-place :meth:`fuse` of the rows ``cells`` of a whole map's states.
-
-        ``state[cells] = fuse(state[cells], evidence)`` without the gather and
-        scatter copies; the result is the same bit for bit. A cell listed twice
-        is fused twice, in the order given.
-
-        Parameters
-        ----------
-        state : (C, L) uint8 array, C-contiguous and writeable
-            The states of every cell of a map; rows ``cells`` are overwritten.
-        cells : (N,) int array
-            Rows to fuse, each in ``[0, C)``.
-        evidence : (N, L) uint8 array
-            Fuzzified new measurement of each of ``cells``.
-
-        Raises
-        ------
-        ValueError
-            Wrong dtype, shape or layout of an argument, or a row of ``cells``
-            outside ``state``; ``state`` is then left untouched.
-        """
-        if not isinstance(state, np.ndarray) or not state.flags.c_contiguous or not state.flags.writeable:
-            raise ValueError("state must be a C-contiguous, writeable numpy array (it is updated in place)")
-        state = self._check_states("state", state)
-        evidence = self._check_states("evidence", evidence)
-        rows = np.asarray(cells)
-        if rows.ndim != 1 or (rows.size and not np.issubdtype(rows.dtype, np.integer)):
-            raise ValueError(f"cells must be a 1-D array of row indices, got dtype {rows.dtype} shape {rows.shape}")
-        if evidence.shape[0] != rows.shape[0]:
-            raise ValueError(f"evidence must have one row per cell ({rows.shape[0]}), got {evidence.shape[0]}")
-        rows = rows.astype(np.int64, copy=False)
-        bad = first_out_of_range(rows, state.shape[0])
-        if bad >= 0:
-            raise ValueError(f"cells[{bad}] = {int(rows[bad])} is not a row of state (0 .. {state.shape[0] - 1})")
-        if self._integer_fusion:
-            fuse_minmax_at(state, rows, evidence, self._rule_index)
-        else:
-            product, probsum = self.and_op == "product", self.or_op == "probsum"
-            fuse_float_at(state, rows, evidence, self._rule_index, product, probsum, bool(self.normalize))
 
     def fuzzifier(self) -> Fuzzifier:
         """``(xs, ys, counts, rows, bounds)``: what :func:`~fuzzyocc._engine_kernels.fuzzify_into` and
