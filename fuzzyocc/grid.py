@@ -26,6 +26,7 @@ from collections.abc import Callable
 import numpy as np
 from numba import njit
 
+from fuzzyocc._block_ids import block_address, cell_id
 from fuzzyocc._engine_kernels import SLOPED, evidence_class, fuse_row, fuzzify_into
 from fuzzyocc.config import GridSpec
 from fuzzyocc.engine import Fuzzifier
@@ -428,7 +429,7 @@ def _block_of(cells, shape, shift, nblk):  # pragma: no cover - compiled
     """Block id and offset in the block of each flat cell id."""
     ny, nz = shape[1], shape[2]
     sx, sy, sz = shift[0], shift[1], shift[2]
-    mx, my, mz = (1 << sx) - 1, (1 << sy) - 1, (1 << sz) - 1
+    nby, nbz = nblk[1], nblk[2]
     blk = np.empty(cells.shape[0], np.int64)
     off = np.empty(cells.shape[0], np.int64)
     for n in range(cells.shape[0]):
@@ -437,8 +438,7 @@ def _block_of(cells, shape, shift, nblk):  # pragma: no cover - compiled
         r = c - i * (ny * nz)
         j = r // nz
         k = r - j * nz
-        blk[n] = ((i >> sx) * nblk[1] + (j >> sy)) * nblk[2] + (k >> sz)
-        off[n] = (((i & mx) << sy | (j & my)) << sz) | (k & mz)
+        blk[n], off[n] = block_address(i, j, k, sx, sy, sz, nby, nbz)
     return blk, off
 
 
@@ -695,20 +695,17 @@ def _expand_rows(shape, shift, nblk, ref, urow, pool, out):  # pragma: no cover 
     width = urow.shape[1]
     nx, ny, nz = shape[0], shape[1], shape[2]
     sx, sy, sz = shift[0], shift[1], shift[2]
-    mx, my, mz = (1 << sx) - 1, (1 << sy) - 1, (1 << sz) - 1
+    nby, nbz = nblk[1], nblk[2]
     c = 0
     for i in range(nx):
         for j in range(ny):
-            bij = ((i >> sx) * nblk[1] + (j >> sy)) * nblk[2]
-            oij = ((i & mx) << sy | (j & my)) << sz
             for k in range(nz):
-                b = bij + (k >> sz)
+                b, o = block_address(i, j, k, sx, sy, sz, nby, nbz)
                 s = ref[b]
                 if s < 0:
                     for q in range(width):
                         out[c, q] = urow[b, q]
                 else:
-                    o = oij | (k & mz)
                     for q in range(width):
                         out[c, q] = pool[s, o, q]
                 c += 1
@@ -718,17 +715,15 @@ def _expand_rows(shape, shift, nblk, ref, urow, pool, out):  # pragma: no cover 
 def _expand_risk(shape, shift, nblk, ref, urisk, prisk, out):  # pragma: no cover - compiled
     nx, ny, nz = shape[0], shape[1], shape[2]
     sx, sy, sz = shift[0], shift[1], shift[2]
-    mx, my, mz = (1 << sx) - 1, (1 << sy) - 1, (1 << sz) - 1
+    nby, nbz = nblk[1], nblk[2]
     step = np.float32(RISK_STEP)
     c = 0
     for i in range(nx):
         for j in range(ny):
-            bij = ((i >> sx) * nblk[1] + (j >> sy)) * nblk[2]
-            oij = ((i & mx) << sy | (j & my)) << sz
             for k in range(nz):
-                b = bij + (k >> sz)
+                b, o = block_address(i, j, k, sx, sy, sz, nby, nbz)
                 s = ref[b]
-                code = urisk[b] if s < 0 else prisk[s, oij | (k & mz)]
+                code = urisk[b] if s < 0 else prisk[s, o]
                 out[c] = np.float32(code) * step
                 c += 1
 
@@ -751,13 +746,11 @@ def _lookup_flat(nx, ny, codes, bits, lut, unobserved, out):  # pragma: no cover
 @njit(cache=True, nogil=True)
 def _lookup_blocks(shape, shift, nblk, ref, urisk, prisk, bits, lut, unobserved, out):  # pragma: no cover
     sx, sy, sz = shift[0], shift[1], shift[2]
-    mx, my = (1 << sx) - 1, (1 << sy) - 1
-    nb = sx + sy + sz
+    nby, nbz = nblk[1], nblk[2]
     for j in range(shape[1]):
         for i in range(shape[0]):
-            b = ((i >> sx) * nblk[1] + (j >> sy)) * nblk[2]
-            o = ((i & mx) << sy | (j & my)) << sz
-            key = (b << nb) | o
+            b, o = block_address(i, j, 0, sx, sy, sz, nby, nbz)
+            key = cell_id(b, o, sx, sy, sz)
             if (bits[key >> 3] >> (key & 7)) & 1:
                 s = ref[b]
                 out[j, i] = lut[urisk[b] if s < 0 else prisk[s, o]]
@@ -769,14 +762,12 @@ def _lookup_blocks(shape, shift, nblk, ref, urisk, prisk, bits, lut, unobserved,
 def _expand_bits(shape, shift, nblk, bits, out):  # pragma: no cover - compiled
     nx, ny, nz = shape[0], shape[1], shape[2]
     sx, sy, sz = shift[0], shift[1], shift[2]
-    mx, my, mz = (1 << sx) - 1, (1 << sy) - 1, (1 << sz) - 1
-    nb = sx + sy + sz
+    nby, nbz = nblk[1], nblk[2]
     c = 0
     for i in range(nx):
         for j in range(ny):
-            bij = ((i >> sx) * nblk[1] + (j >> sy)) * nblk[2]
-            oij = ((i & mx) << sy | (j & my)) << sz
             for k in range(nz):
-                key = ((bij + (k >> sz)) << nb) | oij | (k & mz)
+                b, o = block_address(i, j, k, sx, sy, sz, nby, nbz)
+                key = cell_id(b, o, sx, sy, sz)
                 out[c] = (bits[key >> 3] >> (key & 7)) & 1
                 c += 1
