@@ -1,7 +1,11 @@
-"""Cell storage: per-cell state, observed bits, and a lazily refreshed fixed-point risk cache.
+"""Cell storage of a map: per-cell state, observed bits and a lazily refreshed fixed-point risk
+cache; and the fuzzy fusion that writes into block storage.
 
-Storage only: it knows nothing of sensors or of what a state means. The map that owns a
-grid writes states of whole cells and gives the function that turns states into risk.
+A grid knows nothing of sensors: its map casts the rays and gives the function that turns
+states into risk. Into a :class:`CellGrid` the map writes whole states (Bayes log-odds); a
+:class:`BlockGrid` fuzzifies and fuses a scan's cells where they are stored (:meth:`BlockGrid.fuse`,
+with the engine's compiled row kernels), because each fused row decides whether its uniform
+block must be expanded or can stay uniform.
 
 :class:`CellGrid` is dense, cells addressed by flat id (C order over ``spec.shape``, see
 :mod:`fuzzyocc.keys`). Bytes per cell: the state's (4 for float32 log-odds) is the map
