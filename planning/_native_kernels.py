@@ -17,7 +17,6 @@ checks these layouts on live states before any of this code runs.
 from __future__ import annotations
 
 from numba import cfunc, njit, types
-from numba.extending import intrinsic
 
 from planning._dubins_kernels import dubins_cost, dubins_free
 from planning._segment_kernels import (
@@ -27,6 +26,7 @@ from planning._segment_kernels import (
     H_SHAPE,
     HEADER,
     f64_ptr,
+    pointer_to,
     segment_cost_2d,
     segment_cost_3d,
     segment_free_2d,
@@ -44,15 +44,8 @@ CHECK_MOTION = types.uint8(types.intp, types.intp, types.intp)  # bool checkMoti
 CHECK_MOTION_LAST = types.uint8(types.intp, types.intp, types.intp, types.intp)
 
 
-@intrinsic
-def _i64_ptr(typingctx, address):  # type: ignore[no-untyped-def]
-    """Reinterpret an integer address as ``int64*``."""
-    sig = types.CPointer(types.int64)(types.intp)
-
-    def codegen(context, builder, signature, args):  # type: ignore[no-untyped-def]
-        return builder.inttoptr(args[0], context.get_value_type(types.CPointer(types.int64)))
-
-    return sig, codegen
+#: ``int64*`` at an integer address: the words of OMPL's objects and virtual tables.
+_i64_ptr = pointer_to(types.int64)
 
 
 @njit(cache=True, inline="always")

@@ -19,6 +19,7 @@ cell however thin. A 2-D grid is packed as a 3-D grid one cell deep.
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numpy as np
 from numba import carray, njit, types
@@ -35,15 +36,22 @@ H_RISK_FLOOR = 10  # least risk of any cell: every motion costs at least its len
 HEADER = 16
 
 
-@intrinsic
-def f64_ptr(typingctx, address):  # type: ignore[no-untyped-def]
-    """Reinterpret an integer address as ``double*`` (the owner keeps the buffer alive)."""
-    sig = types.CPointer(types.float64)(types.intp)
+def pointer_to(pointee: types.Type) -> Any:
+    """An intrinsic reinterpreting an integer address as a pointer to ``pointee`` (its owner keeps the memory alive)."""
+    pointer = types.CPointer(pointee)
 
-    def codegen(context, builder, signature, args):  # type: ignore[no-untyped-def]
-        return builder.inttoptr(args[0], context.get_value_type(types.CPointer(types.float64)))
+    def cast(typingctx, address):  # type: ignore[no-untyped-def]
+        def codegen(context, builder, signature, args):  # type: ignore[no-untyped-def]
+            return builder.inttoptr(args[0], context.get_value_type(pointer))
 
-    return sig, codegen
+        return pointer(types.intp), codegen
+
+    cast.__name__ = cast.__qualname__ = f"{pointee}_ptr"  # one name per intrinsic
+    return intrinsic(cast)
+
+
+#: ``double*`` at an integer address: the packed buffer as the hot kernels read it.
+f64_ptr = pointer_to(types.float64)
 
 
 def pack(
