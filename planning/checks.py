@@ -86,6 +86,7 @@ def _point(name: str, value: Any, size: int, space: str) -> tuple[float, ...]:
 
 
 def space_spec(state_space: str | None, field: RiskField) -> SpaceSpec:
+    """The space a plan on ``field`` runs in: ``state_space``, or R2 / R3 by the field's dimension."""
     name = state_space if state_space is not None else ("R3" if field.ndim == 3 else "R2")
     spec = STATE_SPACES.get(name) if isinstance(name, str) else None
     if spec is None:

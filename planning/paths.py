@@ -56,6 +56,8 @@ def plan_result(
     error_code: str = "",
     stopped_by: str = "complete",
 ) -> PlanResult:
+    """The result of a plan started at ``t0``: ``path`` measured along ``measure_points`` (the polyline
+    verified, which may be finer than the path), or an empty path when ``status`` is "none"."""
     if status == "none" or path is None or measure_points is None:
         nan = math.nan
         empty = np.zeros((0, sspec.state_dim))
