@@ -23,9 +23,9 @@ import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 
-import numba
 import numpy as np
 
+from fuzzyocc._engine_kernels import UNKNOWN_RISK, defuzzify_lut, fuse_rows, fuzzify_distances, pair_table
 from fuzzyocc.membership import MembershipFunction, check_coverage, ladder
 
 __all__ = [
@@ -74,7 +74,6 @@ MAX_NO_RETURN_NEIGHBOURS = 8
 
 _AND_OPS = ("min", "product")
 _OR_OPS = ("max", "probsum")
-_UNKNOWN_RISK = 0.5
 
 
 def even_output_mfs(labels: Sequence[str]) -> dict[str, MembershipFunction]:
@@ -347,7 +346,7 @@ class FuzzyEngine:
         if d.ndim != 1:
             raise ValueError(f"distance_sigmas must be 1-D (N,), got shape {d.shape}")
         out = np.empty((d.shape[0], self.num_labels), dtype=np.uint8)
-        if _fuzzify_kernel(d, *self.fuzzifier(), out) >= 0:
+        if fuzzify_distances(d, *self.fuzzifier(), out) >= 0:
             bad = int(np.flatnonzero(np.isnan(d))[0])
             raise ValueError(f"distance_sigmas must not contain NaN (first at index {bad})")
         return out
@@ -379,66 +378,22 @@ class FuzzyEngine:
         if evidence.shape != state.shape:
             raise ValueError(f"evidence must have the shape of state {state.shape}, got {evidence.shape}")
         out = np.empty_like(state)
-        if self._integer_fusion:
-            _fuse_minmax(state, evidence, self._rule_index, out)
-        else:
-            product, probsum = self.and_op == "product", self.or_op == "probsum"
-            _fuse_float(state, evidence, self._rule_index, product, probsum, bool(self.normalize), out)
+        fuse_rows(state, evidence, *self.row_fusion(), out)
         return out
 
-    def fuse_at(self, state: np.ndarray, cells: np.ndarray, evidence: np.ndarray) -> None:
-        """In-place :meth:`fuse` of the rows ``cells`` of a whole map's states.
-
-        ``state[cells] = fuse(state[cells], evidence)`` without the gather and
-        scatter copies; the result is the same bit for bit. A cell listed twice
-        is fused twice, in the order given.
-
-        Parameters
-        ----------
-        state : (C, L) uint8 array, C-contiguous and writeable
-            The states of every cell of a map; rows ``cells`` are overwritten.
-        cells : (N,) int array
-            Rows to fuse, each in ``[0, C)``.
-        evidence : (N, L) uint8 array
-            Fuzzified new measurement of each of ``cells``.
-
-        Raises
-        ------
-        ValueError
-            Wrong dtype, shape or layout of an argument, or a row of ``cells``
-            outside ``state``; ``state`` is then left untouched.
-        """
-        if not isinstance(state, np.ndarray) or not state.flags.c_contiguous or not state.flags.writeable:
-            raise ValueError("state must be a C-contiguous, writeable numpy array (it is updated in place)")
-        state = self._check_states("state", state)
-        evidence = self._check_states("evidence", evidence)
-        rows = np.asarray(cells)
-        if rows.ndim != 1 or (rows.size and not np.issubdtype(rows.dtype, np.integer)):
-            raise ValueError(f"cells must be a 1-D array of row indices, got dtype {rows.dtype} shape {rows.shape}")
-        if evidence.shape[0] != rows.shape[0]:
-            raise ValueError(f"evidence must have one row per cell ({rows.shape[0]}), got {evidence.shape[0]}")
-        rows = rows.astype(np.int64, copy=False)
-        bad = _first_out_of_range(rows, state.shape[0])
-        if bad >= 0:
-            raise ValueError(f"cells[{bad}] = {int(rows[bad])} is not a row of state (0 .. {state.shape[0] - 1})")
-        if self._integer_fusion:
-            _fuse_minmax_at(state, rows, evidence, self._rule_index)
-        else:
-            product, probsum = self.and_op == "product", self.or_op == "probsum"
-            _fuse_float_at(state, rows, evidence, self._rule_index, product, probsum, bool(self.normalize))
-
     def fuzzifier(self) -> Fuzzifier:
-        """``(xs, ys, counts, rows, bounds)``: what :func:`fuzzify_into` and :func:`evidence_class` take.
+        """``(xs, ys, counts, rows, bounds)``: what :func:`~fuzzyocc._engine_kernels.fuzzify_into` and
+        :func:`~fuzzyocc._engine_kernels.evidence_class` take.
 
         For storage that fuzzifies in its own compiled loop (``fuzzyocc.grid.BlockGrid``), with
         the very arithmetic of :meth:`fuzzify`: ``xs, ys, counts`` are the input functions'
         breakpoints, ``rows`` (3, L) the constant rows of classes 0-2 and ``bounds`` their
-        limits (see :func:`evidence_class`).
+        limits (see :func:`~fuzzyocc._engine_kernels.evidence_class`).
         """
         return (*self._input_breakpoints, *self._input_ends)
 
     def row_fusion(self) -> tuple[np.ndarray, tuple[bool, bool, bool] | None]:
-        """``(rules, float_ops)``: the arguments :func:`fuse_row` takes for this engine.
+        """``(rules, float_ops)``: the arguments :func:`~fuzzyocc._engine_kernels.fuse_row` takes for this engine.
 
         For storage that fuses rows in its own compiled loop (``fuzzyocc.grid.BlockGrid``)
         with the very arithmetic of :meth:`fuse`. ``float_ops`` is None for the exact uint8
@@ -477,7 +432,7 @@ class FuzzyEngine:
             _defuzzify_direct(self, state, out)
         else:
             first, second, lut = tables
-            _defuzzify_lut(state, first, second, lut, out)
+            defuzzify_lut(state, first, second, lut, out)
         return out
 
     def _check_states(self, name: str, array: np.ndarray) -> np.ndarray:
@@ -576,7 +531,7 @@ def _check_output_order(outputs: Mapping[str, MembershipFunction], labels: tuple
                 f"{centroids[k]:.4f}, not below {labels[k + 1]!r} at {centroids[k + 1]:.4f}"
             )
     c_unknown = centroids[labels.index(unknown)]
-    if abs(c_unknown - _UNKNOWN_RISK) > 1e-3:
+    if abs(c_unknown - UNKNOWN_RISK) > 1e-3:
         raise ValueError(
             f"output_mfs[{unknown!r}] (the unknown label) must be centred on risk 0.5, its centroid is {c_unknown:.4f}"
         )
@@ -637,7 +592,7 @@ def _defuzzify_tables(engine: FuzzyEngine) -> tuple[np.ndarray, np.ndarray, np.n
     for f, (i, j) in enumerate(factors):
         cols = np.flatnonzero(sample_factor == f)
         mu_j = mu[j, cols] if j >= 0 else np.zeros(cols.size)
-        _pair_table(mu[i, cols], mu_j, x[cols], product, probsum, lut[f])
+        pair_table(mu[i, cols], mu_j, x[cols], product, probsum, lut[f])
     lut = lut.reshape(len(factors), 256 * 256, 2)
     first = np.array([i for i, _ in factors], dtype=np.int64)
     second = np.array([j for _, j in factors], dtype=np.int64)
@@ -656,78 +611,11 @@ def _defuzzify_direct(engine: FuzzyEngine, state: np.ndarray, out: np.ndarray, c
         area = agg.sum(axis=1)
         moment = agg @ x
         safe = np.where(area > 0.0, area, 1.0)
-        out[start : start + chunk] = np.where(area > 0.0, moment / safe, _UNKNOWN_RISK)
-
-
-# -------------------------------------------------------------------- compiled kernels
-# nogil: maps fuse in a service's thread pool, and these loops touch no Python object.
-
-#: Classes of a distance that :func:`evidence_class` gives: every input function constant.
-BELOW, ABOVE, FLAT = 0, 1, 2
-#: The class of a distance where some input function slopes: fuzzified by :func:`fuzzify_into`.
-SLOPED = 3
-
-
-@numba.njit(cache=True, nogil=True, inline="always")
-def evidence_class(v: float, bounds: np.ndarray) -> int:  # pragma: no cover - compiled
-    """Which row a distance fuzzifies to: ``rows[BELOW]`` below every function's first breakpoint,
-    ``rows[ABOVE]`` past every last one, ``rows[FLAT]`` on the widest interval where every
-    function is flat, else ``SLOPED`` (NaN too: callers reject it first).
-
-    Most cells of a beam lie far in front of its surface, where the row is a constant.
-    """
-    if v < bounds[0]:
-        return BELOW
-    if v > bounds[1]:
-        return ABOVE
-    if bounds[2] < v < bounds[3]:
-        return FLAT
-    return SLOPED
-
-
-@numba.njit(cache=True, nogil=True, inline="always")
-def fuzzify_into(
-    v: float, xs: np.ndarray, ys: np.ndarray, counts: np.ndarray, out: np.ndarray, r: int
-) -> None:  # pragma: no cover - compiled
-    """``out[r]`` = the activations of every label at distance ``v`` (piecewise-linear interpolation)."""
-    for k in range(xs.shape[0]):
-        c = counts[k]
-        if v <= xs[k, 0]:
-            mu = ys[k, 0]
-        elif v >= xs[k, c - 1]:
-            mu = ys[k, c - 1]
-        else:
-            s = 1
-            while xs[k, s] < v:
-                s += 1
-            x0 = xs[k, s - 1]
-            t = (v - x0) / (xs[k, s] - x0)
-            mu = ys[k, s - 1] + t * (ys[k, s] - ys[k, s - 1])
-        out[r, k] = np.uint8(mu * 255.0 + 0.5)
-
-
-@numba.njit(cache=True, nogil=True)
-def _fuzzify_kernel(
-    d: np.ndarray, xs: np.ndarray, ys: np.ndarray, counts: np.ndarray, rows: np.ndarray, bounds: np.ndarray,
-    out: np.ndarray,
-) -> int:
-    """Every distance's activations into ``out``; the index of a NaN, or -1."""
-    n_labels = xs.shape[0]
-    for n in range(d.shape[0]):
-        v = d[n]
-        if v != v:
-            return n
-        cls = evidence_class(v, bounds)
-        if cls == SLOPED:
-            fuzzify_into(v, xs, ys, counts, out, n)
-        else:
-            for k in range(n_labels):
-                out[n, k] = rows[cls, k]
-    return -1
+        out[start : start + chunk] = np.where(area > 0.0, moment / safe, UNKNOWN_RISK)
 
 
 def _constant_rows(xs: np.ndarray, ys: np.ndarray, counts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``(rows, bounds)`` for :func:`evidence_class`: the rows at -inf, at +inf and on the flat interval.
+    """``(rows, bounds)`` for :func:`~fuzzyocc._engine_kernels.evidence_class`: the rows at -inf, at +inf and on the flat interval.
 
     Strictly below ``bounds[0]`` every function is at its first breakpoint's value and
     strictly above ``bounds[1]`` at its last one's; on ``(bounds[2], bounds[3])``, the widest
@@ -744,7 +632,7 @@ def _constant_rows(xs: np.ndarray, ys: np.ndarray, counts: np.ndarray) -> tuple[
     for a in (every_sloped, unused):
         a.flags.writeable = False  # the type the real ones have: one compiled specialisation, not two
     at = np.empty((samples.size, xs.shape[0]), dtype=np.uint8)
-    _fuzzify_kernel(samples, xs, ys, counts, unused, every_sloped, at)
+    fuzzify_distances(samples, xs, ys, counts, unused, every_sloped, at)
     flat_lo, flat_hi, flat_row = np.inf, -np.inf, unused[0]
     exact = [np.array([np.interp(x, xs[k, :c], ys[k, :c]) for k, c in enumerate(counts)]) for x in points]
     for i in range(points.size - 1):  # between consecutive breakpoints every function is linear
@@ -755,193 +643,3 @@ def _constant_rows(xs: np.ndarray, ys: np.ndarray, counts: np.ndarray) -> tuple[
     for a in (rows, bounds):
         a.flags.writeable = False
     return rows, bounds
-
-
-@numba.njit(cache=True, nogil=True)
-def _first_out_of_range(rows: np.ndarray, n: int) -> int:
-    for q in range(rows.shape[0]):
-        if rows[q] < 0 or rows[q] >= n:
-            return q
-    return -1
-
-
-@numba.njit(cache=True, nogil=True, inline="always")
-def _minmax_row(
-    state: np.ndarray, c: int, evidence: np.ndarray, n: int, rule: np.ndarray, acc: np.ndarray, active: np.ndarray
-) -> None:
-    """``acc`` = fusion of ``state[c]`` with ``evidence[n]`` by min/max in uint8."""
-    n_labels = acc.shape[0]
-    # Evidence and states are sparse (one or two labels): only rules on active pairs can fire.
-    n_active = 0
-    for j in range(n_labels):
-        acc[j] = 0
-        if evidence[n, j] != 0:
-            active[n_active] = j
-            n_active += 1
-    for i in range(n_labels):
-        s = state[c, i]
-        if s == 0:
-            continue
-        for a in range(n_active):
-            j = active[a]
-            v = min(s, evidence[n, j])
-            k = rule[i, j]
-            if v > acc[k]:
-                acc[k] = v
-
-
-@numba.njit(cache=True, nogil=True, inline="always")
-def fuse_row(
-    state: np.ndarray,
-    c: int,
-    evidence: np.ndarray,
-    n: int,
-    rule: np.ndarray,
-    float_ops: tuple[bool, bool, bool] | None,
-    out_row: np.ndarray,
-    acc: np.ndarray,
-    active: np.ndarray,
-) -> None:  # pragma: no cover - compiled
-    """``out_row`` = :meth:`FuzzyEngine.fuse` of ``state[c]`` with ``evidence[n]`` (numba only).
-
-    ``rule, float_ops`` come from :meth:`FuzzyEngine.row_fusion`; ``acc`` is (L,) float64
-    and ``active`` (L,) int64 scratch. ``float_ops`` None is pruned at compile time: the
-    min/max path is compiled alone (with both paths in one body it runs ~30% slower).
-    """
-    if float_ops is None:
-        _minmax_row(state, c, evidence, n, rule, out_row, active)
-    else:
-        _float_row(state, c, evidence, n, rule, float_ops[0], float_ops[1], float_ops[2], acc, out_row)
-
-
-@numba.njit(cache=True, nogil=True)
-def _fuse_minmax(state: np.ndarray, evidence: np.ndarray, rule: np.ndarray, out: np.ndarray) -> None:
-    n_labels = state.shape[1]
-    acc = np.empty(n_labels, dtype=np.uint8)
-    active = np.empty(n_labels, dtype=np.int64)
-    for n in range(state.shape[0]):
-        _minmax_row(state, n, evidence, n, rule, acc, active)
-        for k in range(n_labels):
-            out[n, k] = acc[k]
-
-
-@numba.njit(cache=True, nogil=True)
-def _fuse_minmax_at(state: np.ndarray, cells: np.ndarray, evidence: np.ndarray, rule: np.ndarray) -> None:
-    n_labels = state.shape[1]
-    acc = np.empty(n_labels, dtype=np.uint8)
-    active = np.empty(n_labels, dtype=np.int64)
-    for n in range(cells.shape[0]):
-        c = cells[n]
-        _minmax_row(state, c, evidence, n, rule, acc, active)  # reads the row before it is overwritten
-        for k in range(n_labels):
-            state[c, k] = acc[k]
-
-
-@numba.njit(cache=True, nogil=True, inline="always")
-def _float_row(
-    state: np.ndarray,
-    c: int,
-    evidence: np.ndarray,
-    n: int,
-    rule: np.ndarray,
-    product: bool,
-    probsum: bool,
-    normalize: bool,
-    acc: np.ndarray,
-    out_row: np.ndarray,
-) -> None:
-    """``out_row`` = fusion of ``state[c]`` with ``evidence[n]`` in float, rounded once to uint8."""
-    n_labels = acc.shape[0]
-    acc[:] = 0.0
-    for i in range(n_labels):
-        if state[c, i] == 0:
-            continue
-        s = state[c, i] / 255.0
-        for j in range(n_labels):
-            if evidence[n, j] == 0:
-                continue
-            e = evidence[n, j] / 255.0
-            v = s * e if product else min(s, e)
-            k = rule[i, j]
-            acc[k] = acc[k] + v - acc[k] * v if probsum else max(acc[k], v)
-    scale = 255.0
-    if normalize:
-        top = acc.max()
-        if top > 0.0:
-            scale = 255.0 / top
-    for k in range(n_labels):
-        out_row[k] = np.uint8(acc[k] * scale + 0.5)
-
-
-@numba.njit(cache=True, nogil=True)
-def _fuse_float(
-    state: np.ndarray,
-    evidence: np.ndarray,
-    rule: np.ndarray,
-    product: bool,
-    probsum: bool,
-    normalize: bool,
-    out: np.ndarray,
-) -> None:
-    n_labels = state.shape[1]
-    acc = np.zeros(n_labels)
-    row = np.empty(n_labels, dtype=np.uint8)
-    for n in range(state.shape[0]):
-        _float_row(state, n, evidence, n, rule, product, probsum, normalize, acc, row)
-        for k in range(n_labels):
-            out[n, k] = row[k]
-
-
-@numba.njit(cache=True, nogil=True)
-def _fuse_float_at(
-    state: np.ndarray,
-    cells: np.ndarray,
-    evidence: np.ndarray,
-    rule: np.ndarray,
-    product: bool,
-    probsum: bool,
-    normalize: bool,
-) -> None:
-    n_labels = state.shape[1]
-    acc = np.zeros(n_labels)
-    row = np.empty(n_labels, dtype=np.uint8)
-    for n in range(cells.shape[0]):
-        c = cells[n]
-        _float_row(state, c, evidence, n, rule, product, probsum, normalize, acc, row)
-        for k in range(n_labels):
-            state[c, k] = row[k]
-
-
-@numba.njit(cache=True, nogil=True)
-def _pair_table(
-    mu_i: np.ndarray, mu_j: np.ndarray, x: np.ndarray, product: bool, probsum: bool, out: np.ndarray
-) -> None:
-    """``out[a, b] = (area, moment)`` of the aggregated cuts of two output functions at levels a/255, b/255."""
-    for a in range(256):
-        level_a = a / 255.0
-        for b in range(256):
-            level_b = b / 255.0
-            area = 0.0
-            moment = 0.0
-            for p in range(x.shape[0]):
-                u = mu_i[p] * level_a if product else min(mu_i[p], level_a)
-                v = mu_j[p] * level_b if product else min(mu_j[p], level_b)
-                w = u + v - u * v if probsum else max(u, v)
-                area += w
-                moment += w * x[p]
-            out[a, b, 0] = area
-            out[a, b, 1] = moment
-
-
-@numba.njit(cache=True, nogil=True)
-def _defuzzify_lut(state: np.ndarray, first: np.ndarray, second: np.ndarray, lut: np.ndarray, out: np.ndarray) -> None:
-    for n in range(state.shape[0]):
-        area = 0.0
-        moment = 0.0
-        for f in range(first.shape[0]):
-            idx = np.int64(state[n, first[f]]) * 256
-            if second[f] >= 0:
-                idx += state[n, second[f]]
-            area += lut[f, idx, 0]
-            moment += lut[f, idx, 1]
-        out[n] = moment / area if area > 0.0 else _UNKNOWN_RISK

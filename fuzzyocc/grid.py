@@ -1,7 +1,11 @@
-"""Cell storage: per-cell state, observed bits, and a lazily refreshed fixed-point risk cache.
+"""Cell storage of a map: per-cell state, observed bits and a lazily refreshed fixed-point risk
+cache; and the fuzzy fusion that writes into block storage.
 
-Storage only: it knows nothing of sensors or of what a state means. The map that owns a
-grid writes states of whole cells and gives the function that turns states into risk.
+A grid knows nothing of sensors: its map casts the rays and gives the function that turns
+states into risk. Into a :class:`CellGrid` the map writes whole states (Bayes log-odds); a
+:class:`BlockGrid` fuzzifies and fuses a scan's cells where they are stored (:meth:`BlockGrid.fuse`,
+with the engine's compiled row kernels), because each fused row decides whether its uniform
+block must be expanded or can stay uniform.
 
 :class:`CellGrid` is dense, cells addressed by flat id (C order over ``spec.shape``, see
 :mod:`fuzzyocc.keys`). Bytes per cell: the state's (4 for float32 log-odds) is the map
@@ -26,8 +30,10 @@ from collections.abc import Callable
 import numpy as np
 from numba import njit
 
+from fuzzyocc._block_ids import block_address, cell_id
+from fuzzyocc._engine_kernels import SLOPED, evidence_class, fuse_row, fuzzify_into
 from fuzzyocc.config import GridSpec
-from fuzzyocc.engine import SLOPED, Fuzzifier, evidence_class, fuse_row, fuzzify_into
+from fuzzyocc.engine import Fuzzifier
 
 RiskFn = Callable[[np.ndarray], np.ndarray]
 #: What :meth:`fuzzyocc.engine.FuzzyEngine.row_fusion` returns.
@@ -427,7 +433,7 @@ def _block_of(cells, shape, shift, nblk):  # pragma: no cover - compiled
     """Block id and offset in the block of each flat cell id."""
     ny, nz = shape[1], shape[2]
     sx, sy, sz = shift[0], shift[1], shift[2]
-    mx, my, mz = (1 << sx) - 1, (1 << sy) - 1, (1 << sz) - 1
+    nby, nbz = nblk[1], nblk[2]
     blk = np.empty(cells.shape[0], np.int64)
     off = np.empty(cells.shape[0], np.int64)
     for n in range(cells.shape[0]):
@@ -436,8 +442,7 @@ def _block_of(cells, shape, shift, nblk):  # pragma: no cover - compiled
         r = c - i * (ny * nz)
         j = r // nz
         k = r - j * nz
-        blk[n] = ((i >> sx) * nblk[1] + (j >> sy)) * nblk[2] + (k >> sz)
-        off[n] = (((i & mx) << sy | (j & my)) << sz) | (k & mz)
+        blk[n], off[n] = block_address(i, j, k, sx, sy, sz, nby, nbz)
     return blk, off
 
 
@@ -694,20 +699,17 @@ def _expand_rows(shape, shift, nblk, ref, urow, pool, out):  # pragma: no cover 
     width = urow.shape[1]
     nx, ny, nz = shape[0], shape[1], shape[2]
     sx, sy, sz = shift[0], shift[1], shift[2]
-    mx, my, mz = (1 << sx) - 1, (1 << sy) - 1, (1 << sz) - 1
+    nby, nbz = nblk[1], nblk[2]
     c = 0
     for i in range(nx):
         for j in range(ny):
-            bij = ((i >> sx) * nblk[1] + (j >> sy)) * nblk[2]
-            oij = ((i & mx) << sy | (j & my)) << sz
             for k in range(nz):
-                b = bij + (k >> sz)
+                b, o = block_address(i, j, k, sx, sy, sz, nby, nbz)
                 s = ref[b]
                 if s < 0:
                     for q in range(width):
                         out[c, q] = urow[b, q]
                 else:
-                    o = oij | (k & mz)
                     for q in range(width):
                         out[c, q] = pool[s, o, q]
                 c += 1
@@ -717,17 +719,15 @@ def _expand_rows(shape, shift, nblk, ref, urow, pool, out):  # pragma: no cover 
 def _expand_risk(shape, shift, nblk, ref, urisk, prisk, out):  # pragma: no cover - compiled
     nx, ny, nz = shape[0], shape[1], shape[2]
     sx, sy, sz = shift[0], shift[1], shift[2]
-    mx, my, mz = (1 << sx) - 1, (1 << sy) - 1, (1 << sz) - 1
+    nby, nbz = nblk[1], nblk[2]
     step = np.float32(RISK_STEP)
     c = 0
     for i in range(nx):
         for j in range(ny):
-            bij = ((i >> sx) * nblk[1] + (j >> sy)) * nblk[2]
-            oij = ((i & mx) << sy | (j & my)) << sz
             for k in range(nz):
-                b = bij + (k >> sz)
+                b, o = block_address(i, j, k, sx, sy, sz, nby, nbz)
                 s = ref[b]
-                code = urisk[b] if s < 0 else prisk[s, oij | (k & mz)]
+                code = urisk[b] if s < 0 else prisk[s, o]
                 out[c] = np.float32(code) * step
                 c += 1
 
@@ -750,13 +750,11 @@ def _lookup_flat(nx, ny, codes, bits, lut, unobserved, out):  # pragma: no cover
 @njit(cache=True, nogil=True)
 def _lookup_blocks(shape, shift, nblk, ref, urisk, prisk, bits, lut, unobserved, out):  # pragma: no cover
     sx, sy, sz = shift[0], shift[1], shift[2]
-    mx, my = (1 << sx) - 1, (1 << sy) - 1
-    nb = sx + sy + sz
+    nby, nbz = nblk[1], nblk[2]
     for j in range(shape[1]):
         for i in range(shape[0]):
-            b = ((i >> sx) * nblk[1] + (j >> sy)) * nblk[2]
-            o = ((i & mx) << sy | (j & my)) << sz
-            key = (b << nb) | o
+            b, o = block_address(i, j, 0, sx, sy, sz, nby, nbz)
+            key = cell_id(b, o, sx, sy, sz)
             if (bits[key >> 3] >> (key & 7)) & 1:
                 s = ref[b]
                 out[j, i] = lut[urisk[b] if s < 0 else prisk[s, o]]
@@ -768,14 +766,12 @@ def _lookup_blocks(shape, shift, nblk, ref, urisk, prisk, bits, lut, unobserved,
 def _expand_bits(shape, shift, nblk, bits, out):  # pragma: no cover - compiled
     nx, ny, nz = shape[0], shape[1], shape[2]
     sx, sy, sz = shift[0], shift[1], shift[2]
-    mx, my, mz = (1 << sx) - 1, (1 << sy) - 1, (1 << sz) - 1
-    nb = sx + sy + sz
+    nby, nbz = nblk[1], nblk[2]
     c = 0
     for i in range(nx):
         for j in range(ny):
-            bij = ((i >> sx) * nblk[1] + (j >> sy)) * nblk[2]
-            oij = ((i & mx) << sy | (j & my)) << sz
             for k in range(nz):
-                key = ((bij + (k >> sz)) << nb) | oij | (k & mz)
+                b, o = block_address(i, j, k, sx, sy, sz, nby, nbz)
+                key = cell_id(b, o, sx, sy, sz)
                 out[c] = (bits[key >> 3] >> (key & 7)) & 1
                 c += 1

@@ -70,7 +70,7 @@ def cast_work(spec: GridSpec, scans: Sequence[Scan]) -> int:
     """About how many cells fusing ``scans`` into a map of ``spec`` walks (see ``traversal_cells``).
 
     What a batch costs in time is close to proportional to it (about 10 M cells a second per
-    fusion thread on a 2-core EPYC, issue 11), and it is known before any work: a service can
+    fusion thread on a 2-core EPYC), and it is known before any work: a service can
     refuse a batch that would hold a fusion thread for minutes.
     """
     total = 0
@@ -158,7 +158,7 @@ class OccupancyMap:
 
         (A bound method held by the map's own storage made every map a reference cycle: a
         map let go was freed only by the cyclic garbage collector, whenever it ran, so the
-        memory of a deleted map could not go back to the system at the delete, issue 11.)
+        memory of a deleted map could not go back to the system at the delete.)
         """
         raise NotImplementedError
 
@@ -233,7 +233,7 @@ class OccupancyMap:
         A cast keeps an entry (12 bytes) per scan and cell reached; a scan reaches at most its
         rays times the cells along the map's diagonal, and at most every cell. Casting a whole
         batch at once made memory grow with the batch (12 scans of 16,384 beams on a 16 M-cell
-        map: 3 GB, issue 11); so did making the rays of every beam of a batch first (about 300
+        map: 3 GB); so did making the rays of every beam of a batch first (about 300
         bytes a beam: two scans of 2 M beams fused side by side took 1 GB). Chunks keep both
         bounded whatever the batch, with the same cells and evidence (each scan is cast on its
         own anyway).

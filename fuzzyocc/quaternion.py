@@ -1,10 +1,11 @@
 """A quaternion's rotation of points, bit for bit as ``spatial.transform.Rotation`` computes it.
 
 Maps are replayed from stored logs, so a cloud's points must land where they landed when the map was
-built, to the last bit: this replaces ``Rotation.from_quat(q).apply(points)`` (issue 15: an image
-without its library) with the same arithmetic in the same order. ``from_quat`` divides ``[x, y, z, w]``
-by its norm ``sqrt(x x + y y + z z + w w)`` (summed in that order), the matrix is its ``as_matrix``
-formula, and ``apply`` is the very ``numpy.matmul`` call it makes (tests/fuzzyocc/test_quaternion.py).
+built, to the last bit: this replaces ``Rotation.from_quat(q).apply(points)`` (SciPy is not among the
+service's dependencies: a smaller image) with the same arithmetic in the same order. ``from_quat``
+divides ``[x, y, z, w]`` by its norm ``sqrt(x x + y y + z z + w w)`` (summed in that order), the
+matrix is its ``as_matrix`` formula, and ``apply`` is the very ``numpy.matmul`` call it makes
+(tests/fuzzyocc/test_quaternion.py).
 """
 
 from __future__ import annotations

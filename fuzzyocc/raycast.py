@@ -23,6 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
+from fuzzyocc._block_ids import block_address, cell_id
 from fuzzyocc.config import GridSpec
 
 #: Distance (in sigmas) written for the cells of a no-return beam: free all the way, far to
@@ -88,11 +89,9 @@ def _cast_kernel(origins, dirs, t_end, slope, offset, ray_offsets, lower, shape,
     # exit: NaN means "not reached by the current scan", so the whole grid is never cleared.
     n_scans = ray_offsets.shape[0] - 1
     nx, ny, nz = shape[0], shape[1], shape[2]
-    # Cell id: block id << block bits | offset in the block; with shift 0 (blocks of one
-    # cell) that is the flat id (ix * ny + iy) * nz + iz.
+    # Cell id: block id << block bits | offset in the block (``_block_ids``); with shift 0
+    # (blocks of one cell) that is the flat id (ix * ny + iy) * nz + iz.
     hx, hy, hz = shift[0], shift[1], shift[2]
-    mx, my, mz = (1 << hx) - 1, (1 << hy) - 1, (1 << hz) - 1
-    bits = hx + hy + hz
     nby, nbz = nblk[1], nblk[2]
     # This scan's cells, kept only while they are few enough for a sort (below an eighth of the
     # grid, see the dense sweep further down): at most 1 byte a cell of the grid, not 8.
@@ -151,12 +150,12 @@ def _cast_kernel(origins, dirs, t_end, slope, offset, ray_offsets, lower, shape,
                     else:
                         t_out = tmz
                         ax = 2
-                    c = ((((ix >> hx) * nby + (iy >> hy)) * nbz + (iz >> hz)) << bits
-                         | (((ix & mx) << hy | (iy & my)) << hz) | (iz & mz))
+                    blk, off = block_address(ix, iy, iz, hx, hy, hz, nby, nbz)
                 else:
                     ax = 0 if tmx <= tmy else 1
                     t_out = tmx if ax == 0 else tmy
-                    c = (((ix >> hx) * nby + (iy >> hy)) * nbz) << bits | ((ix & mx) << hy | (iy & my)) << hz
+                    blk, off = block_address(ix, iy, 0, hx, hy, hz, nby, nbz)
+                c = cell_id(blk, off, hx, hy, hz)
                 visits += 1
                 v = a_ * (0.5 * (t_in + t_out)) + b_
                 if v >= unknown_from:

@@ -174,7 +174,7 @@ class LaserScan:
             raise ValueError("angle_increment must be non-zero for more than one range")
         _check_count("ranges", ranges.size, self.max_rays)
         # beyond this a beam's direction means nothing, and past float range it is NaN: a cast of NaN
-        # directions wrote outside the map (a segfault at every restart, issue 11)
+        # directions wrote outside the map (a segfault at every restart)
         span = abs(self.pose[2]) + abs(self.angle_min) + max(ranges.size - 1, 0) * abs(inc)
         if not span <= MAX_ANGLE:
             raise ValueError(f"the beams' angles (pose theta + angle_min + i * angle_increment) must stay within "

@@ -25,8 +25,10 @@ from planning.planners import STATE_SPACE_NAMES, available_planners
 from planning.result import PLAN_ERROR_CODES, PlanError, PlanResult
 
 if TYPE_CHECKING:
-    from planning.query import plan, quiet_ompl, warm_up
+    from planning.ompl_solve import quiet_ompl
+    from planning.query import plan
     from planning.spaces import STATE_SPACES
+    from planning.warming import warm_up
 
 __all__ = [
     "DEFAULT_MAX_RISK",
@@ -43,7 +45,7 @@ __all__ = [
     "warm_up",
 ]
 
-_LAZY = {"plan": "planning.query", "quiet_ompl": "planning.query", "warm_up": "planning.query",
+_LAZY = {"plan": "planning.query", "quiet_ompl": "planning.ompl_solve", "warm_up": "planning.warming",
          "STATE_SPACES": "planning.spaces"}
 
 

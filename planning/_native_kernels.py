@@ -17,9 +17,21 @@ checks these layouts on live states before any of this code runs.
 from __future__ import annotations
 
 from numba import cfunc, njit, types
-from numba.extending import intrinsic
 
-from planning import _kernels
+from planning._dubins_kernels import dubins_cost, dubins_free
+from planning._segment_kernels import (
+    H_INV_RES,
+    H_NCELLS,
+    H_ORIGIN,
+    H_SHAPE,
+    HEADER,
+    f64_ptr,
+    pointer_to,
+    segment_cost_2d,
+    segment_cost_3d,
+    segment_free_2d,
+    segment_free_3d,
+)
 
 # slots of the class's virtual table copied into each private table; the grid address follows
 COPIED_SLOTS = 48
@@ -32,15 +44,8 @@ CHECK_MOTION = types.uint8(types.intp, types.intp, types.intp)  # bool checkMoti
 CHECK_MOTION_LAST = types.uint8(types.intp, types.intp, types.intp, types.intp)
 
 
-@intrinsic
-def _i64_ptr(typingctx, address):  # type: ignore[no-untyped-def]
-    """Reinterpret an integer address as ``int64*``."""
-    sig = types.CPointer(types.int64)(types.intp)
-
-    def codegen(context, builder, signature, args):  # type: ignore[no-untyped-def]
-        return builder.inttoptr(args[0], context.get_value_type(types.CPointer(types.int64)))
-
-    return sig, codegen
+#: ``int64*`` at an integer address: the words of OMPL's objects and virtual tables.
+_i64_ptr = pointer_to(types.int64)
 
 
 @njit(cache=True, inline="always")
@@ -51,7 +56,7 @@ def _grid(this: int) -> int:
 @njit(cache=True, inline="always")
 def _real(state: int):  # type: ignore[no-untyped-def]
     """``values`` of a real-vector state."""
-    return _kernels._f64_ptr(_i64_ptr(state)[1])
+    return f64_ptr(_i64_ptr(state)[1])
 
 
 @njit(cache=True, inline="always")
@@ -59,7 +64,7 @@ def _se2(state: int) -> tuple[float, float, float]:
     """x, y, yaw of an SE2 (or Dubins / Reeds-Shepp) state."""
     components = _i64_ptr(_i64_ptr(state)[1])
     xy = _real(components[0])
-    yaw = _kernels._f64_ptr(components[1])[1]
+    yaw = f64_ptr(components[1])[1]
     return xy[0], xy[1], yaw
 
 
@@ -67,48 +72,48 @@ def _se2(state: int) -> tuple[float, float, float]:
 def cost_r2(this: int, s1: int, s2: int) -> float:
     a = _real(s1)
     b = _real(s2)
-    return _kernels.segment_cost_2d(_grid(this), a[0], a[1], b[0], b[1])
+    return segment_cost_2d(_grid(this), a[0], a[1], b[0], b[1])
 
 
 @cfunc(MOTION_COST, cache=True)
 def cost_r3(this: int, s1: int, s2: int) -> float:
     a = _real(s1)
     b = _real(s2)
-    return _kernels.segment_cost_3d(_grid(this), a[0], a[1], a[2], b[0], b[1], b[2])
+    return segment_cost_3d(_grid(this), a[0], a[1], a[2], b[0], b[1], b[2])
 
 
 @cfunc(MOTION_COST, cache=True)
 def cost_se2(this: int, s1: int, s2: int) -> float:
     x1, y1, _ = _se2(s1)
     x2, y2, _ = _se2(s2)
-    return _kernels.segment_cost_2d(_grid(this), x1, y1, x2, y2)
+    return segment_cost_2d(_grid(this), x1, y1, x2, y2)
 
 
 @cfunc(MOTION_COST, cache=True)
 def cost_dubins(this: int, s1: int, s2: int) -> float:
     x1, y1, t1 = _se2(s1)
     x2, y2, t2 = _se2(s2)
-    return _kernels.dubins_cost(_grid(this), x1, y1, t1, x2, y2, t2)
+    return dubins_cost(_grid(this), x1, y1, t1, x2, y2, t2)
 
 
 @njit(cache=True, inline="always")
 def _cell_valid(address: int, u: float, v: float, w: float) -> bool:
     """The packed valid flag of the cell holding grid coordinates (u, v, w); False outside."""
-    ptr = _kernels._f64_ptr(address)
-    nx = ptr[_kernels.H_SHAPE]
-    ny = ptr[_kernels.H_SHAPE + 1]
-    nz = ptr[_kernels.H_SHAPE + 2]
+    ptr = f64_ptr(address)
+    nx = ptr[H_SHAPE]
+    ny = ptr[H_SHAPE + 1]
+    nz = ptr[H_SHAPE + 2]
     if not (0.0 <= u < nx and 0.0 <= v < ny and 0.0 <= w < nz):  # NaN fails too
         return False
     index = (int(u) * int(ny) + int(v)) * int(nz) + int(w)
-    return ptr[_kernels.HEADER + int(ptr[_kernels.H_NCELLS]) + index] != 0.0
+    return ptr[HEADER + int(ptr[H_NCELLS]) + index] != 0.0
 
 
 @njit(cache=True, inline="always")
 def _valid_xy(address: int, x: float, y: float) -> bool:
-    ptr = _kernels._f64_ptr(address)
-    inv = ptr[_kernels.H_INV_RES]
-    return _cell_valid(address, (x - ptr[_kernels.H_ORIGIN]) * inv, (y - ptr[_kernels.H_ORIGIN + 1]) * inv, 0.0)
+    ptr = f64_ptr(address)
+    inv = ptr[H_INV_RES]
+    return _cell_valid(address, (x - ptr[H_ORIGIN]) * inv, (y - ptr[H_ORIGIN + 1]) * inv, 0.0)
 
 
 @cfunc(IS_VALID, cache=True)
@@ -127,11 +132,11 @@ def valid_se2(this: int, s: int) -> int:
 def valid_r3(this: int, s: int) -> int:
     p = _real(s)
     address = _grid(this)
-    ptr = _kernels._f64_ptr(address)
-    inv = ptr[_kernels.H_INV_RES]
-    u = (p[0] - ptr[_kernels.H_ORIGIN]) * inv
-    v = (p[1] - ptr[_kernels.H_ORIGIN + 1]) * inv
-    w = (p[2] - ptr[_kernels.H_ORIGIN + 2]) * inv
+    ptr = f64_ptr(address)
+    inv = ptr[H_INV_RES]
+    u = (p[0] - ptr[H_ORIGIN]) * inv
+    v = (p[1] - ptr[H_ORIGIN + 1]) * inv
+    w = (p[2] - ptr[H_ORIGIN + 2]) * inv
     return 1 if _cell_valid(address, u, v, w) else 0
 
 
@@ -139,28 +144,28 @@ def valid_r3(this: int, s: int) -> int:
 def _free_r2(this: int, s1: int, s2: int) -> int:
     a = _real(s1)
     b = _real(s2)
-    return 1 if _kernels.segment_free_2d(_grid(this), a[0], a[1], b[0], b[1]) else 0
+    return 1 if segment_free_2d(_grid(this), a[0], a[1], b[0], b[1]) else 0
 
 
 @njit(cache=True, inline="always")
 def _free_se2(this: int, s1: int, s2: int) -> int:
     x1, y1, _ = _se2(s1)
     x2, y2, _ = _se2(s2)
-    return 1 if _kernels.segment_free_2d(_grid(this), x1, y1, x2, y2) else 0
+    return 1 if segment_free_2d(_grid(this), x1, y1, x2, y2) else 0
 
 
 @njit(cache=True, inline="always")
 def _free_dubins(this: int, s1: int, s2: int) -> int:
     x1, y1, t1 = _se2(s1)
     x2, y2, t2 = _se2(s2)
-    return 1 if _kernels.dubins_free(_grid(this), x1, y1, t1, x2, y2, t2) else 0
+    return 1 if dubins_free(_grid(this), x1, y1, t1, x2, y2, t2) else 0
 
 
 @njit(cache=True, inline="always")
 def _free_r3(this: int, s1: int, s2: int) -> int:
     a = _real(s1)
     b = _real(s2)
-    return 1 if _kernels.segment_free_3d(_grid(this), a[0], a[1], a[2], b[0], b[1], b[2]) else 0
+    return 1 if segment_free_3d(_grid(this), a[0], a[1], a[2], b[0], b[1], b[2]) else 0
 
 
 # The overload with ``lastValid`` answers like the plain one and leaves ``lastValid`` as the

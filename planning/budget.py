@@ -11,7 +11,7 @@ def wall_clock_limit(time_limit: float, seeded: bool) -> float:
     """Seconds a plan may take by the clock: ``time_limit``, or ``SEEDED_CLOCK_FACTOR`` times it when seeded.
 
     (Plus the one-time warm-up of a process's first plan in a state space, see
-    ``planning.query``.) A service that waits for a plan in another process uses it to tell
+    ``planning.warming``.) A service that waits for a plan in another process uses it to tell
     a slow plan from a stuck one.
     """
     return time_limit * (SEEDED_CLOCK_FACTOR if seeded else 1.0)

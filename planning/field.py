@@ -98,8 +98,8 @@ def box_max(values: np.ndarray, halves: Sequence[int], cval: float) -> np.ndarra
 def _box_max(src: np.ndarray, halves: Sequence[int], fill: Any, out: np.ndarray, accumulate: bool) -> None:
     """``box_max`` of C-ordered ``src`` into ``out``; with ``accumulate``, the larger of it and ``out``.
 
-    One pass over the last two axes, then one along each axis before them (``_kernels.box_max_2d``),
-    each costing the same whatever the box's size.
+    One pass over the last two axes, then one along each axis before them
+    (``_dilation_kernels.box_max_2d``), each costing the same whatever the box's size.
     """
     shape = src.shape
     passes = []  # (outer, n, m, half along n, half along m) of (outer, n, m) views
@@ -115,7 +115,7 @@ def _box_max(src: np.ndarray, halves: Sequence[int], fill: Any, out: np.ndarray,
             np.copyto(out, src)
         return
     # imported here: the web process imports this module but plans (and compiles kernels) only in workers
-    from planning import _kernels
+    from planning import _dilation_kernels
 
     # the passes between the first and the last go through one array, in place
     scratch = np.empty_like(src) if len(passes) > 1 else None
@@ -125,7 +125,8 @@ def _box_max(src: np.ndarray, halves: Sequence[int], fill: Any, out: np.ndarray,
         assert dst is not None
         flat = src.reshape(-1)
         flat.flags.writeable = False  # a view: one compiled kernel per dtype, whether src is writable or not
-        _kernels.box_max_2d(flat, outer, n, m, int(half_n), int(half_m), fill, dst.reshape(-1), final and accumulate)
+        _dilation_kernels.box_max_2d(flat, outer, n, m, int(half_n), int(half_m), fill, dst.reshape(-1),
+                                     final and accumulate)
         src = dst
 
 

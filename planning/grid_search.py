@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from planning import _kernels
+from planning import _grid_search_kernels
 from planning.packed import PackedGrid
 
 
@@ -39,7 +39,7 @@ def grid_path(
     n = grid.valid.size
     index = np.int32 if n < 2**31 else np.int64  # half the bytes the search touches per cell
     parent, pos, nodes = (np.empty(n, dtype=index) for _ in range(3))  # never written here
-    chain, reached, graph_cost = _kernels.grid_search(
+    chain, reached, graph_cost = _grid_search_kernels.grid_search(
         grid.buffer, grid.risk.reshape(-1), grid.valid.reshape(-1), s, g, parent, pos, np.empty(n), nodes,
         -1 if max_expansions is None else max(1, int(max_expansions)),
     )

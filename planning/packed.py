@@ -9,7 +9,7 @@ from typing import Any
 
 import numpy as np
 
-from planning import _kernels
+from planning import _segment_kernels
 from planning.field import RiskField, box_max
 
 
@@ -27,7 +27,7 @@ def entry(dispatcher: Any) -> Any:
 
 @dataclass(frozen=True)
 class PathMeasures:
-    """Measures of a polyline against a packed grid (see ``_kernels.evaluate_polyline``)."""
+    """Measures of a polyline against a packed grid (see ``_segment_kernels.evaluate_polyline``)."""
 
     length: float
     integral: float
@@ -74,7 +74,7 @@ class PackedGrid:
         self.valid = field.valid_mask(robot_radius, max_risk, allow_unknown)
         self.unknown = None if allow_unknown else field.dilated_unknown(robot_radius)
         self.turning_radius = float(turning_radius or 0.0)
-        self.buffer = _kernels.pack(
+        self.buffer = _segment_kernels.pack(
             self.risk, self.valid, self.origin, self.resolution, self.risk_weight, self.turning_radius
         )
         self.address = int(self.buffer.ctypes.data)
@@ -114,7 +114,7 @@ class PackedGrid:
         Every cell each segment crosses is visited (no sampling), which is denser than
         any fixed step.
         """
-        length, integral, peak, bad = _kernels.evaluate_polyline(self.buffer, self._as3(positions))
+        length, integral, peak, bad = _segment_kernels.evaluate_polyline(self.buffer, self._as3(positions))
         return PathMeasures(float(length), float(integral), float(peak), int(bad))
 
     def cost(self, positions: np.ndarray) -> float:
@@ -124,7 +124,7 @@ class PackedGrid:
 
     def shortcut(self, positions: np.ndarray) -> np.ndarray:
         """Indices of the points kept by cost-non-increasing greedy string pulling."""
-        return _kernels.shortcut(self.buffer, self._as3(positions))
+        return _segment_kernels.shortcut(self.buffer, self._as3(positions))
 
     def cell_index(self, position: tuple[float, ...]) -> int | None:
         """Flat index of the cell holding a position, None outside the map."""

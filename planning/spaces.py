@@ -4,7 +4,7 @@ Each state space comes with the three callbacks OMPL calls from C++:
 
 - a state validity checker, plain Python over a flat list (about 1 M calls/s);
 - a motion validator: for spaces whose motions are straight in position (R2, SE2, R3), the
-  compiled cell walk of ``_kernels`` (exact, every crossed cell, no sampling); for Dubins,
+  compiled cell walk of ``_segment_kernels`` (exact, every crossed cell, no sampling); for Dubins,
   the same walk over quarter-cell chords of the curve (compiled); for Reeds-Shepp, OMPL's
   own validator, which checks poses a quarter cell apart, each through the Python checker,
   against the valid mask eroded by one cell, so that what lies between two poses (within a
@@ -32,20 +32,20 @@ from typing import Any
 
 from ompl import base as ob
 
-from planning import _kernels
+from planning import _dubins_kernels, _segment_kernels
 from planning.native import NativePatch, native_motion, native_objective, native_validity
 from planning.packed import PackedGrid, entry
 from planning.planners import STATE_SPACE_NAMES
 
 _Cost = ob.Cost
 _sqrt = math.sqrt
-_cost_2d = entry(_kernels.segment_cost_2d)
-_free_2d = entry(_kernels.segment_free_2d)
-_cost_3d = entry(_kernels.segment_cost_3d)
-_free_3d = entry(_kernels.segment_free_3d)
-_dubins_cost = entry(_kernels.dubins_cost)
-_dubins_free = entry(_kernels.dubins_free)
-_dubins_length = entry(_kernels.dubins_length)
+_cost_2d = entry(_segment_kernels.segment_cost_2d)
+_free_2d = entry(_segment_kernels.segment_free_2d)
+_cost_3d = entry(_segment_kernels.segment_cost_3d)
+_free_3d = entry(_segment_kernels.segment_free_3d)
+_dubins_cost = entry(_dubins_kernels.dubins_cost)
+_dubins_free = entry(_dubins_kernels.dubins_free)
+_dubins_length = entry(_dubins_kernels.dubins_length)
 
 # OMPL's Reeds-Shepp validator checks poses this far apart, in cells (the Dubins kernel cuts
 # its curves into chords of the same length)

@@ -15,6 +15,15 @@ SPEC_2D = GridSpec(origin=(0.0, -0.3), size=(3.7, 2.1), resolution=0.1)
 SPEC_THIN = GridSpec(origin=(0.0, 0.0, 0.0), size=(2.5, 1.9, 0.2), resolution=0.1)  # 2 cells thick
 
 
+def fuse_at(engine: FuzzyEngine, state: np.ndarray, cells: np.ndarray, evidence: np.ndarray) -> None:
+    """``state[cells] = engine.fuse(state[cells], evidence)``: a dense map's fusion, in place.
+
+    ``cells`` are unique, as one scan's are: a cell listed twice would be fused once.
+    """
+    assert np.unique(cells).size == cells.size
+    state[cells] = engine.fuse(state[cells], evidence)
+
+
 class DenseReference:
     """The dense map the block storage replaces: (num_cells, L) states fused in place by ``fuse_at``."""
 
@@ -34,7 +43,7 @@ class DenseReference:
                          ray_offsets=np.array([0, n]), unknown_from=extent)
         self.observed[cast.cells] = True
         keep = np.isfinite(cast.distance_sigmas)
-        self.engine.fuse_at(self.state, cast.cells[keep], self.engine.fuzzify(cast.distance_sigmas[keep]))
+        fuse_at(self.engine, self.state, cast.cells[keep], self.engine.fuzzify(cast.distance_sigmas[keep]))
 
     def risk(self) -> np.ndarray:
         codes = np.rint(self.engine.defuzzify(self.state).astype(np.float64) * 2.0**16)

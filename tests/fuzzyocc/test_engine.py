@@ -222,51 +222,6 @@ def test_min_max_fusion_in_uint8_equals_the_float_computation() -> None:
     np.testing.assert_array_equal(e.fuse(current, evidence), np.round(want * 255).astype(np.uint8))
 
 
-@pytest.mark.parametrize(("and_op", "or_op"), OPERATORS)
-def test_fuse_at_updates_the_given_rows_in_place_like_fuse(and_op: str, or_op: str) -> None:
-    e = FuzzyEngine.paper(and_op, or_op)
-    states = random_states(e, 300, 6)
-    cells = np.random.default_rng(7).choice(300, 120, replace=False)  # in no particular order
-    evidence = random_states(e, 120, 8)
-    want = states.copy()
-    want[cells] = e.fuse(states[cells], evidence)
-    e.fuse_at(states, cells, evidence)
-    np.testing.assert_array_equal(states, want)  # the other 180 rows untouched
-
-
-def test_fuse_at_fuses_a_repeated_cell_once_per_occurrence_in_order() -> None:
-    e = FuzzyEngine.paper()
-    states = np.tile(e.unknown_state(), (4, 1))
-    first, second = e.fuzzify(np.array([-3.0])), e.fuzzify(np.array([0.0]))
-    e.fuse_at(states, np.array([2, 2]), np.concatenate([first, second]))
-    np.testing.assert_array_equal(states[2], e.fuse(e.fuse(states[:1], first), second)[0])
-    np.testing.assert_array_equal(states[[0, 1, 3]], np.tile(e.unknown_state(), (3, 1)))
-
-
-def test_fuse_at_refuses_bad_arguments_and_leaves_state_alone() -> None:
-    e = FuzzyEngine.paper()
-    states = random_states(e, 10, 9)
-    before = states.copy()
-    one = random_states(e, 1, 10)
-    with pytest.raises(ValueError, match=r"cells\[1\] = 10"):
-        e.fuse_at(states, np.array([3, 10]), np.concatenate([one, one]))
-    with pytest.raises(ValueError, match=r"cells\[0\] = -1"):
-        e.fuse_at(states, np.array([-1]), one)
-    with pytest.raises(ValueError, match="cells must be a 1-D array"):
-        e.fuse_at(states, np.array([1.0]), one)
-    with pytest.raises(ValueError, match="evidence must have one row per cell"):
-        e.fuse_at(states, np.array([1, 2]), one)
-    with pytest.raises(ValueError, match="state must be a C-contiguous, writeable"):
-        e.fuse_at(states[::2], np.array([1]), one)  # a copy would be updated, not the caller's array
-    frozen = states.copy()
-    frozen.flags.writeable = False
-    with pytest.raises(ValueError, match="state must be a C-contiguous, writeable"):
-        e.fuse_at(frozen, np.array([1]), one)
-    with pytest.raises(ValueError, match="state must be uint8"):
-        e.fuse_at(states.astype(np.int16), np.array([1]), one)
-    np.testing.assert_array_equal(states, before)
-
-
 def test_fuse_refuses_wrong_dtype_and_shapes() -> None:
     e = FuzzyEngine.paper()
     good = np.zeros((3, 7), dtype=np.uint8)

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-from planning import RiskField, _kernels
+from planning import RiskField, _dilation_kernels
 from planning.field import _boxes, _dilate_max, box_max, footprint
 from planning.packed import PackedGrid
 
@@ -82,11 +82,12 @@ def test_kernel_in_place_and_accumulating() -> None:
     values = rng.random((3, 20, 30), dtype=np.float32)
     expected = ndimage.maximum_filter(values, size=(1, 7, 5), mode="constant", cval=0.5)
     work = values.copy()
-    _kernels.box_max_2d(_read_only(work), 3, 20, 30, 3, 2, np.float32(0.5), work.reshape(-1), False)  # in place
+    in_place = work.reshape(-1)
+    _dilation_kernels.box_max_2d(_read_only(work), 3, 20, 30, 3, 2, np.float32(0.5), in_place, False)
     _same_bits(work, expected)
     acc = rng.random(values.shape, dtype=np.float32)
     want = np.maximum(acc, expected)
-    _kernels.box_max_2d(_read_only(values), 3, 20, 30, 3, 2, np.float32(0.5), acc.reshape(-1), True)
+    _dilation_kernels.box_max_2d(_read_only(values), 3, 20, 30, 3, 2, np.float32(0.5), acc.reshape(-1), True)
     _same_bits(acc, want)
 
 
@@ -153,5 +154,5 @@ def test_one_compiled_kernel_per_dtype() -> None:
     box_max(writable, (1, 1), 0.5)
     box_max(frozen, (1, 1), 0.5)
     box_max(rng.random((4, 5, 6), dtype=np.float32), (1, 1, 1), 0.5)
-    float32 = [sig for sig in _kernels.box_max_2d.signatures if str(sig[0].dtype) == "float32"]
-    assert len(float32) == 1 and not float32[0][0].mutable, _kernels.box_max_2d.signatures
+    float32 = [sig for sig in _dilation_kernels.box_max_2d.signatures if str(sig[0].dtype) == "float32"]
+    assert len(float32) == 1 and not float32[0][0].mutable, _dilation_kernels.box_max_2d.signatures

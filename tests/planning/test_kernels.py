@@ -10,7 +10,7 @@ from ompl import base as ob
 from scipy import sparse
 from scipy.sparse import csgraph
 
-from planning import RiskField, _kernels
+from planning import RiskField, _dubins_kernels, _segment_kernels
 from planning.grid_search import grid_path
 from planning.packed import PackedGrid
 
@@ -23,7 +23,7 @@ def packed() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     rng = np.random.default_rng(5)
     risk = rng.random((50, 40)).astype(np.float32)
     valid = rng.random((50, 40)) > 0.03
-    return risk, valid, _kernels.pack(risk, valid, ORIGIN, RES, 2.0)
+    return risk, valid, _segment_kernels.pack(risk, valid, ORIGIN, RES, 2.0)
 
 
 def _sampled(risk: np.ndarray, valid: np.ndarray, a: np.ndarray, b: np.ndarray, n: int = 40000):
@@ -45,9 +45,9 @@ def test_segment_cost_and_validity_match_dense_sampling(packed) -> None:
         if k % 5 == 0:
             b[1] = a[1]  # axis-parallel segments too
         cost, free = _sampled(risk, valid, a, b)
-        assert _kernels.segment_cost_2d(address, *a, *b) == pytest.approx(cost, rel=2e-3, abs=1e-9)
+        assert _segment_kernels.segment_cost_2d(address, *a, *b) == pytest.approx(cost, rel=2e-3, abs=1e-9)
         # a sampled check may miss a corner the exact walk sees, never the other way round
-        exact = _kernels.segment_free_2d(address, *a, *b)
+        exact = _segment_kernels.segment_free_2d(address, *a, *b)
         assert not (exact and not free)
         disagree += exact != free
     assert disagree <= 4
@@ -57,13 +57,13 @@ def test_a_one_cell_wall_is_caught_whatever_the_angle() -> None:
     risk = np.zeros((40, 40), np.float32)
     valid = np.ones((40, 40), bool)
     valid[20, :] = False
-    address = (buf := _kernels.pack(risk, valid, (0.0, 0.0), RES, 1.0)).ctypes.data
+    address = (buf := _segment_kernels.pack(risk, valid, (0.0, 0.0), RES, 1.0)).ctypes.data
     rng = np.random.default_rng(7)
     for _ in range(300):
         a = np.array([rng.uniform(0.0, 1.99), rng.uniform(0.0, 3.99)])
         b = np.array([rng.uniform(2.11, 3.99), rng.uniform(0.0, 3.99)])
-        assert not _kernels.segment_free_2d(address, *a, *b)
-        assert not _kernels.segment_free_3d(address, a[0], a[1], 0.05, b[0], b[1], 0.05)
+        assert not _segment_kernels.segment_free_2d(address, *a, *b)
+        assert not _segment_kernels.segment_free_3d(address, a[0], a[1], 0.05, b[0], b[1], 0.05)
     del buf
 
 
@@ -72,9 +72,9 @@ def test_a_segment_through_a_corner_touches_the_side_cells_for_no_length() -> No
     # invalid ones: every point lies in the closure of a valid cell, which the dilation covers
     valid = np.ones((4, 4), bool)
     valid[1, 2] = valid[2, 1] = False
-    buf = _kernels.pack(np.zeros((4, 4), np.float32), valid, (0.0, 0.0), 1.0, 1.0)
-    assert _kernels.segment_free_2d(buf.ctypes.data, 1.5, 1.5, 2.5, 2.5)
-    assert not _kernels.segment_free_2d(buf.ctypes.data, 1.5, 1.5, 2.5, 2.6)
+    buf = _segment_kernels.pack(np.zeros((4, 4), np.float32), valid, (0.0, 0.0), 1.0, 1.0)
+    assert _segment_kernels.segment_free_2d(buf.ctypes.data, 1.5, 1.5, 2.5, 2.5)
+    assert not _segment_kernels.segment_free_2d(buf.ctypes.data, 1.5, 1.5, 2.5, 2.6)
 
 
 @pytest.mark.parametrize("floor", [0.0, 0.3])  # 0.3: every cell risky, the heuristic scaled by 1 + w 0.3
@@ -143,7 +143,7 @@ def test_shortcut_never_cuts_closer_to_risk_than_the_path_it_replaces() -> None:
 
 def test_dubins_kernel_follows_ompl_curves() -> None:
     rho = 0.5
-    buf = _kernels.pack(np.zeros((100, 100), np.float32), np.ones((100, 100), bool), (0.0, 0.0), RES, 1.0, rho)
+    buf = _segment_kernels.pack(np.zeros((100, 100), np.float32), np.ones((100, 100), bool), (0.0, 0.0), RES, 1.0, rho)
     space = ob.DubinsStateSpace(turningRadius=rho)
     bounds = ob.RealVectorBounds(2)
     bounds.setLow(0.0)
@@ -161,9 +161,9 @@ def test_dubins_kernel_follows_ompl_curves() -> None:
         a.setYaw(t1)
         b.setXY(x2, y2)
         b.setYaw(t2)
-        assert _kernels.dubins_length(buf.ctypes.data, x1, y1, t1, x2, y2, t2) == pytest.approx(space.distance(a, b))
-        word, t, p, q = _kernels._dubins_between(x1, y1, t1, x2, y2, t2, rho)
+        assert _dubins_kernels.dubins_length(buf.ctypes.data, x1, y1, t1, x2, y2, t2) == pytest.approx(space.distance(a, b))
+        word, t, p, q = _dubins_kernels._dubins_between(x1, y1, t1, x2, y2, t2, rho)
         for f in (0.3, 0.7, 1.0):
             space.interpolate(a, b, f, tmp)
-            x, y, _ = _kernels.dubins_point(x1, y1, t1, rho, word, t, p, q, (t + p + q) * f)
+            x, y, _ = _dubins_kernels.dubins_point(x1, y1, t1, rho, word, t, p, q, (t + p + q) * f)
             assert math.hypot(x - tmp.getX(), y - tmp.getY()) < 1e-9

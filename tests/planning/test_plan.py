@@ -19,6 +19,7 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
+import planning.ompl_solve
 import planning.query
 from planning import PlanError, PlanResult, RiskField, available_planners, plan
 from planning.planners import PLANNERS
@@ -75,7 +76,7 @@ def test_endpoints_are_refused_before_any_planner_runs(monkeypatch: pytest.Monke
     def boom(*args: object, **kwargs: object) -> None:
         raise AssertionError("a planner ran")
 
-    monkeypatch.setattr(planning.query, "_plan_ompl", boom)
+    monkeypatch.setattr(planning.query, "plan_ompl", boom)  # where plan() looks them up
     monkeypatch.setattr(planning.query, "_plan_grid", boom)
     field = RiskField(np.ones((20, 20), np.float32), RES, (0.0, 0.0))
     with pytest.raises(PlanError):
@@ -211,7 +212,7 @@ def test_the_same_seed_gives_the_same_path(planner: str, space: str) -> None:
     second = plan(field, start, goal, seed=7, **kwargs)
     other = plan(field, start, goal, seed=8, **kwargs)
     assert first.status == "exact" and first.error_code == ""
-    assert planning.query.CLOCK_NOTE not in first.message + second.message + other.message
+    assert planning.ompl_solve.CLOCK_NOTE not in first.message + second.message + other.message
     assert np.array_equal(first.path, second.path) and first.cost == second.cost
     if planner != "BITstar":  # BIT*'s first batches may well agree across seeds
         assert not np.array_equal(first.path, other.path)
@@ -327,13 +328,13 @@ def test_a_plan_returns_within_its_time_limit_on_a_loaded_machine(planner: str, 
         assert wall <= bound + 0.1, (seed, wall)
         if max_iterations is not None and PLANNERS[planner].optimizing and result.status != "none":
             # an iteration budget far beyond the time: the clock ended it, and the result says so
-            assert planning.query.CLOCK_NOTE in result.message and result.stopped_by == "time_limit"
+            assert planning.ompl_solve.CLOCK_NOTE in result.message and result.stopped_by == "time_limit"
 
 
 def test_a_seeded_plan_within_its_iteration_budget_does_not_claim_the_clock_stopped_it(open_field) -> None:
     result = plan(open_field, (0.5, 0.5), (3.5, 3.5), planner="RRTstar", time_limit=10.0, max_iterations=300, seed=1)
     assert result.status == "exact" and result.planning_time < 10.0
-    assert planning.query.CLOCK_NOTE not in result.message
+    assert planning.ompl_solve.CLOCK_NOTE not in result.message
     assert 0 < result.iterations <= 300
 
 
@@ -407,7 +408,7 @@ def test_plan_runs_in_a_worker_process_with_the_same_seeded_result() -> None:
         remote = pool.submit(plan, field, (0.5, 2.5), (2.5, 2.5), **kwargs).result(timeout=120)
     local = plan(field, (0.5, 2.5), (2.5, 2.5), **kwargs)
     assert isinstance(remote, PlanResult) and remote.status == "exact"
-    assert planning.query.CLOCK_NOTE not in remote.message + local.message
+    assert planning.ompl_solve.CLOCK_NOTE not in remote.message + local.message
     # a fresh process and this one, whose OMPL RNG has served many plans, agree
     assert np.array_equal(remote.path, local.path)
     back = pickle.loads(pickle.dumps(remote))
