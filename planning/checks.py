@@ -14,6 +14,7 @@ import numpy as np
 
 from planning.field import RiskField
 from planning.packed import PackedGrid
+from planning.parameters import GOAL_TOLERANCE, MAX_RISK, RISK_WEIGHT, ROBOT_RADIUS, SEEDS, TIME_LIMIT, TURNING_RADIUS
 from planning.planners import GRID, PlannerSpec
 from planning.result import (
     GOAL_OCCUPIED,
@@ -46,19 +47,6 @@ class Arguments:
     turning_radius: float | None
     max_iterations: int | None
     grid_seed: bool
-
-
-def _number(name: str, value: Any, *, low: float, low_open: bool = False, high: float = math.inf) -> float:
-    try:
-        x = float(value)
-    except (TypeError, ValueError):
-        raise ValueError(f"{name}: must be a number, got {value!r}") from None
-    if not math.isfinite(x) or x < low or (low_open and x == low) or x > high:
-        bound = f"> {low}" if low_open else f">= {low}"
-        if high < math.inf:
-            bound += f" and <= {high}"
-        raise ValueError(f"{name}: must be a finite number {bound}, got {value!r}")
-    return x
 
 
 def _max_robot_radius(field: RiskField, diagonal: float) -> float:
@@ -144,21 +132,23 @@ def check_arguments(
     """``plan``'s arguments checked against the field and state space; ValueError naming the first wrong one."""
     if pspec.make is None and sspec.name not in ("R2", "R3"):
         raise ValueError(f"planner: {GRID!r} plans in R2 and R3 only, not in {sspec.name}")
-    time_limit = _number("time_limit", time_limit, low=0.0, low_open=True)
+    time_limit = TIME_LIMIT.check(time_limit)
     diagonal = math.hypot(*(n * field.resolution for n in field.shape))
-    robot_radius = _number("robot_radius", robot_radius, low=0.0, high=_max_robot_radius(field, diagonal))
-    max_risk = _number("max_risk", max_risk, low=0.0, high=1.0)
-    risk_weight = _number("risk_weight", risk_weight, low=0.0, high=MAX_RISK_WEIGHT)
+    robot_radius = ROBOT_RADIUS.check(robot_radius, high=_max_robot_radius(field, diagonal))
+    max_risk = MAX_RISK.check(max_risk)
+    risk_weight = RISK_WEIGHT.check(risk_weight, high=MAX_RISK_WEIGHT)
     tolerance = (
         field.resolution if goal_tolerance is None
-        else _number("goal_tolerance", goal_tolerance, low=0.0, low_open=True, high=diagonal)
+        else GOAL_TOLERANCE.check(goal_tolerance, high=diagonal)
     )
     if sspec.curved:
         if turning_radius is None:
             raise ValueError(f"turning_radius: required by {sspec.name}")
         # a turning circle wider than the map cannot turn in it (and OMPL's curves lose precision)
-        turning_radius = _number("turning_radius", turning_radius, low=0.0, low_open=True, high=diagonal)
-    if seed is not None and (isinstance(seed, bool) or not isinstance(seed, int | np.integer) or not 0 <= seed < 2**32):
+        turning_radius = TURNING_RADIUS.check(turning_radius, high=diagonal)
+    if seed is not None and (
+        isinstance(seed, bool) or not isinstance(seed, int | np.integer) or not SEEDS.start <= seed < SEEDS.stop
+    ):
         raise ValueError(f"seed: must be an integer in [0, 2**32), got {seed!r}")
     if max_iterations is not None and (
         isinstance(max_iterations, bool) or not isinstance(max_iterations, int | np.integer) or max_iterations < 1

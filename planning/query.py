@@ -23,6 +23,13 @@ from planning.field import DEFAULT_MAX_RISK, RiskField
 from planning.grid_search import grid_path
 from planning.ompl_solve import CLOCK_NOTE, plan_ompl
 from planning.packed import PackedGrid
+from planning.parameters import (
+    DEFAULT_ALLOW_UNKNOWN,
+    DEFAULT_PLANNER,
+    DEFAULT_RISK_WEIGHT,
+    DEFAULT_ROBOT_RADIUS,
+    DEFAULT_TIME_LIMIT,
+)
 from planning.paths import drop_collinear, interpolate_straight, plan_result
 from planning.planners import GRID, planner_spec
 from planning.result import NO_VALID_PATH, PlanResult
@@ -37,13 +44,13 @@ def plan(
     field: RiskField,
     start: Sequence[float],
     goal: Sequence[float],
-    planner: str = "RRTstar",
+    planner: str = DEFAULT_PLANNER,
     state_space: str | None = None,
-    time_limit: float = 1.0,
-    robot_radius: float = 0.2,
+    time_limit: float = DEFAULT_TIME_LIMIT,
+    robot_radius: float = DEFAULT_ROBOT_RADIUS,
     max_risk: float = DEFAULT_MAX_RISK,
-    risk_weight: float = 1.0,
-    allow_unknown: bool = True,
+    risk_weight: float = DEFAULT_RISK_WEIGHT,
+    allow_unknown: bool = DEFAULT_ALLOW_UNKNOWN,
     seed: int | None = None,
     goal_tolerance: float | None = None,
     turning_radius: float | None = None,
