@@ -33,7 +33,7 @@ scans  N robots (``--robots``, default 4) in one 20 m x 20 m room (``bench.bench
 plans  K clients (``--plan-clients``, default 4) planning back to back, client k on its own
        map k (filled once with 24 scans of robot k; static while planned on, so every plan
        works on a cached grid). Seeded RRTstar by default: a seeded plan is ended by an
-       iteration budget, not the clock (``planning.query``), so every plan does the same work
+       iteration budget, not the clock (``planning.ompl_solve``), so every plan does the same work
        in every configuration and plans/s measures CPU capacity. Measured with
        ``FUZZYRISK_PLAN_WORKERS=2`` (the default) and with 1 worker per replica: on 2 cores,
        2 workers already use both, so only the second can show capacity growing with replicas.

@@ -237,7 +237,7 @@ def run_http(server: ServerProcess, work: Workload, seconds: float, max_requests
     """Stream the workload to the server for ``seconds`` (and plan back to back if ``plan_body``).
 
     ``robots=False``: plans only (the planner's own latency, for comparison). ``seeded``: plans carry
-    a seed, which bounds them by iterations instead of wall time (planning.query), so they take
+    a seed, which bounds them by iterations instead of wall time (planning.ompl_solve), so they take
     longer than ``time_limit`` when the CPU is shared. ``client``: the robots' HTTP client, ``lean``
     (:class:`bench._client.LeanClient`) or ``httpx``.
     """
@@ -384,7 +384,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--planner", default="RRTstar")
     parser.add_argument("--time-limit", type=float, default=0.5, help="plan time_limit, seconds")
     parser.add_argument("--seeded", action="store_true",
-                        help="plans carry a seed (bounded by iterations, not wall time: see planning.query)")
+                        help="plans carry a seed (bounded by iterations, not wall time: see planning.ompl_solve)")
     parser.add_argument("--seed", type=int, default=5, help="of the simulated room and robots")
     parser.add_argument("--client", choices=("lean", "httpx"), default="lean",
                         help="the robots' HTTP client (see the docstring)")

@@ -43,7 +43,7 @@ Fuzzifier = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]
 #: Labels of the paper in risk order (state and output order).
 PAPER_LABELS: tuple[str, ...] = ("EMP", "MPE", "PE", "UNK", "PO", "MPO", "OCC")
 
-#: Input peaks in sigmas along the distance axis for EMP MPE PE PO MPO OCC UNK (DESIGN.md section 3):
+#: Input peaks in sigmas along the distance axis for EMP MPE PE PO MPO OCC UNK (DESIGN.md section 4.1):
 #: EMP's plateau ends at -5 and it reaches 0 at -4; OCC peaks on the surface; UNK is full from +1.5.
 PAPER_INPUT_PEAKS: tuple[float, ...] = (-5.0, -4.0, -3.0, -2.0, -1.0, 0.0, 1.5)
 _DISTANCE_ORDER: tuple[str, ...] = ("EMP", "MPE", "PE", "PO", "MPO", "OCC", "UNK")
@@ -258,7 +258,7 @@ class FuzzyEngine:
     # ---------------------------------------------------------------- construction
     @classmethod
     def paper(cls, and_op: str = "min", or_op: str = "max", normalize: bool | None = None) -> FuzzyEngine:
-        """The paper's engine: Table 1, input functions of DESIGN.md section 3, even outputs.
+        """The paper's engine: Table 1, input functions of DESIGN.md section 4.1, even outputs.
 
         Inputs form a ladder (:func:`fuzzyocc.membership.ladder`) over
         :data:`PAPER_INPUT_PEAKS`: EMP a left shoulder ending at -4 sigma,
