@@ -85,8 +85,15 @@ def main() -> None:
                                          occupied_thresh=0.6, z_min=None, z_max=None, encoding=encoding)
                 portal = client.portal
                 assert portal is not None  # set while the client is open
-                portal.call(call)  # warm: the typestore and the serializer are built once
-                server_s, (body, _) = _median_s(functools.partial(portal.call, call), runs)
+                def read(call: functools.partial[Any] = call) -> Any:
+                    message, _, sent = portal.call(call)
+                    if sent is not None:
+                        sent()  # a big read holds the read lane until its body is sent: here, once it is made
+                    return message
+
+                read()  # warm: the typestore and the serializer are built once
+                server_s, message = _median_s(read, runs)
+                body = message if isinstance(message, bytes) else b"".join(message)  # CDR as sent: head, cells
                 http_s, response = _median_s(
                     functools.partial(client.get, "/maps/big/occupancy_grid", params={"format": encoding}), runs)
                 assert response.status_code == 200 and response.content == body
