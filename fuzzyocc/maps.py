@@ -36,9 +36,11 @@ import numpy as np
 from fuzzyocc import bayes, presets
 from fuzzyocc.config import GridSpec, SensorModel
 from fuzzyocc.engine import FuzzyEngine
-from fuzzyocc.grid import BlockGrid, CellGrid
+from fuzzyocc._block_table import BlockIndex
+from fuzzyocc.blockgrid import BlockGrid, block_shift_for
+from fuzzyocc.grid import CellGrid
 from fuzzyocc.keys import coords_to_keys, keys_to_flat
-from fuzzyocc.raycast import CastResult, cast_rays, new_scratch, traversal_cells
+from fuzzyocc.raycast import CastResult, Lattice, cast_into, traversal_cells
 from fuzzyocc.scans import LaserScan, PointCloud, Rays
 
 Scan = LaserScan | PointCloud
@@ -124,6 +126,7 @@ class OccupancyMap:
             raise ValueError(f"sensor must be a SensorModel, got {type(sensor).__name__}")
         self.spec = spec
         self.sensor = sensor
+        self.lattice = Lattice.of(spec)
         self._grid: CellGrid | BlockGrid = self._new_grid()
         self._scans_fused = 0
 
@@ -196,22 +199,20 @@ class OccupancyMap:
         if not scans:
             return IntegrationStats(scans=0, rays=0, cells_updated=0)
         chunks = self._cast_chunks(scans)
-        parted = any(scans[first].beam_count > CAST_CHUNK_BEAMS for first, _ in chunks)
-        scratch = new_scratch(self.spec, self._grid.block_shift) if len(chunks) > 1 or parted else None
         updated = traversed = n_rays = skipped = 0
         for first, last in chunks:
             if scans[first].beam_count > CAST_CHUNK_BEAMS:  # a chunk of its own (``_cast_chunks``)
-                cast, beams, dropped = self._cast_in_parts(scans[first], scratch)
+                cast, beams, dropped = self._cast_in_parts(scans[first])
             else:
                 rays = [self._rays_of(scan) for scan in scans[first:last]]
-                cast = self._cast(scans[first:last], rays, scratch)
+                cast = self._cast(scans[first:last], rays)
                 beams, dropped = sum(r.ranges.size for r in rays), sum(r.skipped for r in rays)
                 del rays
             n_rays, skipped = n_rays + beams, skipped + dropped
             traversed += int(cast.cells_traversed.sum())
             for s in range(last - first):
                 lo, hi = cast.scan_offsets[s], cast.scan_offsets[s + 1]
-                cells = cast.cells[lo:hi]
+                cells = self._stored_cells(cast.cells[lo:hi])
                 dist = cast.distance_sigmas[lo:hi]
                 self._grid.mark_observed(cells)
                 evidence = np.isfinite(dist)  # -inf: reached only past the occupied region
@@ -252,26 +253,31 @@ class OccupancyMap:
         chunks.append((first, len(scans)))
         return chunks
 
-    def _cast_in_parts(self, scan: Scan, scratch: np.ndarray | None) -> tuple[CastResult, int, int]:
+    def _cast_in_parts(self, scan: Scan) -> tuple[CastResult, int, int]:
         """One scan's cast, ``CAST_CHUNK_BEAMS`` beams at a time; with its rays and the beams it dropped.
 
         Equal to the whole scan's cast: a cell's evidence is the largest of its beams', so the
-        largest of the parts' (``np.fmax``, NaN for a cell a part did not reach), gathered in a
-        scratch over every cell. Memory: two scratches (4 bytes a cell each) and one part's
-        rays and cells, whatever the scan's size.
+        largest of the parts' (``np.fmax`` over the parts' entries of a cell). Memory: the
+        parts' cells and one part's rays, whatever the scan's size and the map's.
         """
-        merged = new_scratch(self.spec, self._grid.block_shift)
         traversed = n_rays = skipped = 0
+        keys, dists = [], []
         for part in scan_parts(scan):
             rays = self._rays_of(scan, part)
             n_rays, skipped = n_rays + rays.ranges.size, skipped + rays.skipped
-            cast = self._cast([scan], [rays], scratch)
+            cast = self._cast([scan], [rays])
             del rays
             traversed += int(cast.cells_traversed.sum())
-            merged[cast.cells] = np.fmax(merged[cast.cells], cast.distance_sigmas)
+            keys.append(cast.cells)
+            dists.append(cast.distance_sigmas)
             del cast
-        cells = np.flatnonzero(~np.isnan(merged))  # in increasing id order, as a cast hands them out
-        result = CastResult(cells=cells, distance_sigmas=merged[cells], scan_offsets=np.array([0, cells.size]),
+        every = np.concatenate(keys)
+        order = np.argsort(every, kind="stable")  # by key: a block's cells together, as a cast hands them out
+        every, evidence = every[order], np.concatenate(dists)[order]
+        first = np.flatnonzero(np.concatenate([[True], every[1:] != every[:-1]]))
+        cells = every[first]
+        best = np.fmax.reduceat(evidence, first) if every.size else evidence
+        result = CastResult(cells=cells, distance_sigmas=best.astype(np.float32), scan_offsets=np.array([0, cells.size]),
                             cells_traversed=np.array([traversed]))
         return result, n_rays, skipped
 
@@ -287,7 +293,7 @@ class OccupancyMap:
         else:
             raise ValueError(f"{name} must be a LaserScan or a PointCloud, got {type(scan).__name__}")
 
-    def _cast(self, scans: list[Scan], rays: list[Rays], scratch: np.ndarray | None = None) -> CastResult:
+    def _cast(self, scans: list[Scan], rays: list[Rays]) -> CastResult:
         half_cell = 0.5 * self.spec.resolution
         counts = [r.ranges.size for r in rays]
         origins = np.repeat(np.stack([r.origin for r in rays]), counts, axis=0)
@@ -297,8 +303,11 @@ class OccupancyMap:
         sigma = np.concatenate([self.sensor.sigma(r.ranges, s.registration_sigma) * self._grazing(r)
                                 for s, r in zip(scans, rays)])
         sigma = np.maximum(sigma, half_cell)
-        return cast_rays(
-            self.spec,
+        index, shift = self._cast_blocks()
+        cast = cast_into(
+            self.lattice,
+            index,
+            shift,
             origins,
             directions,
             t_end=np.where(hit, ranges + self.occupied_extent * sigma, ranges),
@@ -306,9 +315,20 @@ class OccupancyMap:
             sigma=sigma,
             ray_offsets=np.concatenate([[0], np.cumsum(counts)]),
             unknown_from=self.occupied_extent,
-            block_shift=self._grid.block_shift,
-            scratch=scratch,
         )
+        self._cast_done()
+        return cast
+
+    def _cast_blocks(self) -> tuple[BlockIndex, tuple[int, int, int]]:
+        """The block index a cast numbers cells by, and its block size."""
+        raise NotImplementedError
+
+    def _cast_done(self) -> None:
+        """After a cast: storage takes the blocks it added to the index."""
+
+    def _stored_cells(self, keys: np.ndarray) -> np.ndarray:
+        """The ids storage addresses the cells of a cast by (``keys`` as :func:`fuzzyocc.raycast.cast_into` gives them)."""
+        return keys
 
     @property
     def incidence_floor(self) -> float:
@@ -386,6 +406,12 @@ class OccupancyMap:
         """
         return self._grid.persistent_nbytes()
 
+    def held_cells(self) -> int:
+        """Cells the map holds in memory: a :class:`FuzzyMap` one per cell of a mixed block and one per uniform
+        block it holds (none for space no ray reached); a :class:`BayesMap` every cell of its box."""
+        grid = self._grid
+        return grid.held_cells() if isinstance(grid, BlockGrid) else self.spec.num_cells
+
     def resident_nbytes(self) -> int:
         """Bytes the map holds between calls: :meth:`state_nbytes` plus the risk cache.
 
@@ -459,11 +485,20 @@ class FuzzyMap(OccupancyMap):
         return cast(BlockGrid, self._grid)
 
     def _new_grid(self) -> BlockGrid:
-        # Without the dense initial state: one uniform row for the whole grid.
-        return BlockGrid.filled(self.spec, np.asarray(self.engine.unknown_state(), dtype=np.uint8), self._risk_fn())
+        # Without the dense initial state: no block is held until a ray reaches it.
+        return BlockGrid(self.spec.ndim, self._unknown_row(), self._risk_fn(), self.spec.shape)
+
+    def _unknown_row(self) -> np.ndarray:
+        return np.asarray(self.engine.unknown_state(), dtype=np.uint8)
 
     def _grid_from(self, state: np.ndarray, observed: np.ndarray) -> BlockGrid:
-        return BlockGrid.from_dense(self.spec, state, observed, self._risk_fn())
+        return BlockGrid.from_dense(self.spec.shape, state, observed, self._unknown_row(), self._risk_fn())
+
+    def _cast_blocks(self) -> tuple[BlockIndex, tuple[int, int, int]]:
+        return self._blocks.index, self._blocks.block_shift
+
+    def _cast_done(self) -> None:
+        self._blocks.adopt()
 
     @property
     def occupied_extent(self) -> float:
@@ -533,9 +568,29 @@ class BayesMap(OccupancyMap):
 
     model = "bayes"
 
+    def __init__(self, spec: GridSpec, sensor: SensorModel | None = None) -> None:
+        super().__init__(spec, sensor)
+        # Only the cast numbers cells by block; the dense grid holds them by flat id.
+        self._shift = block_shift_for(spec.ndim, spec.shape)
+        self._index = BlockIndex()
+
     @property
     def _cells(self) -> CellGrid:
         return cast(CellGrid, self._grid)
+
+    def _cast_blocks(self) -> tuple[BlockIndex, tuple[int, int, int]]:
+        return self._index, self._shift
+
+    def _stored_cells(self, keys: np.ndarray) -> np.ndarray:
+        shift = np.asarray(self._shift, dtype=np.int64)
+        bits = int(shift.sum())
+        offsets = keys & ((1 << bits) - 1)
+        cells = self._index.coords[keys >> bits].astype(np.int64) << shift
+        cells[:, 0] += offsets >> (shift[1] + shift[2])
+        cells[:, 1] += (offsets >> shift[2]) & ((1 << shift[1]) - 1)
+        cells[:, 2] += offsets & ((1 << shift[2]) - 1)
+        shape = (*self.spec.shape, 1, 1)[:3]
+        return np.ravel_multi_index((cells[:, 0], cells[:, 1], cells[:, 2]), shape)
 
     def _initial_state(self) -> np.ndarray:
         return np.zeros(self.spec.num_cells, dtype=np.float32)
