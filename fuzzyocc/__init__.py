@@ -1,6 +1,6 @@
 """Fuzzy occupancy mapping core (Payeur's fuzzy fusion, Bayesian baselines, grids, ray casting)."""
 
-from fuzzyocc.config import GridSpec, SensorModel
+from fuzzyocc.config import GridSpec, LatticeSpec, SensorModel
 from fuzzyocc.engine import FuzzyEngine
 from fuzzyocc.maps import BayesMap, FuzzyMap, IntegrationStats, cast_work
 from fuzzyocc.scans import LaserScan, PointCloud
@@ -11,6 +11,7 @@ __all__ = [
     "FuzzyMap",
     "GridSpec",
     "IntegrationStats",
+    "LatticeSpec",
     "LaserScan",
     "PointCloud",
     "SensorModel",

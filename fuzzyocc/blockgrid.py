@@ -28,7 +28,7 @@ from collections.abc import Callable
 import numpy as np
 from numba import njit
 
-from fuzzyocc._block_table import BlockIndex, find
+from fuzzyocc._block_table import BlockIndex, find, rebuild
 from fuzzyocc._engine_kernels import SLOPED, evidence_class, fuse_row, fuzzify_into
 from fuzzyocc.engine import Fuzzifier
 from fuzzyocc.grid import _STALE, RISK_STEP, RiskFn, RowFusion, _check_lut, dequantize_risk, quantize_risk
@@ -398,6 +398,51 @@ class BlockGrid:
         """Rows of ``cells`` (flat ids over the box), a new ``(len(cells), L)`` array."""
         return self.rows_at(self._flat_to_cells(cells))
 
+    # -- persistence ----------------------------------------------------------------------
+    def to_blocks(self) -> dict[str, np.ndarray]:
+        """The blocks held, as arrays (copies): what :meth:`from_blocks` restores bit for bit."""
+        n, d = self.index.n, self._n_dense
+        return {
+            "block_coords": self.index.coords[:n].copy(),
+            "block_slab": self._ref[:n].copy(),
+            "block_row": self._urow[:n].copy(),
+            "block_observed": self._obs[:n].copy(),
+            "slabs": self._pool[:d].copy(),
+        }
+
+    @classmethod
+    def from_blocks(cls, ndim: int, arrays: dict[str, np.ndarray], initial_row: np.ndarray, risk_fn: RiskFn,
+                    box: tuple[int, ...] | None = None) -> BlockGrid:
+        """A grid holding the blocks of :meth:`to_blocks`; ``ValueError`` naming the array that does not fit."""
+        grid = cls(ndim, initial_row, risk_fn, box)
+        coords = _array(arrays, "block_coords", np.int32, (-1, 3))
+        n = coords.shape[0]
+        slab = _array(arrays, "block_slab", np.int32, (n,))
+        rows = _array(arrays, "block_row", np.uint8, (n, grid._width))
+        observed = _array(arrays, "block_observed", np.uint8, (n, grid._obs.shape[1]))
+        slabs = _array(arrays, "slabs", np.uint8, (-1, grid._block_cells, grid._width))
+        dense = np.sort(slab[slab >= 0])
+        if not np.array_equal(dense, np.arange(slabs.shape[0])):
+            raise ValueError("arrays['block_slab'] must number the slabs 0..n-1 once each (-1 for a uniform block)")
+        if ndim == 2 and np.any(coords[:, 2] != 0):
+            raise ValueError("arrays['block_coords'] of a 2-D grid must have z 0")
+        if np.unique(coords, axis=0).shape[0] != n:
+            raise ValueError("arrays['block_coords'] must not hold a block twice")
+        grid.index.reserve(n)
+        grid.index.coords[:n] = coords
+        grid.index.n = n
+        grid.index.keys, grid.index.slots = rebuild(grid.index.coords, n, grid.index.slots.shape[0])
+        grid.adopt()
+        grid._ref[:n], grid._urow[:n], grid._obs[:n] = slab, rows, observed
+        grid._grow_pool(slabs.shape[0])
+        grid._n_dense = slabs.shape[0]
+        grid._pool[: grid._n_dense] = slabs
+        grid._owner[slab[slab >= 0]] = np.flatnonzero(slab >= 0)
+        grid._prisk[: grid._n_dense] = _STALE
+        grid._urisk[:n] = _STALE
+        grid._any_stale = True
+        return grid
+
     # -- memory ---------------------------------------------------------------------------
     def held_cells(self) -> int:
         """Cells the grid holds in memory: every cell of a dense block, one per uniform block."""
@@ -415,6 +460,16 @@ class BlockGrid:
         """Bytes held between calls: the whole pool (spare slabs too), risk caches, per-block arrays, index."""
         arrays = (self._ref, self._urow, self._urisk, self._obs, self._pool, self._prisk, self._owner)
         return int(sum(a.nbytes for a in arrays) + self.index.nbytes())
+
+
+def _array(arrays: dict[str, np.ndarray], key: str, dtype: type, shape: tuple[int, ...]) -> np.ndarray:
+    if key not in arrays:
+        raise ValueError(f"arrays lacks {key!r}")
+    arr = np.asarray(arrays[key])
+    if arr.dtype != dtype or arr.ndim != len(shape) or any(w not in (-1, g) for w, g in zip(shape, arr.shape)):
+        raise ValueError(f"arrays[{key!r}] must be {np.dtype(dtype).name} of shape {shape} (-1: any), "
+                         f"got {arr.dtype.name} of shape {arr.shape}")
+    return np.ascontiguousarray(arr)
 
 
 # ------------------------------------------------------------------ compiled kernels

@@ -116,6 +116,12 @@ class CellGrid:
         """Record that beams reached ``cells`` (flat ids)."""
         _set_bits(self._observed, cells)
 
+    def clear_observed(self, cells: np.ndarray) -> None:
+        """Record that ``cells`` (flat ids) are never observed again."""
+        observed = self.observed()
+        observed[cells] = False
+        self._observed = np.packbits(observed, bitorder="little")
+
     def observed(self) -> np.ndarray:
         """(num_cells,) bool: cells some beam reached (a new array)."""
         bits = np.unpackbits(self._observed, count=self.spec.num_cells, bitorder="little")

@@ -24,7 +24,7 @@ import numpy as np
 from numba import njit
 
 from fuzzyocc._block_table import BlockIndex, find, insert
-from fuzzyocc.config import GridSpec
+from fuzzyocc.config import MAX_COORDINATE_M, GridSpec, LatticeSpec
 
 #: Distance (in sigmas) written for the cells of a no-return beam: free all the way, far to
 #: the left of any membership function's support.
@@ -332,6 +332,11 @@ def cast_into(
     if lattice.shape is not None:
         shape[:] = 1
         shape[:d] = lattice.shape
+    else:
+        # Stop every ray where it leaves the region whose cells have 32-bit block coordinates.
+        with np.errstate(divide="ignore", invalid="ignore"):
+            exit_t = np.where(directions == 0.0, np.inf, (np.sign(directions) * MAX_COORDINATE_M - origins) / directions)
+        t_end = np.minimum(t_end, exit_t.min(axis=1))
     if d == 2:
         # A 2-D map is a 3-D one of a single layer; rays lie in its mid-plane.
         origins = np.concatenate([origins, np.full((n_rays, 1), lower[2] + 0.5 * lattice.resolution)], axis=1)
@@ -457,7 +462,7 @@ def _traversal_kernel(origin, ends, lower, upper, res):  # pragma: no cover - co
     return total
 
 
-def traversal_cells(spec: GridSpec, origin: np.ndarray, ends: np.ndarray) -> int:
+def traversal_cells(spec: GridSpec | LatticeSpec, origin: np.ndarray, ends: np.ndarray) -> int:
     """About how many cells a cast walks for the segments ``origin`` -> each of ``ends`` ((N, D), metres).
 
     Each segment is clipped to the map's box (the cast never walks outside it), and walks one
@@ -468,6 +473,9 @@ def traversal_cells(spec: GridSpec, origin: np.ndarray, ends: np.ndarray) -> int
     """
     origin = np.ascontiguousarray(origin, dtype=np.float64).reshape(-1)
     ends = np.ascontiguousarray(ends, dtype=np.float64).reshape(-1, origin.size)
-    lower = np.asarray(spec.origin, dtype=np.float64)
-    upper = lower + np.asarray(spec.shape, dtype=np.float64) * spec.resolution
+    if isinstance(spec, LatticeSpec):  # a growing map's rays stop where its lattice does (``cast_into``)
+        lower, upper = np.full(spec.ndim, -MAX_COORDINATE_M), np.full(spec.ndim, MAX_COORDINATE_M)
+    else:
+        lower = np.asarray(spec.origin, dtype=np.float64)
+        upper = lower + np.asarray(spec.shape, dtype=np.float64) * spec.resolution
     return int(_traversal_kernel(origin, ends, lower, upper, float(spec.resolution)))
