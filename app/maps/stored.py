@@ -11,12 +11,12 @@ import io
 import logging
 from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 
 from app.maps import logcodec
-from app.maps.entry import UNLIMITED_CELLS, MapEntry, OccupancyMap
+from app.maps.entry import UNLIMITED_CELLS, MapEntry, OccupancyMap, spec_of
 from app.scans import Scan
 from app.schemas import engine_choice
 from app.storage import StoredMap
@@ -41,11 +41,13 @@ def unnpz(payload: bytes) -> dict[str, np.ndarray]:
 
 def build_map(meta: Mapping[str, Any], *, max_cells: int) -> OccupancyMap:
     """An empty map as ``meta`` describes it (a new map is built from its meta too: what is stored is what runs)."""
-    spec = GridSpec(origin=meta["origin"], size=meta["size"], resolution=meta["resolution"], max_cells=max_cells)
+    spec = spec_of(meta, max_cells=max_cells)
     sensor = SensorModel(**meta["sensor"])
     if meta["model"] == "fuzzy":
-        return FuzzyMap(spec, sensor, engine_choice.from_meta(meta))
-    return BayesMap(spec, sensor)
+        built = FuzzyMap(spec, sensor, engine_choice.from_meta(meta))
+        built.forget_beyond = meta.get("forget_beyond")
+        return built
+    return BayesMap(cast(GridSpec, spec), sensor)
 
 
 def restore(stored: StoredMap, up_to: int | None = None) -> MapEntry:
@@ -64,7 +66,9 @@ def restore(stored: StoredMap, up_to: int | None = None) -> MapEntry:
     if stored.snapshot is not None:
         arrays = unnpz(stored.snapshot)
         if isinstance(built, FuzzyMap):
+            forget = built.forget_beyond
             built = FuzzyMap.from_arrays(built.spec, built.sensor, arrays, built.engine)
+            built.forget_beyond = forget
         else:
             built = BayesMap.from_arrays(built.spec, built.sensor, arrays)
     entry = MapEntry(
