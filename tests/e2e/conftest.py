@@ -8,7 +8,6 @@ vectorized over beams and boxes).
 from __future__ import annotations
 
 import os
-import shutil
 import signal
 import socket
 import subprocess
@@ -24,6 +23,8 @@ import numpy as np
 import psutil
 import pytest
 from playwright.sync_api import Browser, Page, sync_playwright
+
+import dev
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -204,12 +205,13 @@ def world() -> type[World]:
 
 
 def find_chromium() -> str:
-    """The Chromium to drive: $CHROME, else ``chromium`` or ``chromium-browser`` on the PATH."""
-    named = os.environ.get("CHROME")
-    found = shutil.which(named) if named else shutil.which("chromium") or shutil.which("chromium-browser")
+    """The Chromium to drive: $CHROME, else ``chromium`` or ``chromium-browser`` on the PATH (``dev.find_chromium``)."""
+    found = dev.find_chromium()
     if found is None:
+        named = os.environ.get("CHROME")
         pytest.fail(f"no Chromium found ({'CHROME=' + named if named else 'chromium, chromium-browser'} on the "
-                    "PATH): apt-get install chromium (.ci/run does), or set CHROME to a Chromium executable")
+                    "PATH): `python3 dev.py test` installs Debian's chromium, or set CHROME to a Chromium executable",
+                    pytrace=False)
     return found
 
 
