@@ -19,6 +19,7 @@ from pydantic import ValidationError
 from app.config import Settings
 from app.ops.process_setup import GIL_SWITCH_INTERVAL_S, StartupError, bind, missing_extra, prepare_directories
 from app.ops.logs import configure_logging
+from app.ops.version import add_version_option
 
 #: Exit status when the service cannot start (a bad setting, a port in use, an unusable data directory).
 EXIT_STARTUP_FAILURE = 1
@@ -31,6 +32,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--host", help="interface to listen on (FUZZYRISK_HOST, default 127.0.0.1)")
     parser.add_argument("--port", type=int, help="TCP port (FUZZYRISK_PORT, default 8000)")
     parser.add_argument("--data-dir", type=Path, help="map database directory (FUZZYRISK_DATA_DIR, default ./data)")
+    add_version_option(parser)
     args = parser.parse_args(argv)
     overrides = {k: v for k, v in vars(args).items() if v is not None}
     try:

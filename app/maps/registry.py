@@ -9,7 +9,6 @@ import uuid
 from collections.abc import Callable, Mapping
 from typing import Any, NamedTuple
 
-from app.schemas import engine_choice
 from app.config import Settings
 from app.storage.diskreserve import DiskReserve
 from app.errors import Conflict, InsufficientStorage, Invalid, NotFound, Unavailable
@@ -287,19 +286,11 @@ class MapRegistry:
                 raise Conflict(f"a map named {request.name!r} exists; choose another name or DELETE it first")
             created = now()
             meta = {
-                "name": request.name,
-                "origin": list(request.origin),
-                "size": list(request.size),
-                "resolution": request.resolution,
-                "model": request.model,
-                "sensor": request.sensor.model_dump(),
-                "frame_id": request.frame_id,
+                **request.model_dump(mode="json"),  # name and settings, as GET /maps/{name} shows them back
                 "created": created,
                 # tells this map from another of its name made before or after it, on every replica
                 "incarnation": uuid.uuid4().hex,
             }
-            if request.model == "fuzzy":
-                meta["engine"] = engine_choice.to_meta(request.engine or engine_choice.default())
             stored = None
             if self.settings.shared_storage:  # every replica's maps
                 names = await self._workers.run_read(self.storage.map_names)

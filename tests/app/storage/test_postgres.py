@@ -24,6 +24,7 @@ from app.ros import bagsize
 from app.api.factory import create_app
 from app.maps import restore
 from app.storage.postgres import PostgresStorage
+from tests.app.api.routes.test_maps import PAPER_BUT_NO_RETURNS_CUT, settings_of
 from tests.app.cli.test_import_bag import laser_scenario, upload, write_bag
 from tests.conftest import error_message
 
@@ -165,6 +166,18 @@ def test_a_replica_holds_only_the_maps_it_serves(replicas: Replicas, kit: Any) -
         time.sleep(0.05)
     assert b.get("/ready").json()["maps_loaded"] == 0
     assert b.get("/maps/two").json()["version"] == 0  # loaded again when asked for
+
+
+def test_a_replica_lists_a_map_it_does_not_hold_with_settings_that_make_the_same_map(replicas: Replicas,
+                                                                                       kit: Any) -> None:
+    a, b = replicas()
+    body = {**kit.MAP_2D, "engine": PAPER_BUT_NO_RETURNS_CUT, "frame_id": "robot1/map", "resolution": 1 / 3}
+    assert a.post("/maps", json=body).status_code == 201
+    shown = a.get("/maps/lab").json()
+    (listed,) = b.get("/maps").json()  # from the stored row: b holds no map
+    assert b.get("/ready").json()["maps_loaded"] == 0 and listed == shown
+    assert b.post("/maps", json={**settings_of(listed), "name": "copy"}).status_code == 201
+    assert settings_of(a.get("/maps/copy").json()) == settings_of(shown)
 
 
 def test_the_map_count_limit_counts_every_replicas_maps(replicas: Replicas, kit: Any) -> None:
