@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import os
 import re
-import shutil
 import signal
 import subprocess
 import time
@@ -21,6 +20,7 @@ from typing import Any
 import httpx
 import pytest
 
+import dev
 from bench._client import ServerProcess, free_port
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(240)]
@@ -32,9 +32,9 @@ NAMES = [f"bay-{k}" for k in range(8)]
 
 
 def _nginx() -> str:
-    found = shutil.which("nginx") or ("/usr/sbin/nginx" if Path("/usr/sbin/nginx").exists() else None)
+    found = dev.find_nginx()
     if found is None:
-        pytest.fail("nginx is needed (apt-get install nginx; .ci/run installs it)", pytrace=False)
+        pytest.fail("nginx is needed: `python3 dev.py test` installs Debian's nginx", pytrace=False)
     return found
 
 
