@@ -41,7 +41,7 @@ async def import_map(service: MapService, query: MapImport, *, content_type: str
                      body: AsyncIterator[bytes]) -> MapInfo:
     """Create the map ``query.name`` from the saved map ``body`` (of ``content_type``): the map at its first version."""
     media = content_type.split(";")[0].strip().lower()
-    if media not in MEDIA_TYPES:
+    if media not in {m.lower() for m in MEDIA_TYPES}:
         raise UnsupportedMediaType(
             f"Content-Type {media!r} is not a saved map: send a Nav2 map.yaml and its image zipped "
             f"({saved_maps.ZIP}) or as a form ({saved_maps.MULTIPART}, parts '{saved_maps.YAML_PART}' and "
@@ -60,7 +60,7 @@ async def import_map(service: MapService, query: MapImport, *, content_type: str
 def _open(data: bytes, content_type: str, media: str, max_cells: int, max_file_bytes: int) -> SavedMap:
     if media == JSON:
         return grid_in.open_json(data, max_cells=max_cells)
-    if media == CDR_MEDIA_TYPE:
+    if media == CDR_MEDIA_TYPE.lower():
         return grid_in.open_cdr(data, max_cells=max_cells)
     return saved_maps.open_nav2(data, content_type, max_cells=max_cells, max_file_bytes=max_file_bytes)
 
