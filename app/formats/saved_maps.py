@@ -98,10 +98,13 @@ def check_geometry(where: str, resolution: float, origin: tuple[float, float], w
         raise TooLarge(f"{where}: the map is {width} x {height} = {cells:,} cells, more than "
                        f"FUZZYRISK_MAX_MAP_CELLS ({max_cells:,})")
     try:
-        GridSpec(origin=origin, size=(width * resolution, height * resolution), resolution=resolution,
-                 max_cells=max_cells)
+        spec = GridSpec(origin=origin, size=(width * resolution, height * resolution), resolution=resolution,
+                        max_cells=max_cells)
     except ValueError as exc:
         raise Invalid(f"{where}: {exc}") from None
+    if spec.shape != (width, height):  # size / resolution off by more than GridSpec's tolerance: a map of other cells
+        raise Invalid(f"{where}: {width} x {height} cells of {resolution!r} m do not make a grid of whole cells here "
+                      f"({spec.shape[0]} x {spec.shape[1]}); resample the map to another resolution")
 
 
 # ---------------------------------------------------------------- the two containers
@@ -123,7 +126,7 @@ def _from_zip(body: bytes, max_file_bytes: int) -> tuple[str, bytes, str, bytes]
     """(YAML name, YAML, image name, image) of a zip, every size bounded by what the entries declare first."""
     try:
         archive = zipfile.ZipFile(io.BytesIO(body))
-    except (zipfile.BadZipFile, ValueError) as exc:
+    except Exception as exc:  # noqa: BLE001 - BadZipFile, ValueError, NotImplementedError...: the body's fault
         raise Invalid(f"body: not a zip file ({exc}); send map.yaml and its image zipped, or as a multipart "
                       f"form of '{YAML_PART}' and '{IMAGE_PART}'") from None
     with archive:
@@ -131,7 +134,8 @@ def _from_zip(body: bytes, max_file_bytes: int) -> tuple[str, bytes, str, bytes]
         if len(entries) > MAX_ZIP_ENTRIES:
             raise Invalid(f"body: the zip holds {len(entries)} entries, more than {MAX_ZIP_ENTRIES}: zip the map's "
                           "YAML and image alone")
-        yamls = [e for e in entries if not e.is_dir() and e.filename.lower().endswith((".yaml", ".yml"))
+        files = [e for e in entries if e.filename and not e.is_dir()]
+        yamls = [e for e in files if e.filename.lower().endswith((".yaml", ".yml"))
                  and not posixpath.basename(e.filename).startswith("._")]  # macOS' resource forks are not maps
         if len(yamls) != 1:
             found = "no .yaml file" if not yamls else f"{len(yamls)} .yaml files ({', '.join(e.filename for e in yamls)})"
@@ -143,7 +147,7 @@ def _from_zip(body: bytes, max_file_bytes: int) -> tuple[str, bytes, str, bytes]
         # map_server reads a relative image from the YAML's folder; an absolute one (a robot's disk) by its name there
         wanted = posixpath.normpath(posixpath.join(folder, image if not image.startswith("/")
                                                    else posixpath.basename(image)))
-        by_name = {posixpath.normpath(e.filename): e for e in entries if not e.is_dir()}
+        by_name = {posixpath.normpath(e.filename): e for e in files}
         if wanted not in by_name:
             held = ", ".join(sorted(by_name)[:8])
             raise Invalid(f"{meta_entry.filename}: image names {image!r}, which the zip does not hold as {wanted!r} "
@@ -160,7 +164,7 @@ def _extract(archive: zipfile.ZipFile, entry: zipfile.ZipInfo, limit: int, what:
     try:
         with archive.open(entry) as stream:
             data = stream.read(limit + 1)  # the reader stops at the declared size: one more byte shows a liar
-    except (zipfile.BadZipFile, zlib.error, RuntimeError, NotImplementedError, OSError, EOFError) as exc:
+    except Exception as exc:  # noqa: BLE001 - a damaged, encrypted or unsupported entry: the body's fault
         raise Invalid(f"{entry.filename}: cannot be extracted ({exc})") from None
     if len(data) > limit:
         raise TooLarge(f"{entry.filename}: it inflates to more than {limit:,} bytes ({what})")
@@ -315,7 +319,7 @@ def _open(yaml_name: str, yaml_bytes: bytes, image_name: str, image_bytes: bytes
         raise Invalid(f"{image_name}: not an image of the formats map_saver writes (PGM, PNG, BMP)") from None
     except Image.DecompressionBombError as exc:
         raise TooLarge(f"{image_name}: {exc}") from None
-    except (OSError, ValueError, SyntaxError) as exc:
+    except (OSError, ValueError, SyntaxError, EOFError) as exc:
         raise Invalid(f"{image_name}: not a readable image ({exc})") from None
     width, height = image.size
     check_geometry(image_name, meta.resolution, meta.origin, width, height, max_cells)
@@ -330,7 +334,7 @@ def _cells(image: Image.Image, image_name: str, meta: _Meta) -> MapCells:
     try:
         alpha = meta.mode != "raw" and image.has_transparency_data
         pixels = np.asarray(image.convert("LA" if alpha else "L"))
-    except (OSError, ValueError, SyntaxError) as exc:  # truncated or damaged pixel data
+    except (OSError, ValueError, SyntaxError, EOFError, zlib.error) as exc:  # truncated or damaged pixel data
         raise Invalid(f"{image_name}: its pixels cannot be read ({exc})") from None
     grey = (pixels[..., 0] if alpha else pixels).astype(np.uint16)
     if alpha:

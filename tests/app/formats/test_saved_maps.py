@@ -324,3 +324,23 @@ def test_deflated_bytes_are_what_the_zip_bomb_check_bounds() -> None:
     assert read_zip(stored.getvalue(), max_file_bytes=len(image)).width == 10
     with pytest.raises(TooLarge):
         read_zip(stored.getvalue(), max_file_bytes=len(image) - 1)
+
+
+@pytest.mark.parametrize("image_name", ["map.pgm", "map.png"])
+def test_damaged_files_are_refused_as_such_and_nothing_else_escapes(image_name: str) -> None:
+    """Bytes flipped anywhere in the zip: each read succeeds or says the file is bad (422 or 413), never more."""
+    rng = np.random.default_rng(23)
+    grey = rng.integers(0, 256, (30, 40)).astype(np.uint8)
+    image = pgm(grey) if image_name.endswith("pgm") else png(grey, np.full_like(grey, 255))
+    good = zipped({"map.yaml": nav2_yaml(image=image_name), image_name: image})
+    outcomes = {"read": 0, "refused": 0}
+    for _ in range(300):
+        damaged = bytearray(good)
+        for at in rng.integers(0, len(damaged), rng.integers(1, 4)):
+            damaged[at] = rng.integers(0, 256)
+        try:
+            read_zip(bytes(damaged)).cells()
+            outcomes["read"] += 1
+        except (Invalid, TooLarge):
+            outcomes["refused"] += 1
+    assert outcomes["refused"] > 0 and sum(outcomes.values()) == 300
