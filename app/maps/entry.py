@@ -40,10 +40,11 @@ class MapObserver(Protocol):
 
     Called on the event loop, the batch's apply lock held: a method must return at once (hand the
     work to a thread of its own) and should not raise (what it raises is logged, never answered).
-    ``frame_id`` is the map's frame (``MapEntry.frame_id``), what its messages carry.
+    ``frame_id`` is the map's frame (``MapEntry.frame_id``), what its messages carry; ``last_scan`` the last
+    scan fused, None before the first (an imported map's first batch holds none).
     """
 
-    def batch_applied(self, name: str, version: int, last_scan: Scan, frame_id: str) -> None: ...
+    def batch_applied(self, name: str, version: int, last_scan: Scan | None, frame_id: str) -> None: ...
 
     def plan_made(self, name: str, result: PlanResult, frame_id: str) -> None: ...
 

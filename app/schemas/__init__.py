@@ -51,6 +51,7 @@ from app.schemas.maps import (
     EXAMPLE_MAP,
     EXAMPLE_MAP_3D,
     MapCreate,
+    MapImport,
     MapInfo,
     SensorIn,
 )
@@ -64,6 +65,7 @@ from app.schemas.plans import (
 from app.schemas.risk import (
     MapMetaData,
     OccupancyGrid,
+    OccupancyGridMessage,
     RiskGridJSON,
     RiskQuery,
     RiskValues,
@@ -118,6 +120,7 @@ __all__ = [
     "LastScan",
     "LeftShoulderIn",
     "MapCreate",
+    "MapImport",
     "MapInfo",
     "MapMetaData",
     "MapName",
@@ -126,6 +129,7 @@ __all__ = [
     "NAME_RULE",
     "NonNegativeFinite",
     "OccupancyGrid",
+    "OccupancyGridMessage",
     "PlanRequest",
     "PlanResult",
     "PlannerInfo",

@@ -22,8 +22,12 @@ from app.schemas.common import (
     PositiveFinite,
     Vector,
 )
-from app.schemas.engine_definition import EngineField
+from app.schemas.engine_definition import EngineField, EnginePreset
 from fuzzyocc.config import GROWING_MIN_RESOLUTION
+from fuzzyocc.maps import MAX_PRIOR_SCANS
+
+#: Scans a saved map's cell stands for when the import does not say (``MapImport.prior_scans``).
+DEFAULT_PRIOR_SCANS = 2
 
 EXAMPLE_MAP = {
     "name": "lab",
@@ -156,12 +160,42 @@ class MapCreate(BaseModel):
 
     @model_validator(mode="after")
     def _engine_of_the_model(self) -> MapCreate:
-        if self.model != "fuzzy":
-            if self.engine is not None:
-                raise ValueError(f"engine applies to fuzzy maps only; a {self.model} map has none: leave engine out")
-        elif self.engine is None:
+        _check_engine_model(self.engine, self.model)
+        if self.model == "fuzzy" and self.engine is None:
             self.engine = engine_choice.default()  # read when the map is made: DEFAULT_PRESET may move on
         return self
+
+
+def _check_engine_model(engine: object, model: str) -> None:
+    if engine is not None and model != "fuzzy":
+        raise ValueError(f"engine applies to fuzzy maps only; a {model} map has none: leave engine out")
+
+
+class MapImport(SensorIn):
+    """The query of ``POST /maps/import``: the new map's name and settings, its sensor's as ``SensorIn``'s fields;
+    its grid (resolution, origin, size) and cells come from the file."""
+
+    name: MapName
+    prior_scans: int = Field(
+        DEFAULT_PRIOR_SCANS, ge=1, le=MAX_PRIOR_SCANS,
+        description="the weight of the file's cells: each reads, and later scans change it, as if this many scans "
+        "had agreed on it (hits on an occupied cell, pass-throughs on a free one)",
+    )
+    model: Literal["fuzzy", "bayes"] = "fuzzy"
+    engine: EnginePreset | None = Field(None, description="fuzzy maps: a preset name; left out: the default preset")
+    frame_id: FrameId | None = Field(
+        None, description="the map's ROS frame; left out: an OccupancyGrid's header.frame_id, else map. "
+        + FRAME_ID_RULE, json_schema_extra={"pattern": FRAME_ID_PATTERN, "maxLength": FRAME_ID_MAX_CHARS},
+    )
+
+    @model_validator(mode="after")
+    def _engine_is_fuzzy(self) -> MapImport:
+        _check_engine_model(self.engine, self.model)
+        return self
+
+    def sensor(self) -> SensorIn:
+        """The sensor of the map, from the query's ``SensorIn`` fields."""
+        return SensorIn(**{key: getattr(self, key) for key in SensorIn.model_fields})
 
 
 class Bounds(BaseModel):

@@ -160,8 +160,19 @@ def test_the_generated_client_drives_every_operation(generated: tuple[ModuleType
                                                         client=client).payload.read()
     (entry,) = list(make_reader(io.BytesIO(mcap_bytes)).iter_messages())
     assert entry[1].topic == "/map" and entry[2].data == cdr
-    nav2 = op("risk", "export_nav2").sync("hall", client=client, mode=m.ExportNav2Mode.TRINARY)
-    assert {"map.yaml", "map.pgm"} <= set(zipfile.ZipFile(io.BytesIO(nav2.payload.read())).namelist())
+    nav2 = op("risk", "export_nav2").sync("hall", client=client, mode=m.ExportNav2Mode.TRINARY).payload.read()
+    assert {"map.yaml", "map.pgm"} <= set(zipfile.ZipFile(io.BytesIO(nav2)).namelist())
+    # the export back in as a new map, its two files as a form (the generator's form of the operation's bodies):
+    # its first batch, the same grid
+    with zipfile.ZipFile(io.BytesIO(nav2)) as files:
+        saved = m.ImportMapFilesBody(
+            yaml=package.types.File(payload=io.BytesIO(files.read("map.yaml")), file_name="map.yaml"),
+            image=package.types.File(payload=io.BytesIO(files.read("map.pgm")), file_name="map.pgm"))
+    copy = op("maps", "import_map").sync(client=client, body=saved, name="hall_copy")
+    assert isinstance(copy, m.MapInfo) and copy.version == 1 and copy.shape == [risk.shape[0], risk.shape[1]]
+    again = op("risk", "export_nav2").sync("hall_copy", client=client, mode=m.ExportNav2Mode.TRINARY).payload.read()
+    assert zipfile.ZipFile(io.BytesIO(again)).read("map.pgm") == zipfile.ZipFile(io.BytesIO(nav2)).read("map.pgm")
+    assert op("maps", "delete_map").sync_detailed("hall_copy", client=client).status_code == 204
     # the recording for offline viewing: the same grid on /map, every scan on /scan (no snapshot yet), the
     # binary scan's float32 ranges as sent
     recorded = op("recordings", "export_mcap").sync("hall", client=client).payload.read()
