@@ -37,7 +37,7 @@ from fuzzyocc import bayes, presets
 from fuzzyocc.config import MAX_COORDINATE_M, GridSpec, LatticeSpec, SensorModel
 from fuzzyocc.engine import FuzzyEngine
 from fuzzyocc._block_table import BlockIndex
-from fuzzyocc.blockgrid import BlockGrid, block_shift_for
+from fuzzyocc.blockgrid import BLOCK_SHIFT_2D, BLOCK_SHIFT_3D, BlockGrid, block_shift_for
 from fuzzyocc.grid import CellGrid
 from fuzzyocc.keys import coords_to_keys, keys_to_flat
 from fuzzyocc.raycast import CastResult, Lattice, cast_into, traversal_cells
@@ -92,6 +92,33 @@ def cast_work(spec: GridSpec | LatticeSpec, scans: Sequence[Scan]) -> int:
             rays = scan.to_rays(beams=part)
             total += traversal_cells(spec, rays.origin, rays.endpoints)
     return total
+
+
+def allocation_bound(spec: GridSpec | LatticeSpec, scans: Sequence[Scan]) -> int:
+    """At most about how many cells fusing ``scans`` makes a fuzzy map of ``spec`` hold anew: the cells of every
+    block their beams reach, as if none were held yet.
+
+    Counted by casting the beams over the lattice of blocks (one cell a block): a few times less work
+    than the fusion, and known before it. A beam's occupied band behind its hit (a few sigmas) is not
+    counted, nor are blocks the map already holds: a bound for refusing a batch that would take a
+    map's memory at once (a cloud of kilometre-long beams), not a forecast.
+    """
+    ndim = spec.ndim
+    side = 1 << (BLOCK_SHIFT_3D if ndim == 3 else BLOCK_SHIFT_2D)
+    if isinstance(spec, GridSpec):
+        lattice = Lattice(tuple(float(v) for v in spec.origin), spec.resolution * side,
+                          tuple(-(-n // side) for n in spec.shape))
+    else:
+        lattice = Lattice((0.0,) * ndim, spec.resolution * side, None)
+    index = BlockIndex()
+    for scan in scans:
+        for part in scan_parts(scan):
+            rays = scan.to_rays(beams=part)
+            n = rays.ranges.size
+            if n:
+                cast_into(lattice, index, (0, 0, 0), np.repeat(rays.origin[None], n, axis=0), rays.directions,
+                          rays.ranges, np.full(n, np.nan), np.ones(n), np.array([0, n]), unknown_from=np.inf)
+    return index.n * side**ndim
 
 
 def _check_weight(weight: object) -> None:
@@ -830,6 +857,8 @@ class FuzzyMap(OccupancyMap):
             arrays = self._common_arrays()
             arrays["state"] = self._blocks.dense().reshape(*cast(GridSpec, self.spec).shape, -1)
         arrays["labels"] = np.array(self.engine.labels)
+        if self._forget_beyond is not None:
+            arrays["forget_beyond"] = np.array(self._forget_beyond, dtype=np.float64)
         return arrays
 
     @classmethod
@@ -850,11 +879,13 @@ class FuzzyMap(OccupancyMap):
             restored = cls(spec, sensor, engine)
             restored._grid = BlockGrid.from_blocks(spec.ndim, arrays, restored._unknown_row(), restored._risk_fn())
             restored._scans_fused = scans
-            return restored
-        observed, scans = cls._common_from_arrays(spec, arrays)
-        state = cls._take(arrays, "state", (*spec.shape, engine.num_labels), np.uint8)
-        restored = cls(spec, sensor, engine)
-        restored._restore(state.reshape(spec.num_cells, -1), observed, scans)  # compressed: a copy
+        else:
+            observed, scans = cls._common_from_arrays(spec, arrays)
+            state = cls._take(arrays, "state", (*spec.shape, engine.num_labels), np.uint8)
+            restored = cls(spec, sensor, engine)
+            restored._restore(state.reshape(spec.num_cells, -1), observed, scans)  # compressed: a copy
+        if "forget_beyond" in arrays:
+            restored.forget_beyond = float(cls._take(arrays, "forget_beyond", (), np.float64))
         return restored
 
 

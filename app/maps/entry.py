@@ -153,7 +153,9 @@ class MapEntry:
 
     def info(self) -> MapInfo:
         bounds = self.map.bounds()
-        return map_info(self.meta, self.spec, self.engine_shown, scans_fused=self.scans_fused, version=self.version,
+        # a PATCH changes forget_beyond after the meta was stored: the map holds the setting as it is now
+        meta = {**self.meta, "forget_beyond": self.map.forget_beyond} if isinstance(self.map, FuzzyMap) else self.meta
+        return map_info(meta, self.spec, self.engine_shown, scans_fused=self.scans_fused, version=self.version,
                         updated=self.updated, bounds=None if bounds is None else bounds.spec(),
                         held_cells=self.map.held_cells())
 

@@ -247,6 +247,10 @@ class MapRegistry:
                 LOG.warning("map %s left out of the list: its stored metadata cannot be used (%s)", head.name, exc)
         return infos
 
+    def held_cells(self) -> int:
+        """Cells the maps held here hold in memory, together (``FUZZYRISK_MAX_TOTAL_CELLS`` counts them)."""
+        return sum(entry.map.held_cells() for entry in self._maps.values())
+
     def _box_limit(self, meta: Mapping[str, Any]) -> int:
         """Most cells of a fixed map's box: a bayes map holds its whole box (``FUZZYRISK_MAX_MAP_CELLS``); a fuzzy
         map holds the blocks its scans reached, and its box only bounds a whole-map read (``DEFAULT_MAX_CELLS`` at
@@ -280,7 +284,7 @@ class MapRegistry:
                     "(FUZZYRISK_MAX_TOTAL_CELLS); use a coarser resolution or a smaller region"
                 )
             return
-        used = sum(entry.map.held_cells() for entry in self._maps.values())
+        used = self.held_cells()
         if used + cells > self.settings.max_total_cells:
             raise InsufficientStorage(
                 f"a map of {cells:,} cells does not fit: the maps hold {used:,} of the service's "

@@ -148,13 +148,14 @@ def grid_cdr(grid: GridSnapshot) -> bytes:
 
 
 def _scans(log: Sequence[tuple[int, bytes]]) -> Iterator[Scan]:
-    """The scans of the log in recorded order, one batch decoded at a time (a prior has none: the grid holds it)."""
+    """The scans of the log in recorded order, one batch decoded at a time (a prior or an edit has none: the grid
+    holds what they did)."""
     for version, payload in log:
         try:
             batch = logcodec.decode(payload)
         except logcodec.CorruptBatch as exc:
             raise Unavailable(f"the map's stored batch {version} is corrupt ({exc}): it cannot be exported") from None
-        if not isinstance(batch, logcodec.Prior):
+        if isinstance(batch, list):
             yield from batch
 
 

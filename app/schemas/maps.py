@@ -198,6 +198,34 @@ class MapImport(SensorIn):
         return SensorIn(**{key: getattr(self, key) for key in SensorIn.model_fields})
 
 
+class MapChange(BaseModel):
+    """``PATCH /maps/{name}``: the settings a map may change after it is made (each applied in its place among the
+    map's batches: durable, replayed). A field left out is left as it is."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    forget_beyond: PositiveFinite | None = Field(
+        description="metres, as MapCreate's; null keeps everything from now on (cells forgotten stay forgotten)"
+    )
+
+
+class ClearRegion(BaseModel):
+    """``POST /maps/{name}/clear``: a box, metres; the cells from the one containing ``min`` to the one containing
+    ``max`` go back to never observed (as octomap_server's ``clear_bbx``)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    min: Vector = Field(description="lower corner [x, y(, z)], metres")
+    max: Vector = Field(description="upper corner [x, y(, z)], metres")
+
+
+class Cleared(BaseModel):
+    """What a clear did, once durable."""
+
+    cells_cleared: int = Field(description="cells that were observed and are not any more")
+    version: int = Field(description="the map's version after the clear")
+
+
 class Bounds(BaseModel):
     """A cell-aligned box, metres: the cells from ``min`` to ``max``."""
 
