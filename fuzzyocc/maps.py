@@ -149,6 +149,10 @@ class Window:
         """Cells along each axis."""
         return tuple(h - lo for lo, h in zip(self.lo, self.hi))
 
+    def cells(self) -> int:
+        """Cells in the window."""
+        return math.prod(self.shape)
+
     @property
     def origin(self) -> tuple[float, ...]:
         """Corner of the first cell, metres."""
@@ -580,6 +584,24 @@ class OccupancyMap:
         if any(h <= lo_ for lo_, h in zip(lo, hi)):
             return None
         return Window(tuple(lo), tuple(hi), res, lower)
+
+    def window_around(self, points: object, margin: float) -> Window:
+        """A growing map's bounds and the cells of ``points`` ((M, D), metres), grown by ``margin`` metres on every
+        side: what a plan between those points works on (beyond the bounds, never observed)."""
+        if not self.growing:
+            raise ValueError("window_around is for growing maps; a fixed map's plans work on its box")
+        d, res = self.lattice.ndim, self.lattice.resolution
+        pts = np.asarray(points, dtype=np.float64).reshape(-1, d)
+        if not np.all(np.abs(pts) <= MAX_COORDINATE_M):
+            raise ValueError(f"points must be finite and within {MAX_COORDINATE_M:.0e} m of the map frame's origin")
+        pad = int(math.ceil(margin / res))
+        cells = np.floor(pts / res).astype(np.int64)
+        lo, hi = cells.min(axis=0) - pad, cells.max(axis=0) + 1 + pad
+        bounds = self.bounds()
+        if bounds is not None:
+            lo = np.minimum(lo, np.asarray(bounds.lo) - pad)
+            hi = np.maximum(hi, np.asarray(bounds.hi) + pad)
+        return Window(tuple(int(v) for v in lo), tuple(int(v) for v in hi), res, self.lattice.lower)
 
     def _box(self, window: Window) -> tuple[np.ndarray, np.ndarray]:
         lo, hi = np.zeros(3, dtype=np.int64), np.ones(3, dtype=np.int64)

@@ -23,6 +23,7 @@ from app.schemas import LastScan, MapInfo, OccupancyGrid, RiskGridJSON, RiskValu
 from app.storage import Storage, StoredMap
 from app.ops.threads import Workers
 from fuzzyocc import GridSpec
+from fuzzyocc.maps import Window
 
 LOG = logging.getLogger("fuzzyrisk.maps")
 T = TypeVar("T")
@@ -90,17 +91,18 @@ class MapReads:
         ``risk()`` and ``observed()`` already hand out new read-only arrays, so no copy is needed.
         """
         entry = await self._current(name)
-        async with self.big_read(entry.spec):
+        async with self.big_read(entry.read_spec()):
             return await self.read_grid_of(entry)
 
-    async def read_grid_of(self, entry: MapEntry) -> GridSnapshot:
-        """``read_grid`` of a map already looked up; a caller of a big map holds its ``big_read`` turn."""
+    async def read_grid_of(self, entry: MapEntry, window: Window | None = None) -> GridSnapshot:
+        """``read_grid`` of a map already looked up, of ``window`` (default: the map's box, a growing map's bounds); a
+        caller of a big map holds its ``big_read`` turn."""
         async with entry.apply_lock:
-            risk, observed = await self._workers.run_read(lambda: (entry.map.risk(), entry.map.observed()),
-                                                          heavy=_heavy(entry.spec))
+            spec = entry.read_spec() if window is None else window.spec()
+            risk, observed = await self._workers.run_read(
+                lambda: (entry.map.risk(window), entry.map.observed(window)), heavy=_heavy(spec))
             # version and updated are assigned together under this lock (``_write``): they match the arrays
-            return GridSnapshot(entry.spec, entry.version, risk, observed, entry.frame_id, entry.updated,
-                                entry.etag_seed)
+            return GridSnapshot(spec, entry.version, risk, observed, entry.frame_id, entry.updated, entry.etag_seed)
 
     async def render_log(self, name: str, render: Callable[[GridSnapshot, StoredMap], T]) -> T:
         """``render(grid, stored)`` in a read thread: the map's grid and its stored batch log at one version.
@@ -112,7 +114,7 @@ class MapReads:
         (``app.reads.recording``); ``stored.snapshot`` is dropped, the arrays are not needed.
         """
         entry = await self._current(name)
-        async with self.big_read(entry.spec):
+        async with self.big_read(entry.read_spec()):
             return await self._render_log(name, entry, render)
 
     async def _render_log(self, name: str, entry: MapEntry, render: Callable[[GridSnapshot, StoredMap], T]) -> T:
@@ -123,8 +125,8 @@ class MapReads:
             async with entry.apply_lock:
                 risk, observed, stored = await self._workers.run_read(
                     lambda e=entry: (e.map.risk(), e.map.observed(), self.storage.load_map(e.name)),
-                    heavy=_heavy(entry.spec))
-                grid = GridSnapshot(entry.spec, entry.version, risk, observed, entry.frame_id, entry.updated,
+                    heavy=_heavy(entry.read_spec()))
+                grid = GridSnapshot(entry.read_spec(), entry.version, risk, observed, entry.frame_id, entry.updated,
                                     entry.etag_seed)
             # another replica's snapshot newer than this grid dropped the batches up to it: catch up, again
             if stored is None or stored.snapshot_version <= grid.version:
@@ -162,9 +164,9 @@ class MapReads:
     async def risk_json(self, name: str) -> tuple[bytes, GridSnapshot]:
         """The grid as ``RiskGridJSON``, serialised (off the event loop: big maps make big documents)."""
         entry = await self._current(name)
-        if entry.spec.num_cells > MAX_JSON_CELLS:
+        if entry.read_spec().num_cells > MAX_JSON_CELLS:
             raise Invalid(
-                f"the map has {entry.spec.num_cells} cells, too many for JSON (at most {MAX_JSON_CELLS}); "
+                f"the map has {entry.read_spec().num_cells} cells, too many for JSON (at most {MAX_JSON_CELLS}); "
                 "ask for format=npy or format=png"
             )
         grid = await self.read_grid_of(entry)  # not a big map: no turn in the lane
@@ -181,9 +183,9 @@ class MapReads:
     async def _rendered(self, entry: MapEntry, render: Callable[[GridSnapshot], T]) -> tuple[T, GridSnapshot, Sent]:
         """``render(grid)`` of the map's grid at one version, in a read thread: for a big map in its turn in the lane,
         handed over to the response (``Sent``)."""
-        async with self.big_read(entry.spec) as turn:
+        async with self.big_read(entry.read_spec()) as turn:
             grid = await self.read_grid_of(entry)
-            return await self._workers.run_read(render, grid, heavy=_heavy(entry.spec)), grid, _hand_over(turn)
+            return await self._workers.run_read(render, grid, heavy=_heavy(entry.read_spec())), grid, _hand_over(turn)
 
     async def risk_npy(self, name: str,
                        layer: Literal["risk", "observed"] = "risk") -> tuple[bytes, GridSnapshot, Sent]:
@@ -195,7 +197,7 @@ class MapReads:
                        z_max: float | None) -> tuple[bytes, GridSnapshot, Sent]:
         _check_band(z_min, z_max)
         entry = await self._current(name)
-        nx, ny = entry.spec.shape[:2]
+        nx, ny = entry.read_spec().shape[:2]
         if nx * ny * scale * scale > MAX_PNG_PIXELS:
             raise Invalid(f"scale {scale} would make a {nx * scale} x {ny * scale} image; use a smaller scale")
 
@@ -247,14 +249,14 @@ class MapReads:
         _check_thresholds(free_thresh, occupied_thresh)
         entry = await self._current(name)
         if encoding == "json":
-            cells = entry.spec.shape[0] * entry.spec.shape[1]  # the message is the plane, a 3-D map's included
+            cells = entry.read_spec().shape[0] * entry.read_spec().shape[1]  # the message is the plane, a 3-D map's included
             if cells > MAX_JSON_CELLS:
                 raise Invalid(
                     f"the map's OccupancyGrid has {cells:,} cells, too many for JSON (at most {MAX_JSON_CELLS:,}): "
                     f"ask for GET /maps/{name}/occupancy_grid.cdr or .mcap (the same message as ROS 2 bytes)"
                 )
-        heavy = _heavy(entry.spec)
-        async with self.big_read(entry.spec) as turn:
+        heavy = _heavy(entry.read_spec())
+        async with self.big_read(entry.read_spec()) as turn:
             if entry.spec.ndim == 2:
                 # the values straight from the map's risk codes, in one pass (a 16 M-cell map: 45 ms against 160,
                 # without the 80 MB copy of its risk and observed mask)

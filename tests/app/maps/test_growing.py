@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import io
 from typing import Any
 
 import numpy as np
@@ -138,3 +139,39 @@ def test_a_batch_that_would_take_too_many_new_cells_is_refused_before_any_work(m
     info = _info(client)
     assert info["version"] == 0 and info["held_cells"] == 0
     assert client.post("/maps/explore/scans", json={"scans": [kit.laser(wall=1.0, beams=20)]}).status_code == 200
+
+
+def test_every_grid_read_of_a_growing_map_covers_its_bounds(client: TestClient, kit: Any) -> None:
+    assert client.post("/maps", json=GROWING).status_code == 201
+    empty = client.get("/maps/explore/risk", params={"format": "npy"})
+    assert empty.status_code == 409 and "observed nothing yet" in error_message(empty)
+    assert client.post("/maps/explore/scans", json={"scans": [kit.laser(x=-20.0, y=7.0)]}).status_code == 200
+    info = _info(client)
+    risk = np.load(io.BytesIO(client.get("/maps/explore/risk", params={"format": "npy"}).content))
+    assert list(risk.shape) == info["shape"]
+    as_json = client.get("/maps/explore/risk").json()
+    assert as_json["origin"] == info["origin"] and as_json["shape"] == info["shape"]
+    grid = client.get("/maps/explore/occupancy_grid").json()
+    assert [grid["info"]["width"], grid["info"]["height"]] == info["shape"]
+    assert grid["info"]["origin"]["position"]["x"] == info["origin"][0]
+    png = client.get("/maps/explore/risk", params={"format": "png"})
+    assert png.status_code == 200 and png.headers["content-type"] == "image/png"
+    assert client.get("/maps/explore/export/nav2").status_code == 200
+
+
+def test_a_plan_on_a_growing_map_may_start_and_end_outside_its_bounds(client: TestClient, kit: Any) -> None:
+    assert client.post("/maps", json=GROWING).status_code == 201
+    assert client.post("/maps/explore/scans", json={"scans": [kit.laser(wall=3.0)]}).status_code == 200
+    lo, hi = _info(client)["bounds"]["min"], _info(client)["bounds"]["max"]
+    start, goal = [lo[0] - 5.0, 0.0], [hi[0] + 5.0, 0.5]  # both in space no scan reached
+    refused = client.post("/maps/explore/plan", json={"start": start, "goal": goal, "planner": "grid",
+                                                       "allow_unknown": False})
+    assert refused.status_code == 422 and "unknown" in str(refused.json()).lower(), refused.text
+    plan = client.post("/maps/explore/plan", json={"start": start, "goal": goal, "planner": "grid",
+                                                    "allow_unknown": True})
+    assert plan.status_code == 200, plan.text
+    path = np.array([[p["pose"]["position"]["x"], p["pose"]["position"]["y"]] for p in plan.json()["poses"]])
+    assert np.allclose(path[0], start, atol=0.1) and np.allclose(path[-1], goal, atol=0.1)
+    # it goes around the wall the scan saw (x = 3, |y| < 3), not through it
+    crossing = path[np.argmin(np.abs(path[:, 0] - 3.05))]
+    assert abs(crossing[1]) > 2.9
