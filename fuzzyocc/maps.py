@@ -164,8 +164,9 @@ class Window:
         return tuple(b + i * self.resolution for b, i in zip(self.lower, self.hi))
 
     def spec(self) -> GridSpec:
-        """The window as a fixed box (for a planner or an export)."""
-        return GridSpec(origin=self.origin, size=tuple(n * self.resolution for n in self.shape),
+        """The window as a fixed box (for a planner or an export), its corner as a person writes it (-1.3, not the
+        -1.2999999999999998 of -5.0 + 37 * 0.1: 15 significant digits keep any coordinate within 1e7 m to 10 nm)."""
+        return GridSpec(origin=tuple(float(f"{v:.15g}") for v in self.origin), size=tuple(n * self.resolution for n in self.shape),
                         resolution=self.resolution, max_cells=2 * math.prod(self.shape) + 16)
 
 

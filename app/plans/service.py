@@ -117,8 +117,8 @@ class MapPlans:
                 raise TooLarge(f"a plan between these points works on {window.cells():,} cells of this growing map, "
                                f"more than FUZZYRISK_MAX_MAP_CELLS ({self.settings.max_map_cells:,}): plan between "
                                "nearer points")
-        async with self._reads.big_read(window.spec()):
-            return await self._reads.read_grid_of(entry, window)
+        async with self._reads.big_read(window):
+            return await self._reads.read_cells(entry, window)
 
     def _check_plan(self, request: PlanRequest) -> None:
         """What can be refused without a worker: the service's time limit, and an unknown planner."""

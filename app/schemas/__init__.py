@@ -67,12 +67,15 @@ from app.schemas.plans import (
     PlanResult,
 )
 from app.schemas.risk import (
+    WHOLE_MAP,
+    GridWindow,
     MapMetaData,
     OccupancyGrid,
     OccupancyGridMessage,
     RiskGridJSON,
     RiskQuery,
     RiskValues,
+    WindowCorner,
 )
 from app.schemas.scans import (
     EXAMPLE_CLOUD,
@@ -116,6 +119,7 @@ __all__ = [
     "FRAME_ID_PATTERN",
     "FRAME_ID_RULE",
     "FrameId",
+    "GridWindow",
     "Header",
     "Health",
     "LabelMap",
@@ -168,6 +172,8 @@ __all__ = [
     "TrapezoidIn",
     "TriangleIn",
     "Vector",
+    "WHOLE_MAP",
+    "WindowCorner",
     "check_frame_id",
     "check_map_name",
 ]
