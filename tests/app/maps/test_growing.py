@@ -156,6 +156,12 @@ def test_every_grid_read_of_a_growing_map_covers_its_bounds(client: TestClient, 
     assert grid["info"]["origin"]["position"]["x"] == info["origin"][0]
     png = client.get("/maps/explore/risk", params={"format": "png"})
     assert png.status_code == 200 and png.headers["content-type"] == "image/png"
+    assert png.headers["X-Map-Shape"] == ",".join(str(n) for n in info["shape"])
+    assert [float(v) for v in png.headers["X-Map-Origin"].split(",")] == info["origin"]
+    # a window of a growing map is cut to its bounds, and says where it is
+    part = client.get("/maps/explore/risk", params={"format": "npy", "min": "-25,6", "max": "-19,8"})
+    assert part.status_code == 200
+    assert float(part.headers["X-Map-Origin"].split(",")[0]) == info["origin"][0] == -20.0  # cut at the bounds
     assert client.get("/maps/explore/export/nav2").status_code == 200
 
 
