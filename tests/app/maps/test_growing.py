@@ -181,3 +181,23 @@ def test_a_plan_on_a_growing_map_may_start_and_end_outside_its_bounds(client: Te
     # it goes around the wall the scan saw (x = 3, |y| < 3), not through it
     crossing = path[np.argmin(np.abs(path[:, 0] - 3.05))]
     assert abs(crossing[1]) > 2.9
+
+
+def test_a_growing_3d_map_takes_clouds_anywhere_and_comes_back_the_same(make_client: Any, kit: Any) -> None:
+    client = make_client()
+    assert client.post("/maps", json={"name": "hall", "resolution": 0.1, "dimensions": 3}).status_code == 201
+    for position in ([0.0, 0.0, 1.5], [-40.0, 25.0, -3.0]):
+        scan = {"pose": {"position": position, "orientation": [0.0, 0.0, 0.0, 1.0]},
+                "points": kit.cloud_sensor_points(distance=2.5).tolist(), "range_max": 10.0}
+        assert client.post("/maps/hall/scans", json={"scans": [scan]}).status_code == 200
+    info = _info(client, "hall")
+    assert info["dimensions"] == 3 and len(info["bounds"]["min"]) == 3
+    assert info["bounds"]["min"][2] <= -3.8 and info["bounds"]["max"][2] >= 2.3
+    risk = np.load(io.BytesIO(client.get("/maps/hall/risk", params={"format": "npy"}).content))
+    assert list(risk.shape) == info["shape"] and info["held_cells"] < risk.size / 4  # the space between is not held
+    wall = _query(client, [[-37.45, 25.0 + dy, -3.0 + dz] for dy in np.arange(-1.0, 1.0, 0.1)
+                           for dz in np.arange(-0.5, 0.5, 0.1)], name="hall")
+    assert max(wall) > 0.5 and _query(client, [[-20.0, 10.0, 0.0]], name="hall") == [0.5]
+    again = make_client()
+    np.testing.assert_array_equal(
+        np.load(io.BytesIO(again.get("/maps/hall/risk", params={"format": "npy"}).content)), risk)
