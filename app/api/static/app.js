@@ -182,7 +182,7 @@
       nameCell.append(button);
       const cells = [
         fmtExtent(m),
-        `${cellsOf(m).join(" × ")} @ ${m.resolution} m`,
+        `${m.size ? cellsOf(m).join(" × ") : "no cells yet"} @ ${m.resolution} m`,
         m.model,
         String(m.scans_fused),
         String(m.version),
