@@ -9,7 +9,10 @@ import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
-from tests.conftest import error_message
+from scipy.spatial.transform import Rotation
+
+from app.config import Settings
+from tests.conftest import error_message, ouster_frames
 
 GROWING = {"name": "explore", "resolution": 0.1}
 
@@ -201,3 +204,18 @@ def test_a_growing_3d_map_takes_clouds_anywhere_and_comes_back_the_same(make_cli
     again = make_client()
     np.testing.assert_array_equal(
         np.load(io.BytesIO(again.get("/maps/hall/risk", params={"format": "npy"}).content)), risk)
+
+
+def test_the_ouster_frames_fit_one_growing_map_under_the_default_limits(client: TestClient) -> None:
+    # three real OS-1-128 frames at 0.1 m, range_max 30 m, every height: a fixed box over them was refused
+    # (64 x 64 x 9 m is already 37 M cells, over the 16 M default)
+    assert client.post("/maps", json={"name": "ouster", "resolution": 0.1, "dimensions": 3}).status_code == 201
+    for points, rotation, translation in ouster_frames():
+        quaternion = Rotation.from_matrix(rotation).as_quat()  # x, y, z, w
+        scan = {"pose": {"position": translation.tolist(), "orientation": quaternion.tolist()},
+                "points": points.tolist(), "range_max": 30.0}
+        response = client.post("/maps/ouster/scans", json={"scans": [scan]})
+        assert response.status_code == 200, response.text
+    info = _info(client, "ouster")
+    assert info["version"] == 3 and 0 < info["held_cells"] <= Settings().max_map_cells
+    assert np.prod(info["shape"]) > Settings().max_map_cells  # what a box around the same cells would take
