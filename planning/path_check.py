@@ -115,22 +115,20 @@ def check_path(
 def _points(path: Any, size: int, space: str) -> np.ndarray:
     """``path`` as a (K, size) float64 array of finite numbers, K >= 1; ValueError naming the first bad point."""
     try:
-        points = np.asarray(path, dtype=np.float64)
-    except (TypeError, ValueError):
-        points = None
-    if points is not None and points.ndim == 2 and points.shape[1] == size and np.isfinite(points).all():
-        if len(points) == 0:
-            raise ValueError("path: needs at least one point")
-        return points
-    if points is not None and points.size == 0:
-        raise ValueError("path: needs at least one point")
-    try:
         items = list(path)
     except TypeError:
         raise ValueError(f"path: must be a sequence of points, got {type(path).__name__}") from None
+    if not items:
+        raise ValueError("path: needs at least one point")
+    try:
+        points = np.asarray(items, dtype=np.float64)
+    except (TypeError, ValueError):  # ragged, or not numbers: the loop below names the point
+        points = None
+    if points is not None and points.shape == (len(items), size) and np.isfinite(points).all():
+        return points
     for k, point in enumerate(items):
         check_point(f"path[{k}]", point, size, space)
-    raise ValueError(f"path: must be a sequence of points of {size} numbers")  # pragma: no cover - caught above
+    raise ValueError(f"path: must be a sequence of points of {size} numbers")  # pragma: no cover - named above
 
 
 def _check_walk(cells: np.ndarray, inside: np.ndarray) -> None:

@@ -208,8 +208,11 @@ _CHECK_AS_ANSWERED: dict[str, tuple[Any, Any]] = {
 }
 
 
-class PathCheckResult(create_model(  # type: ignore[misc]
-        "_PathCheckAnswer", **_answer_fields(PathCheck, _CHECK_AS_ANSWERED))):
+#: What the check answered, field by field (``planning.PathCheck``).
+_PathCheckAnswer: type[BaseModel] = create_model("_PathCheckAnswer", **_answer_fields(PathCheck, _CHECK_AS_ANSWERED))
+
+
+class PathCheckResult(_PathCheckAnswer):  # type: ignore[misc,valid-type]
     """A path held to a plan's rules on one version of the map (Nav2's IsPathValid), measured as a plan is."""
 
     version: int = Field(description="the map version checked on")
