@@ -45,7 +45,11 @@ class Settings(BaseSettings):
         None,
         description="Bearer token every API call must carry; unset or empty = no authentication.",
     )
-    max_body_bytes: int = Field(64 * 2**20, ge=1024, description="Largest scan upload body, bytes (413 beyond).")
+    max_body_bytes: int = Field(
+        64 * 2**20, ge=1024,
+        description="Largest upload body (scans, bags, a saved map imported), bytes (413 beyond); also the most a "
+        "saved map's zipped image may inflate to.",
+    )
     max_json_body_bytes: int = Field(
         8 * 2**20, ge=1024,
         description="Largest body of every other route (maps, risk queries, plans), bytes (413 beyond): "

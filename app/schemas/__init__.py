@@ -51,6 +51,7 @@ from app.schemas.maps import (
     EXAMPLE_MAP,
     EXAMPLE_MAP_3D,
     MapCreate,
+    MapImport,
     MapInfo,
     SensorIn,
 )
@@ -68,6 +69,7 @@ from app.schemas.plans import (
 from app.schemas.risk import (
     MapMetaData,
     OccupancyGrid,
+    OccupancyGridMessage,
     RiskGridJSON,
     RiskQuery,
     RiskValues,
@@ -123,6 +125,7 @@ __all__ = [
     "LastScan",
     "LeftShoulderIn",
     "MapCreate",
+    "MapImport",
     "MapInfo",
     "MapMetaData",
     "MapName",
@@ -131,6 +134,7 @@ __all__ = [
     "NAME_RULE",
     "NonNegativeFinite",
     "OccupancyGrid",
+    "OccupancyGridMessage",
     "PathCheckRequest",
     "PathCheckResult",
     "PathRules",

@@ -18,7 +18,7 @@ import httpx
 import psutil
 import pytest
 
-from tests.e2e.conftest import CHILDREN_GRACE_S, ROOT, Server, assert_ended, free_port
+from tests.e2e.conftest import CHILDREN_GRACE_S, PATIENCE_S, ROOT, Server, assert_ended, free_port
 
 pytestmark = pytest.mark.slow
 
@@ -117,8 +117,9 @@ def test_after_kill_9_of_the_server_none_of_its_children_is_alive_10_s_later(sta
 
     planning = threading.Thread(target=long_plan)
     planning.start()
-    time.sleep(1.5)  # the plan is in a worker's solve
-    assert any(w.cpu_percent(interval=0.2) > 20 for w in workers), "a worker is planning"
+    deadline = time.monotonic() + PATIENCE_S
+    while not any(w.cpu_percent(interval=0.2) > 20 for w in workers):  # until a worker is in the plan's solve
+        assert time.monotonic() < deadline, "no worker took up the plan"
     killed = time.monotonic()
     server.process.kill()
     server.process.wait(timeout=30)
