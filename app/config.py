@@ -105,6 +105,11 @@ class Settings(BaseSettings):
         "engine, so the default bounds the maps' memory near 5 GB.",
     )
     max_query_points: int = Field(100_000, ge=1, description="Most points in one risk query.")
+    max_path_points: int = Field(
+        10_000, ge=1,
+        description="Most points in one path check (413 beyond): a plan's path has a point a cell, so 10,000 points "
+        "are 500 m at 0.05 m.",
+    )
     max_plan_time_s: float = Field(30.0, gt=0.0, le=3600.0, description="Largest plan time_limit, seconds.")
     plan_workers: int = Field(2, ge=1, le=64, description="Planner worker processes.")
     plan_workers_per_map: int | None = Field(

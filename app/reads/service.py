@@ -118,6 +118,14 @@ class MapReads:
             return GridSnapshot(window.spec(), entry.version, risk, observed, entry.frame_id, entry.updated,
                                 entry.etag_seed)
 
+    async def computed(self, name: str, compute: Callable[[GridSnapshot], T]) -> T:
+        """``compute(grid)`` in a read thread, on the map's grid at one version (a big map's in its turn in the lane):
+        what is worked out from a grid and answered small, a path check."""
+        entry = await self._current(name)
+        async with self.big_read(await self._planned(entry, WHOLE_MAP)):
+            grid = await self.read_grid_of(entry)
+            return await self._workers.run_read(compute, grid, heavy=_heavy(grid.spec))
+
     async def _planned(self, entry: MapEntry, region: GridWindow) -> Window:
         """The cells a read of ``region`` would cover now, for its limits and its lane, before any copy: a fixed
         map's from its box alone; a growing map's from its bounds under the apply lock (they may grow before

@@ -184,7 +184,7 @@ def test_the_generated_client_drives_every_operation(generated: tuple[ModuleType
     last_scan = jazzy_typestore().deserialize_cdr(scans[-1], "sensor_msgs/msg/LaserScan")
     assert last_scan.ranges.astype("<f4").tobytes() == raw
 
-    # plans, and a start the planner cannot use: Nav2's code in the one error body
+    # plans, a start the planner cannot use (Nav2's code in the one error body), and a path checked
     names = [p.name for p in op("plans", "planners").sync(client=client).planners]
     assert "grid" in names and "RRTstar" in names
     request = {"start": [1.5, 1.5], "goal": [8.5, 4.5], "planner": "grid", "time_limit": 5.0}
@@ -193,6 +193,12 @@ def test_the_generated_client_drives_every_operation(generated: tuple[ModuleType
     outside = op("plans", "plan").sync("hall", client=client,
                                        body=m.PlanRequest.from_dict({**request, "start": [-1.0, 1.0]}))
     assert isinstance(outside, m.ErrorBody) and outside.code == "START_OUTSIDE_MAP"
+    # the plan's own nav_msgs/Path, checked on its version, as the generated models carry it
+    check = m.PathCheckRequest.from_dict({"poses": [p.to_dict() for p in result.poses],
+                                          "header": result.header.to_dict()})
+    checked = op("plans", "check_path").sync("hall", client=client, body=check)
+    assert isinstance(checked, m.PathCheckResult) and checked.valid and checked.version == result.version
+    assert checked.cost == result.cost
 
     # the key, and a deletion
     anonymous = package.Client(base_url=server.url)
