@@ -70,7 +70,16 @@ class Settings(BaseSettings):
         2_000_000, ge=1, description="Most ranges in a LaserScan, or points in a point cloud."
     )
     max_map_cells: int = Field(
-        16_000_000, ge=1, description="Most cells in one map (at most about 13 bytes a cell in memory for a fuzzy map of the default engine)."
+        16_000_000, ge=1,
+        description="Most cells one map holds in memory (507 beyond): a fuzzy map holds a cell of each mixed block, "
+        "one for each uniform block and none for space no scan reached (at most about 13 bytes a cell for the default "
+        "engine); a bayes map its whole box. A batch is refused once the map holds this many (clear a region, set "
+        "forget_beyond or delete the map); a batch under it may pass it by at most FUZZYRISK_MAX_NEW_CELLS_PER_BATCH.",
+    )
+    max_new_cells_per_batch: int = Field(
+        16_000_000, ge=1,
+        description="Most cells one batch may make a fuzzy map hold anew (413 beyond, before it is stored): the "
+        "cells of every block its beams reach, counted as if the map held none of them yet.",
     )
     max_bodies_in_flight_bytes: int = Field(
         256 * 2**20, ge=1024,

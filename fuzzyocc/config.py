@@ -136,6 +136,39 @@ class GridSpec:
         return self.origin[axis] + (np.arange(self.shape[axis]) + 0.5) * self.resolution
 
 
+#: Finest resolution of a growing map, metres: every cell index within ``MAX_COORDINATE_M`` of the frame's
+#: origin then fits 32 bits (block coordinates are keyed as 32-bit integers).
+GROWING_MIN_RESOLUTION = 0.005
+
+
+@dataclass(frozen=True)
+class LatticeSpec:
+    """The cells of a growing map: no box, the lattice anchored at the map frame's origin.
+
+    Cell ``i`` along an axis covers ``[i * resolution, (i + 1) * resolution)``, as OctoMap's keys do;
+    indices may be negative. The map holds the cells rays reached (see :mod:`fuzzyocc.blockgrid`).
+
+    Parameters
+    ----------
+    ndim : int
+        2 or 3.
+    resolution : float
+        Edge of a cell, metres, at least ``GROWING_MIN_RESOLUTION``.
+    """
+
+    ndim: int
+    resolution: float
+
+    def __post_init__(self) -> None:
+        if self.ndim not in (2, 3):
+            raise ValueError(f"ndim must be 2 or 3, got {self.ndim!r}")
+        res = float(self.resolution)
+        if not math.isfinite(res) or res < GROWING_MIN_RESOLUTION:
+            raise ValueError(f"resolution of a growing map must be at least {GROWING_MIN_RESOLUTION} m, "
+                             f"got {self.resolution!r}")
+        object.__setattr__(self, "resolution", res)
+
+
 @dataclass(frozen=True)
 class SensorModel:
     """Range uncertainty of a sensor and of the pose it is registered with.

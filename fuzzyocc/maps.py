@@ -34,11 +34,13 @@ from typing import cast
 import numpy as np
 
 from fuzzyocc import bayes, presets
-from fuzzyocc.config import GridSpec, SensorModel
+from fuzzyocc.config import MAX_COORDINATE_M, GridSpec, LatticeSpec, SensorModel
 from fuzzyocc.engine import FuzzyEngine
-from fuzzyocc.grid import BlockGrid, CellGrid
+from fuzzyocc._block_table import BlockIndex
+from fuzzyocc.blockgrid import BLOCK_SHIFT_2D, BLOCK_SHIFT_3D, BlockGrid, block_shift_for
+from fuzzyocc.grid import CellGrid
 from fuzzyocc.keys import coords_to_keys, keys_to_flat
-from fuzzyocc.raycast import CastResult, cast_rays, new_scratch, traversal_cells
+from fuzzyocc.raycast import CastResult, Lattice, cast_into, traversal_cells
 from fuzzyocc.scans import LaserScan, PointCloud, Rays
 
 Scan = LaserScan | PointCloud
@@ -77,7 +79,7 @@ def _probability(logodds: np.ndarray) -> np.ndarray:
     return np.asarray(bayes.probability(logodds), dtype=np.float32)
 
 
-def cast_work(spec: GridSpec, scans: Sequence[Scan]) -> int:
+def cast_work(spec: GridSpec | LatticeSpec, scans: Sequence[Scan]) -> int:
     """About how many cells fusing ``scans`` into a map of ``spec`` walks (see ``traversal_cells``).
 
     What a batch costs in time is close to proportional to it (about 10 M cells a second per
@@ -92,14 +94,80 @@ def cast_work(spec: GridSpec, scans: Sequence[Scan]) -> int:
     return total
 
 
+def allocation_bound(spec: GridSpec | LatticeSpec, scans: Sequence[Scan]) -> int:
+    """At most about how many cells fusing ``scans`` makes a fuzzy map of ``spec`` hold anew: the cells of every
+    block their beams reach, as if none were held yet.
+
+    Counted by casting the beams over the lattice of blocks (one cell a block): a few times less work
+    than the fusion, and known before it. A beam's occupied band behind its hit (a few sigmas) is not
+    counted, nor are blocks the map already holds: a bound for refusing a batch that would take a
+    map's memory at once (a cloud of kilometre-long beams), not a forecast.
+    """
+    ndim = spec.ndim
+    side = 1 << (BLOCK_SHIFT_3D if ndim == 3 else BLOCK_SHIFT_2D)
+    if isinstance(spec, GridSpec):
+        lattice = Lattice(tuple(float(v) for v in spec.origin), spec.resolution * side,
+                          tuple(-(-n // side) for n in spec.shape))
+    else:
+        lattice = Lattice((0.0,) * ndim, spec.resolution * side, None)
+    index = BlockIndex()
+    for scan in scans:
+        for part in scan_parts(scan):
+            rays = scan.to_rays(beams=part)
+            n = rays.ranges.size
+            if n:
+                cast_into(lattice, index, (0, 0, 0), np.repeat(rays.origin[None], n, axis=0), rays.directions,
+                          rays.ranges, np.full(n, np.nan), np.ones(n), np.array([0, n]), unknown_from=np.inf)
+    return index.n * side**ndim
+
+
 def _check_weight(weight: object) -> None:
     if not isinstance(weight, int) or isinstance(weight, bool) or not 1 <= weight <= MAX_PRIOR_SCANS:
         raise ValueError(f"weight must be a whole number of scans from 1 to {MAX_PRIOR_SCANS}, got {weight!r}")
 
 
 def _check_spec(spec: object) -> None:
-    if not isinstance(spec, GridSpec):
-        raise ValueError(f"spec must be a GridSpec, got {type(spec).__name__}")
+    if not isinstance(spec, (GridSpec, LatticeSpec)):
+        raise ValueError(f"spec must be a GridSpec (a fixed box) or a LatticeSpec (a growing map), got "
+                         f"{type(spec).__name__}")
+
+
+@dataclass(frozen=True)
+class Window:
+    """A box of a map's cells: ``[lo, hi)`` lattice indices along x, y[, z].
+
+    ``origin`` is the corner of its first cell in the map frame and ``shape`` its cells, as a
+    grid answer states them (a Nav2 map YAML's ``origin``, an OccupancyGrid's ``info``)."""
+
+    lo: tuple[int, ...]
+    hi: tuple[int, ...]
+    resolution: float
+    lower: tuple[float, ...]
+
+    @property
+    def shape(self) -> tuple[int, ...]:
+        """Cells along each axis."""
+        return tuple(h - lo for lo, h in zip(self.lo, self.hi))
+
+    def cells(self) -> int:
+        """Cells in the window."""
+        return math.prod(self.shape)
+
+    @property
+    def origin(self) -> tuple[float, ...]:
+        """Corner of the first cell, metres."""
+        return tuple(b + i * self.resolution for b, i in zip(self.lower, self.lo))
+
+    @property
+    def upper(self) -> tuple[float, ...]:
+        """Far corner of the last cell, metres."""
+        return tuple(b + i * self.resolution for b, i in zip(self.lower, self.hi))
+
+    def spec(self) -> GridSpec:
+        """The window as a fixed box (for a planner or an export), its corner as a person writes it (-1.3, not the
+        -1.2999999999999998 of -5.0 + 37 * 0.1: 15 significant digits keep any coordinate within 1e7 m to 10 nm)."""
+        return GridSpec(origin=tuple(float(f"{v:.15g}") for v in self.origin), size=tuple(n * self.resolution for n in self.shape),
+                        resolution=self.resolution, max_cells=2 * math.prod(self.shape) + 16)
 
 
 @dataclass(frozen=True)
@@ -133,15 +201,37 @@ class OccupancyMap:
 
     model: str = ""
 
-    def __init__(self, spec: GridSpec, sensor: SensorModel | None = None) -> None:
+    def __init__(self, spec: GridSpec | LatticeSpec, sensor: SensorModel | None = None) -> None:
         _check_spec(spec)
         sensor = SensorModel() if sensor is None else sensor
         if not isinstance(sensor, SensorModel):
             raise ValueError(f"sensor must be a SensorModel, got {type(sensor).__name__}")
         self.spec = spec
         self.sensor = sensor
+        self.lattice = (Lattice.of(spec) if isinstance(spec, GridSpec)
+                        else Lattice((0.0,) * spec.ndim, spec.resolution, None))
+        self._forget_beyond: float | None = None
         self._grid: CellGrid | BlockGrid = self._new_grid()
         self._scans_fused = 0
+
+    @property
+    def growing(self) -> bool:
+        """Whether the map has no fixed box (its ``spec`` is a :class:`~fuzzyocc.config.LatticeSpec`)."""
+        return isinstance(self.spec, LatticeSpec)
+
+    @property
+    def forget_beyond(self) -> float | None:
+        """Metres: after each scan, cells whose centre lies farther than this from the scan's sensor (in the
+        plane on a 2-D map) go back to never observed. None keeps everything."""
+        return self._forget_beyond
+
+    @forget_beyond.setter
+    def forget_beyond(self, metres: float | None) -> None:
+        if metres is not None:
+            metres = float(metres)
+            if not math.isfinite(metres) or metres <= 0.0:
+                raise ValueError(f"forget_beyond must be a positive number of metres or None, got {metres!r}")
+        self._forget_beyond = metres
 
     def _restore(self, state: np.ndarray, observed: np.ndarray, scans_fused: int) -> None:
         self._grid = self._grid_from(state, observed)
@@ -212,26 +302,26 @@ class OccupancyMap:
         if not scans:
             return IntegrationStats(scans=0, rays=0, cells_updated=0)
         chunks = self._cast_chunks(scans)
-        parted = any(scans[first].beam_count > CAST_CHUNK_BEAMS for first, _ in chunks)
-        scratch = new_scratch(self.spec, self._grid.block_shift) if len(chunks) > 1 or parted else None
         updated = traversed = n_rays = skipped = 0
         for first, last in chunks:
             if scans[first].beam_count > CAST_CHUNK_BEAMS:  # a chunk of its own (``_cast_chunks``)
-                cast, beams, dropped = self._cast_in_parts(scans[first], scratch)
+                cast, beams, dropped = self._cast_in_parts(scans[first])
             else:
                 rays = [self._rays_of(scan) for scan in scans[first:last]]
-                cast = self._cast(scans[first:last], rays, scratch)
+                cast = self._cast(scans[first:last], rays)
                 beams, dropped = sum(r.ranges.size for r in rays), sum(r.skipped for r in rays)
                 del rays
             n_rays, skipped = n_rays + beams, skipped + dropped
             traversed += int(cast.cells_traversed.sum())
             for s in range(last - first):
                 lo, hi = cast.scan_offsets[s], cast.scan_offsets[s + 1]
-                cells = cast.cells[lo:hi]
+                cells = self._stored_cells(cast.cells[lo:hi])
                 dist = cast.distance_sigmas[lo:hi]
                 self._grid.mark_observed(cells)
                 evidence = np.isfinite(dist)  # -inf: reached only past the occupied region
                 updated += self._update(cells[evidence], dist[evidence])
+                if self._forget_beyond is not None:
+                    self._forget(scans[first + s])
             del cast  # the next chunk's cells replace these: memory does not grow with the batch
         self._scans_fused += len(scans)
         return IntegrationStats(
@@ -253,6 +343,8 @@ class OccupancyMap:
         counts no scan. ``ValueError`` naming ``levels`` (the map unchanged) for a wrong shape, dtype or level.
         """
         levels = np.asarray(levels)
+        if not isinstance(self.spec, GridSpec):
+            raise ValueError("a prior is a fixed map's: a growing map has no box for its levels")
         if levels.shape != self.spec.shape or levels.dtype != np.int8:
             raise ValueError(f"levels must be int8 of the map's shape {self.spec.shape}, got {levels.dtype.name} of "
                              f"shape {levels.shape}")
@@ -322,44 +414,66 @@ class OccupancyMap:
         bounded whatever the batch, with the same cells and evidence (each scan is cast on its
         own anyway).
         """
-        reach = math.ceil(math.hypot(*self.spec.shape)) + 1
+        spec = self.spec
+        if isinstance(spec, GridSpec):
+            reach, cells = math.ceil(math.hypot(*spec.shape)) + 1, spec.num_cells
         chunks: list[tuple[int, int]] = []
         first, held, held_beams = 0, 0, 0
         for s, scan in enumerate(scans):
             beams = scan.beam_count
-            entries = min(self.spec.num_cells, beams * reach)
+            if not isinstance(spec, GridSpec):
+                reach = math.ceil(math.sqrt(spec.ndim) * scan.range_max / spec.resolution) + 4
+                cells = beams * reach
+            entries = min(cells, beams * reach)
+            # Forgetting frees blocks after each scan, and a cast's keys name blocks: one scan a cast then.
             if s > first and (held + entries > CAST_CHUNK_ENTRIES or held_beams + beams > CAST_CHUNK_BEAMS
-                              or beams > CAST_CHUNK_BEAMS):
+                              or beams > CAST_CHUNK_BEAMS or self._forget_beyond is not None):
                 chunks.append((first, s))
                 first, held, held_beams = s, 0, 0
             held, held_beams = held + entries, held_beams + beams
         chunks.append((first, len(scans)))
         return chunks
 
-    def _cast_in_parts(self, scan: Scan, scratch: np.ndarray | None) -> tuple[CastResult, int, int]:
+    def _cast_in_parts(self, scan: Scan) -> tuple[CastResult, int, int]:
         """One scan's cast, ``CAST_CHUNK_BEAMS`` beams at a time; with its rays and the beams it dropped.
 
         Equal to the whole scan's cast: a cell's evidence is the largest of its beams', so the
-        largest of the parts' (``np.fmax``, NaN for a cell a part did not reach), gathered in a
-        scratch over every cell. Memory: two scratches (4 bytes a cell each) and one part's
-        rays and cells, whatever the scan's size.
+        largest of the parts' (``np.fmax`` over the parts' entries of a cell). Memory: the
+        parts' cells and one part's rays, whatever the scan's size and the map's.
         """
-        merged = new_scratch(self.spec, self._grid.block_shift)
         traversed = n_rays = skipped = 0
+        keys, dists = [], []
         for part in scan_parts(scan):
             rays = self._rays_of(scan, part)
             n_rays, skipped = n_rays + rays.ranges.size, skipped + rays.skipped
-            cast = self._cast([scan], [rays], scratch)
+            cast = self._cast([scan], [rays])
             del rays
             traversed += int(cast.cells_traversed.sum())
-            merged[cast.cells] = np.fmax(merged[cast.cells], cast.distance_sigmas)
+            keys.append(cast.cells)
+            dists.append(cast.distance_sigmas)
             del cast
-        cells = np.flatnonzero(~np.isnan(merged))  # in increasing id order, as a cast hands them out
-        result = CastResult(cells=cells, distance_sigmas=merged[cells], scan_offsets=np.array([0, cells.size]),
+        every = np.concatenate(keys)
+        order = np.argsort(every, kind="stable")  # by key: a block's cells together, as a cast hands them out
+        every, evidence = every[order], np.concatenate(dists)[order]
+        first = np.flatnonzero(np.concatenate([[True], every[1:] != every[:-1]]))
+        cells = every[first]
+        best = np.fmax.reduceat(evidence, first) if every.size else evidence
+        result = CastResult(cells=cells, distance_sigmas=best.astype(np.float32), scan_offsets=np.array([0, cells.size]),
                             cells_traversed=np.array([traversed]))
         return result, n_rays, skipped
 
+    def _forget(self, scan: Scan) -> None:
+        grid = cast(BlockGrid, self._grid)
+        sensor = np.asarray(scan.pose[:2] if isinstance(scan, LaserScan) else scan.origin, dtype=np.float64)
+        centre = (sensor - np.asarray(self.lattice.lower)) / self.lattice.resolution
+        grid.forget_beyond(centre, cast(float, self._forget_beyond) / self.lattice.resolution)
+
     def _check_scan(self, scan: object, name: str) -> None:
+        if self.growing:
+            sensor = scan.pose[:2] if isinstance(scan, LaserScan) else getattr(scan, "origin", ())
+            if any(abs(v) > MAX_COORDINATE_M for v in sensor):
+                raise ValueError(f"{name}'s sensor is farther than {MAX_COORDINATE_M:.0e} m from the map frame's "
+                                 "origin: use a local map frame")
         if isinstance(scan, LaserScan):
             if self.spec.ndim != 2:
                 raise ValueError(f"{name} is a LaserScan, which is planar, and this map is 3-D; "
@@ -371,7 +485,7 @@ class OccupancyMap:
         else:
             raise ValueError(f"{name} must be a LaserScan or a PointCloud, got {type(scan).__name__}")
 
-    def _cast(self, scans: list[Scan], rays: list[Rays], scratch: np.ndarray | None = None) -> CastResult:
+    def _cast(self, scans: list[Scan], rays: list[Rays]) -> CastResult:
         half_cell = 0.5 * self.spec.resolution
         counts = [r.ranges.size for r in rays]
         origins = np.repeat(np.stack([r.origin for r in rays]), counts, axis=0)
@@ -381,8 +495,11 @@ class OccupancyMap:
         sigma = np.concatenate([self.sensor.sigma(r.ranges, s.registration_sigma) * self._grazing(r)
                                 for s, r in zip(scans, rays)])
         sigma = np.maximum(sigma, half_cell)
-        return cast_rays(
-            self.spec,
+        index, shift = self._cast_blocks()
+        cast = cast_into(
+            self.lattice,
+            index,
+            shift,
             origins,
             directions,
             t_end=np.where(hit, ranges + self.occupied_extent * sigma, ranges),
@@ -390,9 +507,20 @@ class OccupancyMap:
             sigma=sigma,
             ray_offsets=np.concatenate([[0], np.cumsum(counts)]),
             unknown_from=self.occupied_extent,
-            block_shift=self._grid.block_shift,
-            scratch=scratch,
         )
+        self._cast_done()
+        return cast
+
+    def _cast_blocks(self) -> tuple[BlockIndex, tuple[int, int, int]]:
+        """The block index a cast numbers cells by, and its block size."""
+        raise NotImplementedError
+
+    def _cast_done(self) -> None:
+        """After a cast: storage takes the blocks it added to the index."""
+
+    def _stored_cells(self, keys: np.ndarray) -> np.ndarray:
+        """The ids storage addresses the cells of a cast by (``keys`` as :func:`fuzzyocc.raycast.cast_into` gives them)."""
+        return keys
 
     @property
     def incidence_floor(self) -> float:
@@ -412,8 +540,78 @@ class OccupancyMap:
         return np.where(np.isfinite(sine), 1.0 / np.maximum(np.nan_to_num(sine, nan=1.0), floor), 1.0)
 
     # -- reading -------------------------------------------------------------------------
-    def risk(self) -> np.ndarray:
-        """Risk of every cell, float32 of ``spec.shape`` in [0, 1], 0.5 = unknown.
+    def bounds(self) -> Window | None:
+        """The smallest box of cells holding every observed cell; None while none is."""
+        grid = self._grid
+        if isinstance(grid, BlockGrid):
+            found = grid.bounds()
+            if found is None:
+                return None
+            lo, hi = (tuple(int(v) for v in a[: self.lattice.ndim]) for a in found)
+        else:
+            observed = grid.observed().reshape(cast(GridSpec, self.spec).shape)
+            if not observed.any():
+                return None
+            where = np.nonzero(observed)
+            lo = tuple(int(w.min()) for w in where)
+            hi = tuple(int(w.max()) + 1 for w in where)
+        return Window(lo, hi, self.lattice.resolution, self.lattice.lower)
+
+    def window(self, low: Sequence[float] | None = None, high: Sequence[float] | None = None) -> Window | None:
+        """The cells a read covers: a fixed map's box, a growing map's :meth:`bounds`, cut to the cells that meet
+        ``[low, high]`` (metres; either may be omitted). None when nothing is left."""
+        d = self.lattice.ndim
+        spec = self.spec
+        if isinstance(spec, GridSpec):
+            whole: Window | None = Window((0,) * d, tuple(spec.shape), spec.resolution, self.lattice.lower)
+        else:
+            whole = self.bounds()
+        if whole is None:
+            return None
+        lo, hi = list(whole.lo), list(whole.hi)
+        res, lower = self.lattice.resolution, self.lattice.lower
+        for name, corner in (("low", low), ("high", high)):
+            if corner is None:
+                continue
+            values = [float(v) for v in corner]
+            if len(values) != d or not all(math.isfinite(v) for v in values):
+                raise ValueError(f"{name} must be {d} finite coordinates, got {list(corner)}")
+            for a, v in enumerate(values):
+                cell = math.floor((v - lower[a]) / res)
+                if name == "low":
+                    lo[a] = max(lo[a], cell)
+                else:
+                    hi[a] = min(hi[a], cell + 1)
+        if any(h <= lo_ for lo_, h in zip(lo, hi)):
+            return None
+        return Window(tuple(lo), tuple(hi), res, lower)
+
+    def window_around(self, points: object, margin: float) -> Window:
+        """A growing map's bounds and the cells of ``points`` ((M, D), metres), grown by ``margin`` metres on every
+        side: what a plan between those points works on (beyond the bounds, never observed)."""
+        if not self.growing:
+            raise ValueError("window_around is for growing maps; a fixed map's plans work on its box")
+        d, res = self.lattice.ndim, self.lattice.resolution
+        pts = np.asarray(points, dtype=np.float64).reshape(-1, d)
+        if not np.all(np.abs(pts) <= MAX_COORDINATE_M):
+            raise ValueError(f"points must be finite and within {MAX_COORDINATE_M:.0e} m of the map frame's origin")
+        pad = int(math.ceil(margin / res))
+        cells = np.floor(pts / res).astype(np.int64)
+        lo, hi = cells.min(axis=0) - pad, cells.max(axis=0) + 1 + pad
+        bounds = self.bounds()
+        if bounds is not None:
+            lo = np.minimum(lo, np.asarray(bounds.lo) - pad)
+            hi = np.maximum(hi, np.asarray(bounds.hi) + pad)
+        return Window(tuple(int(v) for v in lo), tuple(int(v) for v in hi), res, self.lattice.lower)
+
+    def _box(self, window: Window) -> tuple[np.ndarray, np.ndarray]:
+        lo, hi = np.zeros(3, dtype=np.int64), np.ones(3, dtype=np.int64)
+        lo[: len(window.lo)], hi[: len(window.hi)] = window.lo, window.hi
+        return lo, hi
+
+    def risk(self, window: Window | None = None) -> np.ndarray:
+        """Risk of every cell of ``window`` (default: :meth:`window`, a fixed map's whole box), float32 of its
+        shape in [0, 1], 0.5 = unknown.
 
         A new array each call (a snapshot: later integrations do not change it), marked
         read-only. The map caches risk as 16-bit fixed point, refreshed only where cells
@@ -421,43 +619,109 @@ class OccupancyMap:
         (:data:`fuzzyocc.grid.RISK_STEP`): the model's risk to within 2**-17, 0.5
         exactly for unknown. It depends on the cell's state alone, so two maps with the
         same history, or a map and its :meth:`from_arrays` restoration, agree bit for bit.
+        A growing map with nothing observed gives an empty array.
         """
-        out = self._grid.risk().reshape(self.spec.shape)
+        window = self.window() if window is None else window
+        if window is None:
+            out = np.zeros((0,) * self.lattice.ndim, dtype=np.float32)
+        elif isinstance(self._grid, BlockGrid):
+            out = self._grid.risk_in(*self._box(window)).reshape(window.shape)
+        else:
+            out = self._grid.risk().reshape(cast(GridSpec, self.spec).shape)[self._slices(window)].copy()
         out.flags.writeable = False
         return out
 
-    def plane_lookup(self, lut: np.ndarray, unobserved: int) -> np.ndarray:
-        """A 2-D map's cells through a table of its risk codes: (ny, nx) int8, rows along y.
+    def _slices(self, window: Window) -> tuple[slice, ...]:
+        return tuple(slice(lo, hi) for lo, hi in zip(window.lo, window.hi))
+
+    def plane_lookup(self, lut: np.ndarray, unobserved: int, window: Window | None = None) -> np.ndarray:
+        """A 2-D map's cells of ``window`` (default :meth:`window`) through a table of its risk codes: (ny, nx)
+        int8, rows along y.
 
         ``lut`` has an entry for each of the 65,536 risk codes (``lut[k]`` for risk
         ``k * RISK_STEP``, the values :meth:`risk` gives); cells no beam reached are
         ``unobserved``. One pass over the map, with no float copy: an OccupancyGrid or an
         image of a 16 M-cell map without its 64 MB of risk.
         """
-        if self.spec.ndim != 2:
+        if self.lattice.ndim != 2:
             raise ValueError("plane_lookup is for 2-D maps; project a 3-D map's risk() instead")
-        return self._grid.plane_lookup(lut, unobserved)
+        window = self.window() if window is None else window
+        if window is None:
+            return np.zeros((0, 0), dtype=np.int8)
+        if isinstance(self._grid, BlockGrid):
+            return self._grid.plane_lookup_in(*self._box(window), lut, unobserved)
+        whole = self._grid.plane_lookup(lut, unobserved)
+        return whole[window.lo[1]:window.hi[1], window.lo[0]:window.hi[0]].copy()
 
     def risk_at(self, points: object) -> np.ndarray:
         """Risk of the cells containing ``points`` ((M, D) map frame) -> (M,) float32 (a copy).
 
-        Raises ``ValueError`` naming ``points`` if one is not finite or lies outside the map.
+        Raises ``ValueError`` naming ``points`` if one is not finite or lies outside a fixed map's box (a
+        growing map answers anywhere within ``MAX_COORDINATE_M``: 0.5 where never observed).
         """
+        d = self.lattice.ndim
         pts = np.asarray(points, dtype=np.float64)
-        if pts.ndim != 2 or pts.shape[1] != self.spec.ndim:
-            raise ValueError(f"points must have shape (M, {self.spec.ndim}), got {pts.shape}")
-        keys, valid = coords_to_keys(self.spec, pts)
-        if not np.all(valid):
-            bad = int(np.flatnonzero(~valid)[0])
-            raise ValueError(f"points[{bad}] = {pts[bad].tolist()} is outside the map "
-                             f"[{list(self.spec.origin)}, {list(self.spec.upper)})")
-        return self._grid.risk_of(keys_to_flat(self.spec, keys))
+        if pts.ndim != 2 or pts.shape[1] != d:
+            raise ValueError(f"points must have shape (M, {d}), got {pts.shape}")
+        spec = self.spec
+        if isinstance(spec, GridSpec):
+            keys, valid = coords_to_keys(spec, pts)
+            if not np.all(valid):
+                bad = int(np.flatnonzero(~valid)[0])
+                raise ValueError(f"points[{bad}] = {pts[bad].tolist()} is outside the map "
+                                 f"[{list(spec.origin)}, {list(spec.upper)})")
+            return self._grid.risk_of(keys_to_flat(spec, keys))
+        far = ~np.all(np.abs(pts) <= MAX_COORDINATE_M, axis=1)  # NaN too
+        if np.any(far):
+            bad = int(np.flatnonzero(far)[0])
+            raise ValueError(f"points[{bad}] = {pts[bad].tolist()} is not finite or farther than "
+                             f"{MAX_COORDINATE_M:.0e} m from the map frame's origin")
+        cells = np.zeros((pts.shape[0], 3), dtype=np.int64)
+        cells[:, :d] = np.floor(pts / spec.resolution)
+        return cast(BlockGrid, self._grid).risk_at(cells)
 
-    def observed(self) -> np.ndarray:
-        """Cells some beam reached, bool of ``spec.shape`` (a new read-only array, like ``risk()``)."""
-        out = self._grid.observed().reshape(self.spec.shape)
+    def observed(self, window: Window | None = None) -> np.ndarray:
+        """Cells some beam reached, bool of ``window``'s shape (default :meth:`window`; a new read-only array,
+        like ``risk()``)."""
+        window = self.window() if window is None else window
+        if window is None:
+            out = np.zeros((0,) * self.lattice.ndim, dtype=np.bool_)
+        elif isinstance(self._grid, BlockGrid):
+            out = self._grid.observed_in(*self._box(window)).reshape(window.shape)
+        else:
+            out = self._grid.observed().reshape(cast(GridSpec, self.spec).shape)[self._slices(window)].copy()
         out.flags.writeable = False
         return out
+
+    # -- clearing ------------------------------------------------------------------------
+    def clear(self, low: Sequence[float], high: Sequence[float]) -> int:
+        """Set every cell from the one containing ``low`` to the one containing ``high`` (metres, inclusive, as
+        octomap_server's ``clear_bbx``) back to never observed; returns how many cells were observed."""
+        d = self.lattice.ndim
+        lo_m, hi_m = (np.asarray(c, dtype=np.float64).reshape(-1) for c in (low, high))
+        if lo_m.size != d or hi_m.size != d or not (np.all(np.isfinite(lo_m)) and np.all(np.isfinite(hi_m))):
+            raise ValueError(f"low and high must be {d} finite coordinates each")
+        if np.any(hi_m < lo_m):
+            raise ValueError(f"high {hi_m.tolist()} must not be below low {lo_m.tolist()} along any axis")
+        lower, res = np.asarray(self.lattice.lower), self.lattice.resolution
+        bound = MAX_COORDINATE_M / res + 2
+        lo = np.clip(np.floor((lo_m - lower) / res), -bound, bound).astype(np.int64)
+        hi = np.clip(np.floor((hi_m - lower) / res) + 1, -bound, bound).astype(np.int64)
+        grid = self._grid
+        if isinstance(grid, BlockGrid):
+            lo3, hi3 = np.zeros(3, dtype=np.int64), np.ones(3, dtype=np.int64)
+            lo3[:d], hi3[:d] = lo, hi
+            return grid.clear_box(lo3, hi3)
+        spec = cast(GridSpec, self.spec)
+        lo, hi = np.maximum(lo, 0), np.minimum(hi, spec.shape)
+        if np.any(hi <= lo):
+            return 0
+        box = tuple(slice(a, b) for a, b in zip(lo, hi))
+        flat = np.arange(spec.num_cells).reshape(spec.shape)[box].reshape(-1)
+        was = int(np.count_nonzero(grid.observed()[flat]))
+        grid.write(flat, np.zeros((flat.size, *grid.state.shape[1:]), dtype=grid.state.dtype))
+        grid.clear_observed(flat)
+        return was
 
     def state_nbytes(self) -> int:
         """Bytes of the map's persistent state: cell states and observed mask (1 bit a cell).
@@ -469,6 +733,12 @@ class OccupancyMap:
         cells. See :meth:`resident_nbytes` for the caches too.
         """
         return self._grid.persistent_nbytes()
+
+    def held_cells(self) -> int:
+        """Cells the map holds in memory: a :class:`FuzzyMap` one per cell of a mixed block and one per uniform
+        block it holds (none for space no ray reached); a :class:`BayesMap` every cell of its box."""
+        grid = self._grid
+        return grid.held_cells() if isinstance(grid, BlockGrid) else self.spec.num_cells
 
     def resident_nbytes(self) -> int:
         """Bytes the map holds between calls: :meth:`state_nbytes` plus the risk cache.
@@ -534,7 +804,8 @@ class FuzzyMap(OccupancyMap):
 
     model = "fuzzy"
 
-    def __init__(self, spec: GridSpec, sensor: SensorModel | None = None, engine: FuzzyEngine | None = None) -> None:
+    def __init__(self, spec: GridSpec | LatticeSpec, sensor: SensorModel | None = None,
+                 engine: FuzzyEngine | None = None) -> None:
         self.engine = presets.preset(presets.DEFAULT_PRESET) if engine is None else engine
         super().__init__(spec, sensor)
 
@@ -546,11 +817,21 @@ class FuzzyMap(OccupancyMap):
         return FuzzyMap(spec, self.sensor, self.engine)
 
     def _new_grid(self) -> BlockGrid:
-        # Without the dense initial state: one uniform row for the whole grid.
-        return BlockGrid.filled(self.spec, np.asarray(self.engine.unknown_state(), dtype=np.uint8), self._risk_fn())
+        # Without the dense initial state: no block is held until a ray reaches it.
+        box = self.spec.shape if isinstance(self.spec, GridSpec) else None
+        return BlockGrid(self.spec.ndim, self._unknown_row(), self._risk_fn(), box)
+
+    def _unknown_row(self) -> np.ndarray:
+        return np.asarray(self.engine.unknown_state(), dtype=np.uint8)
 
     def _grid_from(self, state: np.ndarray, observed: np.ndarray) -> BlockGrid:
-        return BlockGrid.from_dense(self.spec, state, observed, self._risk_fn())
+        return BlockGrid.from_dense(self.spec.shape, state, observed, self._unknown_row(), self._risk_fn())
+
+    def _cast_blocks(self) -> tuple[BlockIndex, tuple[int, int, int]]:
+        return self._blocks.index, self._blocks.block_shift
+
+    def _cast_done(self) -> None:
+        self._blocks.adopt()
 
     @property
     def occupied_extent(self) -> float:
@@ -590,24 +871,44 @@ class FuzzyMap(OccupancyMap):
         return functools.partial(_defuzzified, self.engine)
 
     def to_arrays(self) -> dict[str, np.ndarray]:
-        """Everything needed to restore the map bit for bit (copies)."""
-        arrays = self._common_arrays()
-        arrays["state"] = self._blocks.dense().reshape(*self.spec.shape, -1)
+        """Everything needed to restore the map bit for bit (copies): a fixed map's cells over its box, a growing
+        map's blocks (:meth:`fuzzyocc.blockgrid.BlockGrid.to_blocks`)."""
+        if self.growing:
+            arrays = {"model": np.array(self.model), "scans_fused": np.array(self._scans_fused, dtype=np.int64),
+                      **self._blocks.to_blocks()}
+        else:
+            arrays = self._common_arrays()
+            arrays["state"] = self._blocks.dense().reshape(*cast(GridSpec, self.spec).shape, -1)
         arrays["labels"] = np.array(self.engine.labels)
+        if self._forget_beyond is not None:
+            arrays["forget_beyond"] = np.array(self._forget_beyond, dtype=np.float64)
         return arrays
 
     @classmethod
-    def from_arrays(cls, spec: GridSpec, sensor: SensorModel | None, arrays: dict[str, np.ndarray],
+    def from_arrays(cls, spec: GridSpec | LatticeSpec, sensor: SensorModel | None, arrays: dict[str, np.ndarray],
                     engine: FuzzyEngine | None = None) -> FuzzyMap:
         """A map restored from :meth:`to_arrays`; ``ValueError`` naming ``arrays`` if they do not fit."""
         engine = presets.preset(presets.DEFAULT_PRESET) if engine is None else engine
-        observed, scans = cls._common_from_arrays(spec, arrays)
         labels = tuple(str(x) for x in np.asarray(arrays.get("labels", np.array(engine.labels))).ravel())
         if labels != tuple(engine.labels):
             raise ValueError(f"arrays hold labels {labels}, the engine has {tuple(engine.labels)}")
-        state = cls._take(arrays, "state", (*spec.shape, engine.num_labels), np.uint8)
-        restored = cls(spec, sensor, engine)
-        restored._restore(state.reshape(spec.num_cells, -1), observed, scans)  # compressed: a copy
+        if isinstance(spec, LatticeSpec):
+            model = str(arrays.get("model", cls.model))
+            if model != cls.model:
+                raise ValueError(f"arrays hold a {model!r} map, not a {cls.model!r} one")
+            scans = int(cls._take(arrays, "scans_fused", (), np.int64))
+            if scans < 0:
+                raise ValueError(f"arrays['scans_fused'] must be >= 0, got {scans}")
+            restored = cls(spec, sensor, engine)
+            restored._grid = BlockGrid.from_blocks(spec.ndim, arrays, restored._unknown_row(), restored._risk_fn())
+            restored._scans_fused = scans
+        else:
+            observed, scans = cls._common_from_arrays(spec, arrays)
+            state = cls._take(arrays, "state", (*spec.shape, engine.num_labels), np.uint8)
+            restored = cls(spec, sensor, engine)
+            restored._restore(state.reshape(spec.num_cells, -1), observed, scans)  # compressed: a copy
+        if "forget_beyond" in arrays:
+            restored.forget_beyond = float(cls._take(arrays, "forget_beyond", (), np.float64))
         return restored
 
 
@@ -620,9 +921,31 @@ class BayesMap(OccupancyMap):
 
     model = "bayes"
 
+    def __init__(self, spec: GridSpec, sensor: SensorModel | None = None) -> None:
+        if isinstance(spec, LatticeSpec):
+            raise ValueError("a BayesMap needs a fixed box (a GridSpec); growing maps are fuzzy maps")
+        super().__init__(spec, sensor)
+        # Only the cast numbers cells by block; the dense grid holds them by flat id.
+        self._shift = block_shift_for(spec.ndim, spec.shape)
+        self._index = BlockIndex()
+
     @property
     def _cells(self) -> CellGrid:
         return cast(CellGrid, self._grid)
+
+    def _cast_blocks(self) -> tuple[BlockIndex, tuple[int, int, int]]:
+        return self._index, self._shift
+
+    def _stored_cells(self, keys: np.ndarray) -> np.ndarray:
+        shift = np.asarray(self._shift, dtype=np.int64)
+        bits = int(shift.sum())
+        offsets = keys & ((1 << bits) - 1)
+        cells = self._index.coords[keys >> bits].astype(np.int64) << shift
+        cells[:, 0] += offsets >> (shift[1] + shift[2])
+        cells[:, 1] += (offsets >> shift[2]) & ((1 << shift[1]) - 1)
+        cells[:, 2] += offsets & ((1 << shift[2]) - 1)
+        shape = (*self.spec.shape, 1, 1)[:3]
+        return np.ravel_multi_index((cells[:, 0], cells[:, 1], cells[:, 2]), shape)
 
     def _initial_state(self) -> np.ndarray:
         return np.zeros(self.spec.num_cells, dtype=np.float32)

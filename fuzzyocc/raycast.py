@@ -23,8 +23,8 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
-from fuzzyocc._block_ids import block_address, cell_id
-from fuzzyocc.config import GridSpec
+from fuzzyocc._block_table import BlockIndex, find, insert, rebuild
+from fuzzyocc.config import MAX_COORDINATE_M, GridSpec, LatticeSpec
 
 #: Distance (in sigmas) written for the cells of a no-return beam: free all the way, far to
 #: the left of any membership function's support.
@@ -64,69 +64,86 @@ class CastResult:
 
 @njit(cache=True, nogil=True, inline="always")
 def _axis_setup(o, d, t0, lower, n, res):  # pragma: no cover - compiled
-    """Cell index, step, next-boundary parameter, parameter per cell and last boundary on one axis."""
+    """Cell index, step, next-boundary parameter, parameter per cell and last boundary on one axis.
+
+    The index is clamped to ``[0, n)`` on a bounded grid; ``n`` 0 stands for an unbounded lattice."""
     if d == 0.0:
-        k = min(max(np.int64(np.floor((o - lower) / res)), 0), n - 1)
+        k = np.int64(np.floor((o - lower) / res))
+        if n > 0:
+            k = min(max(k, 0), n - 1)
         return k, 0, np.inf, np.inf, -np.inf
     u = (o + t0 * d - lower) / res
     i = np.floor(u)
     if d < 0.0 and u == i:  # on a face, going down: the segment is in the lower cell
         i -= 1.0
-    k = min(max(np.int64(i), 0), n - 1)
+    k = np.int64(i)
+    if n > 0:
+        k = min(max(k, 0), n - 1)
     if d > 0.0:
         return k, 1, (lower + (k + 1) * res - o) / d, res / d, (lower + k * res - o) / d
     return k, -1, (lower + k * res - o) / d, -res / d, (lower + (k + 1) * res - o) / d
 
 
 @njit(cache=True, nogil=True)
-def _cast_kernel(origins, dirs, t_end, slope, offset, ray_offsets, lower, shape, res,
-                 unknown_from, best, shift, nblk, planar):  # pragma: no cover - compiled; tested through cast_rays
+def _cast_kernel(origins, dirs, t_end, slope, offset, ray_offsets, lower, shape, res, unknown_from,
+                 shift, tkeys, tslots, coords, n_slots, touch, planar, bounded):  # pragma: no cover - compiled
     # ``planar`` is True for a 2-D map (one layer, rays in its plane), None for a 3-D one: numba
     # prunes the ``planar is None`` branches at compile time, so the 2-D traversal is compiled
-    # without the z axis (a sixth less time on the bench's 2-D scene).
+    # without the z axis (a sixth less time on the bench's 2-D scene). ``bounded`` True clips
+    # rays to the box of ``shape`` cells from ``lower``; None walks the unbounded lattice whose
+    # cell 0 starts at ``lower``.
     # Evidence of a cell is ``slope * midpoint + offset`` (eq. 5 in sigmas; slope 0 for a
-    # no-return). ``best`` is a scratch array over all cells, NaN everywhere on entry and on
-    # exit: NaN means "not reached by the current scan", so the whole grid is never cleared.
+    # no-return). A scan's cells are deduped in a scratch of the blocks it reached (``touch``
+    # numbers them, -1 on entry and on exit), so the cost follows the cells the rays cross,
+    # never the map's extent. A block not yet in the index is added; a full index is doubled here
+    # (a cast stopped and started over from its scan cost the Ouster frame 6.1 s against 2.4)
+    # and returned with the cells.
     n_scans = ray_offsets.shape[0] - 1
     nx, ny, nz = shape[0], shape[1], shape[2]
-    # Cell id: block id << block bits | offset in the block (``_block_ids``); with shift 0
-    # (blocks of one cell) that is the flat id (ix * ny + iy) * nz + iz.
     hx, hy, hz = shift[0], shift[1], shift[2]
-    nby, nbz = nblk[1], nblk[2]
-    # This scan's cells, kept only while they are few enough for a sort (below an eighth of the
-    # grid, see the dense sweep further down): at most 1 byte a cell of the grid, not 8.
-    keep = best.shape[0] // 8 + 1
-    touched = np.empty(keep, np.int64)  # fixed size: growing it in the hot loop slows the traversal
+    bits = hx + hy + hz
+    mx, my, mz = (1 << hx) - 1, (1 << hy) - 1, (1 << hz) - 1
+    block_cells = 1 << bits
+    scratch = np.full((64, block_cells), np.nan, np.float32)
+    order = np.empty(64, np.int64)  # slot of each block the scan reached, in the order reached
     cells = np.empty(1024, np.int64)
     dist = np.empty(1024, np.float32)
     scan_offsets = np.zeros(n_scans + 1, np.int64)
     traversed = np.zeros(n_scans, np.int64)
+    table_room = tslots.shape[0] // 2  # the table stays at most half full
     n_out = 0
     for s in range(n_scans):
+        scan_offsets[s] = n_out
         n = 0
+        nt = 0
         visits = 0
+        last_x, last_y, last_z = np.int64(-1) << 62, np.int64(0), np.int64(0)
+        row = 0
         for r in range(ray_offsets[s], ray_offsets[s + 1]):
             ox, oy, oz = origins[r, 0], origins[r, 1], origins[r, 2]
             dx, dy, dz = dirs[r, 0], dirs[r, 1], dirs[r, 2]
-            # Clip [0, t_end] to the box (slab method).
             t0 = 0.0
             t1 = t_end[r]
-            inside = True
-            for a in range(3):
-                o = origins[r, a]
-                d = dirs[r, a]
-                hi = lower[a] + shape[a] * res
-                if d == 0.0:
-                    if o < lower[a] or o >= hi:
-                        inside = False
-                else:
-                    ta = (lower[a] - o) / d
-                    tb = (hi - o) / d
-                    if ta > tb:
-                        ta, tb = tb, ta
-                    t0 = max(t0, ta)
-                    t1 = min(t1, tb)
-            if not inside or not t0 < t1:
+            if bounded is not None:
+                # Clip [0, t_end] to the box (slab method).
+                inside = True
+                for a in range(3):
+                    o = origins[r, a]
+                    d = dirs[r, a]
+                    hi = lower[a] + shape[a] * res
+                    if d == 0.0:
+                        if o < lower[a] or o >= hi:
+                            inside = False
+                    else:
+                        ta = (lower[a] - o) / d
+                        tb = (hi - o) / d
+                        if ta > tb:
+                            ta, tb = tb, ta
+                        t0 = max(t0, ta)
+                        t1 = min(t1, tb)
+                if not inside:
+                    continue
+            if not t0 < t1:
                 continue
             ix, sx, tmx, tdx, px = _axis_setup(ox, dx, t0, lower[0], nx, res)
             iy, sy, tmy, tdy, py = _axis_setup(oy, dy, t0, lower[1], ny, res)
@@ -150,91 +167,209 @@ def _cast_kernel(origins, dirs, t_end, slope, offset, ray_offsets, lower, shape,
                     else:
                         t_out = tmz
                         ax = 2
-                    blk, off = block_address(ix, iy, iz, hx, hy, hz, nby, nbz)
                 else:
                     ax = 0 if tmx <= tmy else 1
                     t_out = tmx if ax == 0 else tmy
-                    blk, off = block_address(ix, iy, 0, hx, hy, hz, nby, nbz)
-                c = cell_id(blk, off, hx, hy, hz)
+                bx, by, bz = ix >> hx, iy >> hy, iz >> hz
+                if bx != last_x or by != last_y or bz != last_z:
+                    # A ray crosses a few cells of a block in a row: the index is asked once per block.
+                    slot = find(tkeys, tslots, bx, by, bz)
+                    if slot < 0:
+                        if n_slots == coords.shape[0] or n_slots >= table_room:
+                            coords, touch, tkeys, tslots = _doubled(coords, touch, n_slots)
+                            table_room = tslots.shape[0] // 2
+                        slot = n_slots
+                        insert(tkeys, tslots, bx, by, bz, slot)
+                        coords[slot, 0] = bx
+                        coords[slot, 1] = by
+                        coords[slot, 2] = bz
+                        n_slots += 1
+                    row = touch[slot]
+                    if row < 0:
+                        if nt == order.shape[0]:
+                            grown = np.full((2 * nt, block_cells), np.nan, np.float32)
+                            grown_order = np.empty(2 * nt, np.int64)
+                            for q in range(nt):
+                                grown_order[q] = order[q]
+                                for o in range(block_cells):
+                                    grown[q, o] = scratch[q, o]
+                            scratch = grown
+                            order = grown_order
+                        row = nt
+                        touch[slot] = nt
+                        order[nt] = slot
+                        nt += 1
+                    last_x, last_y, last_z = bx, by, bz
+                off = ((ix & mx) << hy | (iy & my)) << hz | (iz & mz)
                 visits += 1
                 v = a_ * (0.5 * (t_in + t_out)) + b_
                 if v >= unknown_from:
                     v = -np.inf
-                b = best[c]
+                b = scratch[row, off]
                 if b != b:
-                    if n < keep:
-                        touched[n] = c
                     n += 1
-                    best[c] = v
+                    scratch[row, off] = v
                 elif v > b:
-                    best[c] = v
+                    scratch[row, off] = v
                 if t_out >= t1:
                     break
                 t_in = t_out
                 if ax == 0:
                     ix += sx
-                    if ix < 0 or ix >= nx:
+                    if bounded is not None and (ix < 0 or ix >= nx):
                         break
                     tmx += tdx
                 elif ax == 1:
                     iy += sy
-                    if iy < 0 or iy >= ny:
+                    if bounded is not None and (iy < 0 or iy >= ny):
                         break
                     tmy += tdy
                 else:
                     iz += sz
-                    if iz < 0 or iz >= nz:
+                    if bounded is not None and (iz < 0 or iz >= nz):
                         break
                     tmz += tdz
         if n_out + n > cells.shape[0]:
             cap = max(2 * cells.shape[0], n_out + n)
-            grown = np.empty(cap, np.int64)
+            grown_c = np.empty(cap, np.int64)
             grown_d = np.empty(cap, np.float32)
             # element by element: a slice assignment would compile numba's shape-mismatch error
             # message formatting into this kernel (seconds more at the first start, on a cold cache)
             for q in range(n_out):
-                grown[q] = cells[q]
+                grown_c[q] = cells[q]
                 grown_d[q] = dist[q]
-            cells = grown
+            cells = grown_c
             dist = grown_d
-        # Hand the cells out in increasing id order, so that the map's reads and writes of
-        # their states sweep memory instead of jumping about.
-        if 8 * n >= best.shape[0]:  # dense (past keep): a sweep of the scratch is cheaper than a sort
-            q = n_out
-            for c in range(best.shape[0]):
-                b = best[c]
+        # Hand the cells out block by block (a block's cells together, by offset): storage then
+        # reads and writes each block once.
+        for q in range(nt):
+            slot = order[q]
+            touch[slot] = -1
+            base = slot << bits
+            for o in range(block_cells):
+                b = scratch[q, o]
                 if b == b:
-                    cells[q] = c
-                    dist[q] = b
-                    best[c] = np.nan
-                    q += 1
-        else:
-            order = np.sort(touched[:n])
-            for q in range(n):
-                c = order[q]
-                cells[n_out + q] = c
-                dist[n_out + q] = best[c]
-                best[c] = np.nan
-        n_out += n
-        scan_offsets[s + 1] = n_out
+                    cells[n_out] = base | o
+                    dist[n_out] = b
+                    scratch[q, o] = np.nan
+                    n_out += 1
         traversed[s] = visits
-    return cells[:n_out], dist[:n_out], scan_offsets, traversed  # views: a copy would double the peak
+    scan_offsets[n_scans] = n_out
+    # views: a copy would double the peak
+    return cells[:n_out], dist[:n_out], scan_offsets, traversed, n_slots, coords, touch, tkeys, tslots
 
 
-def _layout(spec: GridSpec, block_shift: tuple[int, int, int] | None) -> tuple[np.ndarray, np.ndarray]:
-    """``(shift, blocks along each axis)`` of the cell numbering (3 axes; a 2-D grid is one layer)."""
-    shape = np.ones(3, dtype=np.int64)
-    shape[: spec.ndim] = spec.shape
-    shift = np.zeros(3, dtype=np.int64) if block_shift is None else np.asarray(block_shift, dtype=np.int64)
-    if shift.shape != (3,) or np.any(shift < 0) or np.any(shift > 8):
-        raise ValueError(f"block_shift must be 3 integers in [0, 8], got {block_shift}")
-    return shift, (shape + (1 << shift) - 1) >> shift
+@njit(cache=True, nogil=True)
+def _doubled(coords, touch, n):  # pragma: no cover - compiled
+    """An index of twice the room holding blocks ``coords[:n]`` (their cast marks in ``touch`` kept)."""
+    capacity = 2 * coords.shape[0]
+    grown = np.zeros((capacity, 3), np.int32)
+    marks = np.full(capacity, -1, np.int32)
+    for q in range(n):
+        grown[q, 0] = coords[q, 0]
+        grown[q, 1] = coords[q, 1]
+        grown[q, 2] = coords[q, 2]
+        marks[q] = touch[q]
+    size = 16
+    while size < 2 * capacity:
+        size *= 2
+    keys, slots = rebuild(grown, n, size)
+    return grown, marks, keys, slots
 
 
-def new_scratch(spec: GridSpec, block_shift: tuple[int, int, int] | None = None) -> np.ndarray:
-    """The scratch array :func:`cast_rays` needs (NaN over every cell id); reusable across calls."""
-    shift, nblk = _layout(spec, block_shift)
-    return np.full(int(np.prod(nblk)) << int(shift.sum()), np.nan, dtype=np.float32)
+@dataclass(frozen=True)
+class Lattice:
+    """The cells a cast numbers: cell ``i`` along axis ``a`` covers ``[lower[a] + i * resolution, lower[a] + (i + 1) *
+    resolution)``. ``shape`` bounds a fixed map's box (``[0, shape)`` along each axis, rays clipped to it); None is the
+    unbounded lattice of a growing map."""
+
+    lower: tuple[float, ...]
+    resolution: float
+    shape: tuple[int, ...] | None
+
+    @property
+    def ndim(self) -> int:
+        """2 or 3."""
+        return len(self.lower)
+
+    @classmethod
+    def of(cls, spec: GridSpec) -> Lattice:
+        """The lattice of a fixed map's box."""
+        return cls(tuple(float(v) for v in spec.origin), float(spec.resolution), tuple(int(n) for n in spec.shape))
+
+
+def cast_into(
+    lattice: Lattice,
+    index: BlockIndex,
+    shift: tuple[int, int, int],
+    origins: np.ndarray,
+    directions: np.ndarray,
+    t_end: np.ndarray,
+    measured: np.ndarray,
+    sigma: np.ndarray,
+    ray_offsets: np.ndarray,
+    *,
+    unknown_from: float,
+) -> CastResult:
+    """Traverse the cells of every ray of a batch of scans and keep one evidence per (scan, cell).
+
+    Cells are numbered by the blocks of ``index`` (``2**shift[a]`` cells along axis ``a``): the
+    id of cell ``(i, j, k)`` is ``slot << sum(shift) | offset``, ``slot`` the index's slot of block
+    ``(i >> sx, j >> sy, k >> sz)`` (added to the index if new) and ``offset`` the C-order index of
+    ``(i & mx, j & my, k & mz)`` in it. A scan's cells come block by block.
+
+    Parameters
+    ----------
+    lattice : Lattice
+        The map's cells.
+    index : BlockIndex
+        The map's blocks; blocks the rays reach are added.
+    shift : (3,) ints
+        Block size, as powers of two (a 2-D lattice has one z layer: shift z 0).
+    origins, directions, t_end, measured, sigma, ray_offsets, unknown_from
+        As :func:`cast_rays`.
+    """
+    d = lattice.ndim
+    origins = np.asarray(origins, dtype=np.float64)
+    directions = np.asarray(directions, dtype=np.float64)
+    n_rays = origins.shape[0]
+    if origins.shape != (n_rays, d) or directions.shape != (n_rays, d):
+        raise ValueError(f"origins and directions must both have shape (R, {d}), got {origins.shape}, {directions.shape}")
+    t_end = np.ascontiguousarray(t_end, dtype=np.float64)
+    if not (np.isfinite(origins).all() and np.isfinite(directions).all() and np.isfinite(t_end).all()):
+        # the kernel trusts them: a NaN direction made it hand out cell ids it never wrote (out of bounds)
+        raise ValueError("origins, directions and t_end must be finite")
+    offsets = np.asarray(ray_offsets, dtype=np.int64)
+    if offsets.ndim != 1 or offsets.size < 1 or offsets[0] != 0 or offsets[-1] != n_rays or np.any(np.diff(offsets) < 0):
+        raise ValueError("ray_offsets must rise from 0 to the number of rays")
+    shifts = np.asarray(shift, dtype=np.int64)
+    if shifts.shape != (3,) or np.any(shifts < 0) or np.any(shifts > 8) or (d == 2 and shifts[2] != 0):
+        raise ValueError(f"shift must be 3 integers in [0, 8] (z 0 on a 2-D lattice), got {shift}")
+    lower = np.zeros(3)
+    lower[:d] = lattice.lower
+    shape = np.zeros(3, dtype=np.int64)  # 0: unbounded along the axis (``_axis_setup``)
+    if lattice.shape is not None:
+        shape[:] = 1
+        shape[:d] = lattice.shape
+    else:
+        # Stop every ray where it leaves the region whose cells have 32-bit block coordinates.
+        with np.errstate(divide="ignore", invalid="ignore"):
+            exit_t = np.where(directions == 0.0, np.inf, (np.sign(directions) * MAX_COORDINATE_M - origins) / directions)
+        t_end = np.minimum(t_end, exit_t.min(axis=1))
+    if d == 2:
+        # A 2-D map is a 3-D one of a single layer; rays lie in its mid-plane.
+        origins = np.concatenate([origins, np.full((n_rays, 1), lower[2] + 0.5 * lattice.resolution)], axis=1)
+        directions = np.concatenate([directions, np.zeros((n_rays, 1))], axis=1)
+    measured = np.asarray(measured, dtype=np.float64)
+    no_return = np.isnan(measured)
+    slope = np.where(no_return, 0.0, 1.0 / np.asarray(sigma, dtype=np.float64))
+    args = (np.ascontiguousarray(origins), np.ascontiguousarray(directions), t_end, slope,
+            np.where(no_return, NO_RETURN_DISTANCE, -measured * slope), offsets)
+    (cells, dist, scan_offsets, traversed, index.n, index.coords, index.touch, index.keys,
+     index.slots) = _cast_kernel(*args, lower, shape, float(lattice.resolution), float(unknown_from), shifts,
+                                 index.keys, index.slots, index.coords, index.n, index.touch,
+                                 True if d == 2 else None, True if lattice.shape is not None else None)
+    return CastResult(cells=cells, distance_sigmas=dist, scan_offsets=scan_offsets, cells_traversed=traversed)
 
 
 def cast_rays(
@@ -247,10 +382,11 @@ def cast_rays(
     ray_offsets: np.ndarray,
     *,
     unknown_from: float,
-    scratch: np.ndarray | None = None,
-    block_shift: tuple[int, int, int] | None = None,
 ) -> CastResult:
-    """Traverse the cells of every ray of a batch of scans and keep one evidence per (scan, cell).
+    """Traverse the cells of every ray of a batch of scans and keep one evidence per (scan, cell), as flat ids.
+
+    The reference form of :func:`cast_into` for a fixed map's box: cells numbered by flat id
+    (C order over ``spec.shape``), in increasing order within a scan.
 
     Parameters
     ----------
@@ -271,67 +407,23 @@ def cast_rays(
         Scan ``s`` owns rays ``ray_offsets[s]:ray_offsets[s + 1]``; scans are deduped apart.
     unknown_from : float
         Distance (sigmas) at and past which the evidence is pure UNK.
-    scratch : (num_cells,) float32 ndarray, optional
-        From :func:`new_scratch` (with the same ``block_shift``); pass one to avoid allocating
-        it per call. NaN on return.
-    block_shift : (3,) ints, optional
-        Number cells block by block, for a map stored in blocks of ``2**block_shift[a]`` cells
-        along axis ``a`` (x, y, z; a 2-D grid has one z layer): the id of cell ``(i, j, k)`` is
-        ``block << sum(block_shift) | offset``, ``block`` the C-order index of
-        ``(i >> sx, j >> sy, k >> sz)`` among the blocks covering the grid and ``offset`` the
-        C-order index of ``(i & mx, j & my, k & mz)`` in its block. Default: flat ids.
 
     Returns
     -------
     CastResult
     """
-    d = spec.ndim
-    origins = np.asarray(origins, dtype=np.float64)
-    directions = np.asarray(directions, dtype=np.float64)
-    n_rays = origins.shape[0]
-    if origins.shape != (n_rays, d) or directions.shape != (n_rays, d):
-        raise ValueError(f"origins and directions must both have shape (R, {d}), got {origins.shape}, {directions.shape}")
-    if not (np.isfinite(origins).all() and np.isfinite(directions).all()
-            and np.isfinite(np.asarray(t_end, dtype=np.float64)).all()):
-        # the kernel trusts them: a NaN direction made it hand out cell ids it never wrote (out of bounds)
-        raise ValueError("origins, directions and t_end must be finite")
-    offsets = np.asarray(ray_offsets, dtype=np.int64)
-    if offsets.ndim != 1 or offsets.size < 1 or offsets[0] != 0 or offsets[-1] != n_rays or np.any(np.diff(offsets) < 0):
-        raise ValueError("ray_offsets must rise from 0 to the number of rays")
-    lower = np.zeros(3)
-    lower[:d] = spec.origin
-    shape = np.ones(3, dtype=np.int64)
-    shape[:d] = spec.shape
-    if d == 2:
-        # A 2-D map is a 3-D one of a single layer; rays lie in its mid-plane.
-        origins = np.concatenate([origins, np.full((n_rays, 1), 0.5 * spec.resolution)], axis=1)
-        directions = np.concatenate([directions, np.zeros((n_rays, 1))], axis=1)
-    measured = np.asarray(measured, dtype=np.float64)
-    no_return = np.isnan(measured)
-    slope = np.where(no_return, 0.0, 1.0 / np.asarray(sigma, dtype=np.float64))
-    shift, nblk = _layout(spec, block_shift)
-    n_ids = int(np.prod(nblk)) << int(shift.sum())
-    if scratch is None:
-        scratch = np.full(n_ids, np.nan, dtype=np.float32)
-    elif scratch.shape != (n_ids,) or scratch.dtype != np.float32:
-        raise ValueError("scratch must come from new_scratch(spec, block_shift)")
-    cells, dist, scan_offsets, traversed = _cast_kernel(
-        np.ascontiguousarray(origins),
-        np.ascontiguousarray(directions),
-        np.ascontiguousarray(t_end, dtype=np.float64),
-        slope,
-        np.where(no_return, NO_RETURN_DISTANCE, -measured * slope),
-        offsets,
-        lower,
-        shape,
-        float(spec.resolution),
-        float(unknown_from),
-        scratch,
-        shift,
-        nblk,
-        True if d == 2 else None,
-    )
-    return CastResult(cells=cells, distance_sigmas=dist, scan_offsets=scan_offsets, cells_traversed=traversed)
+    index = BlockIndex()
+    cast = cast_into(Lattice.of(spec), index, (0, 0, 0), origins, directions, t_end, measured, sigma, ray_offsets,
+                     unknown_from=unknown_from)
+    block = index.coords[cast.cells].astype(np.int64)  # blocks of one cell: the block is the cell
+    cells = block[:, 0]
+    for a in range(1, spec.ndim):
+        cells = cells * spec.shape[a] + block[:, a]
+    # by scan, then by id
+    scan = np.repeat(np.arange(cast.scan_offsets.size - 1), np.diff(cast.scan_offsets))
+    order = np.lexsort((cells, scan))
+    return CastResult(cells=cells[order], distance_sigmas=cast.distance_sigmas[order],
+                      scan_offsets=cast.scan_offsets, cells_traversed=cast.cells_traversed)
 
 
 #: What ``traversal_cells`` answers for a segment with a NaN or infinite end: more than any budget
@@ -371,7 +463,7 @@ def _traversal_kernel(origin, ends, lower, upper, res):  # pragma: no cover - co
     return total
 
 
-def traversal_cells(spec: GridSpec, origin: np.ndarray, ends: np.ndarray) -> int:
+def traversal_cells(spec: GridSpec | LatticeSpec, origin: np.ndarray, ends: np.ndarray) -> int:
     """About how many cells a cast walks for the segments ``origin`` -> each of ``ends`` ((N, D), metres).
 
     Each segment is clipped to the map's box (the cast never walks outside it), and walks one
@@ -382,6 +474,9 @@ def traversal_cells(spec: GridSpec, origin: np.ndarray, ends: np.ndarray) -> int
     """
     origin = np.ascontiguousarray(origin, dtype=np.float64).reshape(-1)
     ends = np.ascontiguousarray(ends, dtype=np.float64).reshape(-1, origin.size)
-    lower = np.asarray(spec.origin, dtype=np.float64)
-    upper = lower + np.asarray(spec.shape, dtype=np.float64) * spec.resolution
+    if isinstance(spec, LatticeSpec):  # a growing map's rays stop where its lattice does (``cast_into``)
+        lower, upper = np.full(spec.ndim, -MAX_COORDINATE_M), np.full(spec.ndim, MAX_COORDINATE_M)
+    else:
+        lower = np.asarray(spec.origin, dtype=np.float64)
+        upper = lower + np.asarray(spec.shape, dtype=np.float64) * spec.resolution
     return int(_traversal_kernel(origin, ends, lower, upper, float(spec.resolution)))

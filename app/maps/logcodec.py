@@ -1,7 +1,8 @@
 """The batch log's record: a batch as the bytes stored, and back, bit for bit.
 
-A batch is checked scans, or a ``Prior`` (a saved map's cells, a map's first batch when it is
-imported). Storage keeps these bytes opaque (versioned payloads with their checksums); the maps
+A batch is checked scans, a ``Prior`` (a saved map's cells, a map's first batch when it is
+imported), or an edit (``Clear``: a region set back to never observed; ``SetForget``: the map's
+``forget_beyond`` from then on), replayed in its place among the scans. Storage keeps these bytes opaque (versioned payloads with their checksums); the maps
 write them before a batch is applied (``app.maps.ingest``, ``app.maps.writepath``) and replay them
 at a restart (``app.maps.stored``).
 """
@@ -34,8 +35,26 @@ class Prior:
     levels: np.ndarray
 
 
+@dataclass(frozen=True)
+class Clear:
+    """A region set back to never observed (``OccupancyMap.clear``): the cells from the one containing ``low`` to the
+    one containing ``high``, metres."""
+
+    low: tuple[float, ...]
+    high: tuple[float, ...]
+
+
+@dataclass(frozen=True)
+class SetForget:
+    """The map's ``forget_beyond`` from this batch on (metres; None: keep everything)."""
+
+    metres: float | None
+
+
+#: An edit of a map, logged and replayed in its place among the scans.
+Edit = Clear | SetForget
 #: What a batch record holds.
-Batch = list[Scan] | Prior
+Batch = list[Scan] | Prior | Edit
 
 #: A stored batch: this magic, a little-endian uint32 header length, a JSON header, then per scan its
 #: float64 scalars and its values, raw little-endian. Batches stored before it are ``.npz`` files
@@ -44,6 +63,8 @@ _MAGIC = b"FRB\x01"
 #: A stored prior: this magic, the header as a batch's (``{"shape": [nx, ny]}``), then the levels deflated
 #: (zlib): a saved map is mostly a few levels in long runs.
 _PRIOR_MAGIC = b"FRP\x01"
+#: A stored edit: this magic, then its JSON (floats written as Python's repr: read back bit for bit).
+_EDIT_MAGIC = b"FRE\x01"
 _HEADER_LENGTH = struct.Struct("<I")
 _VALUE_DTYPES = {"<f4": np.dtype("<f4"), "<f8": np.dtype("<f8")}
 
@@ -111,6 +132,8 @@ def decode(payload: bytes) -> Batch:
     try:
         if payload.startswith(_PRIOR_MAGIC):
             return _decode_prior(payload)
+        if payload.startswith(_EDIT_MAGIC):
+            return _decode_edit(payload)
         if not payload.startswith(_MAGIC):
             return _decode_npz(payload)
         return _decode_framed(payload)
@@ -123,8 +146,8 @@ def decode(payload: bytes) -> Batch:
 def decode_scans(payload: bytes) -> list[Scan]:
     """The scans of a scan batch's blob (``decode``); ``CorruptBatch`` for a prior's."""
     batch = decode(payload)
-    if isinstance(batch, Prior):
-        raise CorruptBatch("stored batch is a prior, not scans")
+    if not isinstance(batch, list):
+        raise CorruptBatch(f"stored batch is a {type(batch).__name__.lower()}, not scans")
     return batch
 
 
@@ -133,6 +156,28 @@ def encode_prior(prior: Prior) -> bytes:
     levels = np.ascontiguousarray(prior.levels, dtype=np.int8)
     header = json.dumps({"shape": list(levels.shape)}).encode()
     return b"".join([_PRIOR_MAGIC, _HEADER_LENGTH.pack(len(header)), header, zlib.compress(levels.tobytes(), 6)])
+
+
+def encode_edit(edit: Edit) -> bytes:
+    """An edit as bytes that :func:`decode` turns back into an equal one."""
+    if isinstance(edit, Clear):
+        body = {"op": "clear", "low": list(edit.low), "high": list(edit.high)}
+    else:
+        body = {"op": "forget_beyond", "metres": edit.metres}
+    return _EDIT_MAGIC + json.dumps(body).encode()
+
+
+def _decode_edit(payload: bytes) -> Edit:
+    body = json.loads(payload[len(_EDIT_MAGIC):])
+    if body.get("op") == "clear":
+        low, high = tuple(float(v) for v in body["low"]), tuple(float(v) for v in body["high"])
+        if len(low) not in (2, 3) or len(high) != len(low):
+            raise CorruptBatch(f"stored clear has malformed corners {body!r}")
+        return Clear(low, high)
+    if body.get("op") == "forget_beyond":
+        metres = body["metres"]
+        return SetForget(None if metres is None else float(metres))
+    raise CorruptBatch(f"stored edit is of no known kind: {body!r}")
 
 
 def _decode_prior(payload: bytes) -> Prior:

@@ -45,6 +45,7 @@ import collections
 import contextlib
 import functools
 import logging
+import math
 import time
 import traceback
 from collections.abc import AsyncIterator, Callable, Mapping
@@ -54,13 +55,14 @@ from fastapi.exceptions import RequestValidationError
 
 from app.formats.saved_maps import MapCells
 from app.maps import logcodec
-from app.maps.logcodec import Batch, Prior
+from app.maps.logcodec import Batch, Edit, Prior, SetForget
 from app.scans import Limits, Scan
 from app.maps import ingest
 from app.storage.committer import GroupCommitter
 from app.config import Settings
 from app.errors import (
     Conflict,
+    InsufficientStorage,
     Invalid,
     NotFound,
     TooLarge,
@@ -77,7 +79,8 @@ from app.maps.registry import MapRegistry
 from app.schemas import BatchResult
 from app.storage import BatchRecord, MapGone, Storage, StorageUnavailable
 from app.ops.threads import Workers
-from fuzzyocc import LaserScan
+from fuzzyocc import FuzzyMap, LaserScan
+from fuzzyocc.config import MAX_COORDINATE_M
 
 LOG = logging.getLogger("fuzzyrisk.maps")
 
@@ -217,7 +220,7 @@ class WritePath:
         map state). In a parsing thread, or on the event loop for a small body (``INLINE_PARSE_BYTES``).
         """
         return ingest.prepare(body, content_type, query, entry.spec.ndim, self._limits, entry.spec,
-                                 self.settings.max_batch_cells)
+                                 self._budget(entry))
 
     def _apply(self, entry: MapEntry, version: int, batch: Batch) -> BatchResult:
         """Fuse a committed batch (in a fusion thread; the caller holds the apply turn and the apply lock)."""
@@ -292,6 +295,20 @@ class WritePath:
                 headers={"Retry-After": "1"},
             )
 
+    def _check_memory(self, entry: MapEntry) -> None:
+        """507 for scans to a map that holds ``FUZZYRISK_MAX_MAP_CELLS`` cells, or when the maps together hold
+        ``FUZZYRISK_MAX_TOTAL_CELLS`` (a clear, ``forget_beyond`` or a delete make room; an edit is never refused)."""
+        held = entry.map.held_cells()
+        if held >= self.settings.max_map_cells:
+            raise InsufficientStorage(
+                f"map {entry.name!r} holds {held:,} cells, its limit (FUZZYRISK_MAX_MAP_CELLS): clear a region "
+                "(POST /maps/{name}/clear), set forget_beyond (PATCH /maps/{name}), or delete the map")
+        total = self._registry.held_cells()
+        if total >= self.settings.max_total_cells:
+            raise InsufficientStorage(
+                f"the maps hold {total:,} cells, the service's limit (FUZZYRISK_MAX_TOTAL_CELLS): clear regions, set "
+                "forget_beyond, or delete maps")
+
     async def add_scans(
         self, name: str, *, body: bytes, content_type: str, query: Mapping[str, str]
     ) -> BatchResult:
@@ -300,6 +317,7 @@ class WritePath:
         Batches to one map are committed and applied in the order they arrived here.
         """
         entry, _ = await self._registry.held(name)
+        self._check_memory(entry)
         # no await between the check and the take: together they are atomic on the event loop
         self._admit(entry)
         ticket = entry.line.take()  # before any await: this fixes the batch's place in line
@@ -308,7 +326,7 @@ class WritePath:
                 scans, payload, work = self._prepare(entry, body, content_type, query)
             elif wants(body, content_type):
                 payload, work = await self._parse_process.prepare(
-                    body, content_type, query, entry.spec.ndim, self._limits, entry.spec, self.settings.max_batch_cells)
+                    body, content_type, query, entry.spec.ndim, self._limits, entry.spec, self._budget(entry))
                 scans = await self._workers.run_parser(logcodec.decode_scans, payload)  # 8 x 2 M ranges: 0.2 s
             else:
                 scans, payload, work = await self._workers.run_parser(self._prepare, entry, body, content_type,
@@ -332,6 +350,7 @@ class WritePath:
         so it is not refused for the line's length (an import is refused whole, or not at all).
         """
         entry, _ = await self._registry.held(name)
+        self._check_memory(entry)
         if not admitted:
             self._admit(entry)
         ticket = entry.line.take()
@@ -346,8 +365,28 @@ class WritePath:
             raise
         return await shielded(self._write(entry, ticket, scans, payload, work))
 
+    def _budget(self, entry: MapEntry) -> ingest.BatchBudget:
+        """What a batch may cost this map (a bayes map holds its whole box: it takes on no cell)."""
+        fuzzy = isinstance(entry.map, FuzzyMap)
+        return ingest.BatchBudget(walk=self.settings.max_batch_cells,
+                                  new_cells=self.settings.max_new_cells_per_batch if fuzzy else None)
+
     def _checked_payload(self, entry: MapEntry, scans: list[Scan]) -> tuple[bytes, int]:
-        return ingest.checked_payload(entry.spec, scans, self.settings.max_batch_cells)
+        return ingest.checked_payload(entry.spec, scans, self._budget(entry))
+
+    async def add_edit(self, name: str, edit: Edit) -> BatchResult:
+        """Apply an edit of map ``name`` (a region cleared, ``forget_beyond`` changed) in the map's line, committed
+        first as a batch is: durable before the answer, replayed in its place among the scans."""
+        entry, _ = await self._registry.held(name)
+        self._admit(entry)
+        ticket = entry.line.take()
+        try:
+            _check_edit(entry, edit)
+            payload = logcodec.encode_edit(edit)
+        except BaseException:
+            entry.line.done(ticket)
+            raise
+        return await shielded(self._write(entry, ticket, edit, payload, 0))
 
     async def add_prior(self, name: str, incarnation: str | None, cells: MapCells, weight: int) -> BatchResult:
         """Fuse a saved map's cells into map ``name`` as its first batch: each as if ``weight`` scans had agreed on
@@ -390,7 +429,7 @@ class WritePath:
             if entry.deleted:
                 raise NotFound(f"no map named {entry.name!r}")
             updated = now()
-            scans = [] if isinstance(batch, Prior) else batch
+            scans = batch if isinstance(batch, list) else []  # a prior or an edit fuses no scan
             record = BatchRecord(entry.name, entry.incarnation, payload, updated, len(scans))
             try:
                 # the store decides the version (with replicas, theirs and ours come in one order);
@@ -509,3 +548,22 @@ class WritePath:
 
 def _rays(scan: Scan) -> int:
     return len(scan.ranges) if isinstance(scan, LaserScan) else len(scan.points)
+
+
+def _check_edit(entry: MapEntry, edit: Edit) -> None:
+    """``Invalid`` for an edit the map cannot take (checked before it is stored: nothing changes on a refusal)."""
+    if isinstance(edit, SetForget):
+        if not isinstance(entry.map, FuzzyMap):
+            raise Invalid("forget_beyond is for fuzzy maps; a bayes map holds its whole box")
+        return
+    dims = entry.spec.ndim
+    for corner, values in (("min", edit.low), ("max", edit.high)):
+        if len(values) != dims:
+            raise Invalid(f"{corner} has {len(values)} coordinates; this map is {dims}-D")
+        if not all(math.isfinite(v) and abs(v) <= MAX_COORDINATE_M for v in values):
+            raise Invalid(f"{corner} must be finite coordinates within {MAX_COORDINATE_M:.0e} m of the frame's origin")
+    low, high = np.asarray(edit.low), np.asarray(edit.high)
+    if np.any(high < low):
+        axis = int(np.flatnonzero(high < low)[0])
+        raise Invalid(f"max[{axis}] = {high[axis]} is below min[{axis}] = {low[axis]}: give the box's lower corner "
+                      "as min")

@@ -55,6 +55,7 @@ from app.formats.exports import NAV2_FREE_THRESH, NAV2_OCCUPIED_THRESH
 from app.ros import msgtypes
 from app.ros.msgtypes import typestore
 from app.maps import GridSnapshot
+from app.schemas import WHOLE_MAP, GridWindow
 from app.storage import StoredMap
 from fuzzyocc import LaserScan
 
@@ -148,13 +149,14 @@ def grid_cdr(grid: GridSnapshot) -> bytes:
 
 
 def _scans(log: Sequence[tuple[int, bytes]]) -> Iterator[Scan]:
-    """The scans of the log in recorded order, one batch decoded at a time (a prior has none: the grid holds it)."""
+    """The scans of the log in recorded order, one batch decoded at a time (a prior or an edit has none: the grid
+    holds what they did)."""
     for version, payload in log:
         try:
             batch = logcodec.decode(payload)
         except logcodec.CorruptBatch as exc:
             raise Unavailable(f"the map's stored batch {version} is corrupt ({exc}): it cannot be exported") from None
-        if not isinstance(batch, logcodec.Prior):
+        if isinstance(batch, list):
             yield from batch
 
 
@@ -234,14 +236,15 @@ class Recording:
 
 
 def export(grid: GridSnapshot, stored: StoredMap, *, media_type: str, max_bytes: int,
-           if_none_match: str | None) -> Recording:
-    """The recording of a map's grid and stored log (``MapReads.render_log`` runs it in a read thread).
+           if_none_match: str | None, window: GridWindow = WHOLE_MAP) -> Recording:
+    """The recording of a map's grid (cut to ``window``, as ``MapReads.render_log`` read it) and stored log
+    (``MapReads.render_log`` runs it in a read thread).
 
     The ETag covers the snapshot version: a snapshot taken at the map's version empties the log,
     and with it the file changes while the version does not.
     """
     variant: dict[str, object] = {"read": "export/mcap", "since_version": stored.snapshot_version,
-                                  "media_type": media_type}
+                                  "media_type": media_type, **window.variant()}
     etag = grid.etag(variant)
     if etags.matches(if_none_match, etag):
         return Recording(grid, variant, etag, stored.snapshot_version, None)

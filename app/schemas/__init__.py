@@ -50,6 +50,10 @@ from app.schemas.engine_definition import (
 from app.schemas.maps import (
     EXAMPLE_MAP,
     EXAMPLE_MAP_3D,
+    Bounds,
+    ClearRegion,
+    Cleared,
+    MapChange,
     MapCreate,
     MapImport,
     MapInfo,
@@ -67,12 +71,15 @@ from app.schemas.plans import (
     PlanResult,
 )
 from app.schemas.risk import (
+    WHOLE_MAP,
+    GridWindow,
     MapMetaData,
     OccupancyGrid,
     OccupancyGridMessage,
     RiskGridJSON,
     RiskQuery,
     RiskValues,
+    WindowCorner,
 )
 from app.schemas.scans import (
     EXAMPLE_CLOUD,
@@ -117,6 +124,7 @@ __all__ = [
     "FRAME_ID_PATTERN",
     "FRAME_ID_RULE",
     "FrameId",
+    "GridWindow",
     "Header",
     "Health",
     "LabelMap",
@@ -124,6 +132,10 @@ __all__ = [
     "LaserScanIn",
     "LastScan",
     "LeftShoulderIn",
+    "Bounds",
+    "ClearRegion",
+    "Cleared",
+    "MapChange",
     "MapCreate",
     "MapImport",
     "MapInfo",
@@ -168,6 +180,8 @@ __all__ = [
     "TrapezoidIn",
     "TriangleIn",
     "Vector",
+    "WHOLE_MAP",
+    "WindowCorner",
     "check_frame_id",
     "check_map_name",
 ]

@@ -321,3 +321,41 @@ def test_the_api_docs_render_with_no_network_beyond_the_service(server: Server, 
     expect(page.get_by_text("Post Scans").first).to_be_attached()
     # ReDoc's footer links its maker's logo from their CDN: cosmetic, the only thing allowed to miss
     assert [kind for kind, _ in outside] in ([], ["image"]), outside
+
+
+def test_a_growing_map_is_drawn_within_its_bounds_and_follows_them(server: Server, page: Page) -> None:
+    with api_client(server) as client:
+        made = client.post("/maps", json={"name": "roam", "resolution": RES})
+        assert made.status_code == 201, made.text
+        page.goto(server.url + "/")
+        row = page.locator('#maps-body tr[data-name="roam"] td').first
+        expect(row).to_have_text("growing, nothing observed yet (2-D)")
+        page.get_by_role("button", name="Show map roam").click()
+        expect(page.locator("#map-summary")).to_have_text(re.compile("nothing observed yet"))
+        for poses, label in ((POSES[:1], "first"), (POSES, "all")):
+            fused = client.post("/maps/roam/scans", json={"scans": [laser_json(p) for p in poses]})
+            assert fused.status_code == 200, fused.text
+            info = client.get("/maps/roam").json()
+            expect(page.locator("#map-canvas")).to_have_attribute("data-version", str(info["version"]),
+                                                                 timeout=PATIENCE_S * 1000)
+            width, height = info["shape"]
+            # the image is the map's bounds, one pixel a cell, and the page says where they are
+            expect(page.locator("#map-summary")).to_contain_text(f"({width} × {height} cells shown)")
+            expect(row).to_contain_text("growing")
+            if label == "first":
+                first_shape = (width, height)
+        assert (width, height) != first_shape  # the bounds grew with the scans, and the page followed
+    page.get_by_label("Show the last scan's beams").uncheck()
+
+    def rgb(x: float, y: float) -> list[int]:  # the canvas at a world point, the image placed at the bounds
+        u = (x - info["origin"][0]) / RES / width
+        v = 1.0 - (y - info["origin"][1]) / RES / height
+        return page.evaluate("""([u, v]) => {
+            const c = document.getElementById('map-canvas');
+            return Array.from(c.getContext('2d').getImageData(Math.floor(u * c.width), Math.floor(v * c.height), 1, 1)
+                .data.slice(0, 3));
+        }""", [u, v])
+
+    wall, free = rgb(4.92, 1.0), rgb(2.5, 3.0)  # the face of the hall's middle wall, and the floor before it
+    assert wall != list(UNKNOWN_RGB) and free != list(UNKNOWN_RGB)
+    assert wall[1] < free[1]  # crimson where the wall is, pale where the floor is

@@ -4,7 +4,8 @@ import numpy as np
 import pytest
 
 from fuzzyocc import FuzzyEngine, FuzzyMap, GridSpec, PointCloud, SensorModel
-from fuzzyocc.grid import BlockGrid, CellGrid
+from fuzzyocc.blockgrid import BlockGrid
+from fuzzyocc.grid import CellGrid
 from fuzzyocc.keys import flat_to_keys
 from fuzzyocc.raycast import cast_rays
 
@@ -130,7 +131,7 @@ def test_uniform_space_costs_little_and_clearing_it_gives_the_memory_back() -> N
     spec = GridSpec(origin=(0.0, 0.0, 0.0), size=(3.2, 3.2, 1.6), resolution=0.1)  # 16384 cells
     m = FuzzyMap(spec, SENSOR)
     fresh = m.state_nbytes()
-    assert fresh < spec.num_cells // 2  # every cell unknown: well under a byte a cell, not 7
+    assert fresh == 0 and m.held_cells() == 0  # no ray yet: no block held
     # A dense fan of no-returns from the centre: free space everywhere it reaches, a ragged edge.
     rng = np.random.default_rng(1)
     dirs = rng.normal(size=(20000, 3))
@@ -145,11 +146,12 @@ def test_uniform_space_costs_little_and_clearing_it_gives_the_memory_back() -> N
     assert m.state_nbytes() <= once
     assert m.resident_nbytes() >= m.state_nbytes()
     # Clearing the whole box until every cell is saturated free makes every block uniform
-    # again: back to the fresh size.
+    # again: one row a block (4 x 4 x 4 cells), the slabs given back.
     for _ in range(12):
         m.integrate_batch([_clearing(spec)])
     assert np.all(m.observed())
-    assert m.state_nbytes() == fresh
+    assert m.held_cells() == spec.num_cells // 64
+    assert m.state_nbytes() < once
 
 
 def test_block_grid_round_trips_any_dense_state_and_risks_like_the_cell_grid() -> None:
@@ -160,7 +162,7 @@ def test_block_grid_round_trips_any_dense_state_and_risks_like_the_cell_grid() -
     state = rows[np.minimum(np.cumsum(rng.random(spec.num_cells) < 0.004), 4)]
     observed = rng.random(spec.num_cells) < 0.5
     engine = FuzzyEngine.paper()
-    grid = BlockGrid.from_dense(spec, state, observed, engine.defuzzify)
+    grid = BlockGrid.from_dense(spec.shape, state, observed, rows[0], engine.defuzzify)
     dense = CellGrid(spec, state.copy(), observed, engine.defuzzify)
     np.testing.assert_array_equal(grid.dense(), state)
     np.testing.assert_array_equal(grid.observed(), observed)
@@ -175,6 +177,8 @@ def test_block_grid_refuses_states_that_do_not_fit() -> None:
     engine = FuzzyEngine.paper()
     n = SPEC_2D.num_cells
     with pytest.raises(ValueError, match="state"):
-        BlockGrid.from_dense(SPEC_2D, np.zeros((n - 1, 7), np.uint8), np.zeros(n, bool), engine.defuzzify)
+        BlockGrid.from_dense(SPEC_2D.shape, np.zeros((n - 1, 7), np.uint8), np.zeros(n, bool), np.zeros(7, np.uint8),
+                             engine.defuzzify)
     with pytest.raises(ValueError, match="observed"):
-        BlockGrid.from_dense(SPEC_2D, np.zeros((n, 7), np.uint8), np.zeros(n, np.uint8), engine.defuzzify)
+        BlockGrid.from_dense(SPEC_2D.shape, np.zeros((n, 7), np.uint8), np.zeros(n, np.uint8), np.zeros(7, np.uint8),
+                             engine.defuzzify)

@@ -5,7 +5,8 @@ import pytest
 
 from fuzzyocc.config import GridSpec
 from fuzzyocc.keys import flat_to_keys
-from fuzzyocc.raycast import NO_RETURN_DISTANCE, cast_rays, new_scratch, traversal_cells
+from fuzzyocc._block_table import BlockIndex
+from fuzzyocc.raycast import NO_RETURN_DISTANCE, Lattice, cast_into, cast_rays, traversal_cells
 
 
 def _slab(lo: np.ndarray, hi: np.ndarray, o: np.ndarray, d: np.ndarray) -> tuple[float, float]:
@@ -163,15 +164,13 @@ def test_evidence_past_unknown_from_counts_only_when_no_beam_brings_more() -> No
     assert both.distance_sigmas[both.cells.tolist().index(55)] == pytest.approx(-4.0, abs=1e-5)
 
 
-def test_no_return_beams_mark_free_space_and_the_scratch_comes_back_clean() -> None:
+def test_no_return_beams_mark_free_space() -> None:
     spec = GridSpec(origin=(0.0, 0.0), size=(2.0, 2.0), resolution=0.1)
-    scratch = new_scratch(spec)
     res = cast_rays(spec, np.array([[1.05, 1.05]] * 2), np.array([[1.0, 0.0], [0.0, -1.0]]),
                     t_end=np.array([0.5, 0.5]), measured=np.array([np.nan, np.nan]), sigma=np.array([0.1, 0.1]),
-                    ray_offsets=np.array([0, 2]), unknown_from=1.5, scratch=scratch)
+                    ray_offsets=np.array([0, 2]), unknown_from=1.5)
     assert res.cells.size == 11  # the sensor's cell is shared by both beams
     assert np.all(res.distance_sigmas == np.float32(NO_RETURN_DISTANCE))
-    assert np.isnan(scratch).all()
 
 
 
@@ -198,7 +197,6 @@ def test_each_scan_of_a_batch_gets_the_union_of_its_beams_with_their_largest_evi
     beams = cast_rays(spec, origins, dirs, t_end, measured, sigma, np.arange(n + 1), unknown_from=1.5)
     reached = np.diff(batch.scan_offsets)
     assert reached.max() > 4 * 1024  # more than the kernel's first buffers hold
-    assert (reached.max() < spec.num_cells // 8) == (spec.ndim == 3)
     for s in range(len(offsets) - 1):
         cells = batch.cells[batch.scan_offsets[s]:batch.scan_offsets[s + 1]]
         dist = batch.distance_sigmas[batch.scan_offsets[s]:batch.scan_offsets[s + 1]]
@@ -212,15 +210,13 @@ def test_each_scan_of_a_batch_gets_the_union_of_its_beams_with_their_largest_evi
 @pytest.mark.parametrize(
     ("spec", "block_shift"),
     [
-        (GridSpec(origin=(0.0, 0.0, 0.0), size=(3.3, 2.9, 1.3), resolution=0.1), (2, 2, 2)),  # sparse: sorted
-        (GridSpec(origin=(0.0, 0.0, 0.0), size=(1.3, 0.9, 0.5), resolution=0.1), (2, 1, 3)),  # dense: swept
+        (GridSpec(origin=(0.0, 0.0, 0.0), size=(3.3, 2.9, 1.3), resolution=0.1), (2, 2, 2)),
+        (GridSpec(origin=(0.0, 0.0, 0.0), size=(1.3, 0.9, 0.5), resolution=0.1), (2, 1, 3)),
         (GridSpec(origin=(0.0, 0.0), size=(3.7, 2.1), resolution=0.1), (3, 3, 0)),
-        # a z shift on a 2-D grid: padding along z, which the planar traversal must number like any other
-        (GridSpec(origin=(0.0, 0.0), size=(1.6, 1.6), resolution=0.1), (2, 2, 2)),
     ],
-    ids=["sparse-3d", "dense-3d", "2d", "2d-z-shift"],
+    ids=["3d", "3d-uneven", "2d"],
 )
-def test_block_numbering_reaches_the_same_cells_with_the_same_evidence(spec: GridSpec, block_shift) -> None:
+def test_block_keys_reach_the_same_cells_with_the_same_evidence(spec: GridSpec, block_shift) -> None:
     rng = np.random.default_rng(11)
     n = 300
     lo, hi = np.asarray(spec.origin), np.asarray(spec.upper)
@@ -229,31 +225,83 @@ def test_block_numbering_reaches_the_same_cells_with_the_same_evidence(spec: Gri
     dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
     t_end = rng.uniform(0.5, 4.0, n)
     measured = np.where(rng.random(n) < 0.3, np.nan, t_end - 0.1)
-    args = (spec, origins, dirs, t_end, measured, np.full(n, 0.05), np.array([0, 100, n]))
-    flat = cast_rays(*args, unknown_from=1.5)
-    scratch = new_scratch(spec, block_shift)
-    blocks = cast_rays(*args, unknown_from=1.5, block_shift=block_shift, scratch=scratch)
-    assert np.all(np.isnan(scratch))
-    # The id of cell (i, j, k) by the documented formula, from its flat id.
-    shape = np.ones(3, dtype=np.int64)
-    shape[: spec.ndim] = spec.shape
-    keys = np.zeros((flat.cells.size, 3), dtype=np.int64)
-    keys[:, : spec.ndim] = flat_to_keys(spec, flat.cells)
-    sh = np.asarray(block_shift)
-    nblk = -(-shape // (1 << sh))
-    block = np.ravel_multi_index(tuple((keys >> sh).T), tuple(nblk))
-    offset = np.ravel_multi_index(tuple((keys & ((1 << sh) - 1)).T), tuple(1 << sh))
-    want = block << sh.sum() | offset
+    args = (origins, dirs, t_end, measured, np.full(n, 0.05), np.array([0, 100, n]))
+    flat = cast_rays(spec, *args, unknown_from=1.5)
+    index = BlockIndex(capacity=2)  # full at once: the cast stops, the index grows, the cast goes on
+    blocks = cast_into(Lattice.of(spec), index, block_shift, *args, unknown_from=1.5)
     np.testing.assert_array_equal(blocks.scan_offsets, flat.scan_offsets)
+    np.testing.assert_array_equal(blocks.cells_traversed, flat.cells_traversed)
+    # The cell of key ``slot << bits | offset``, by the documented formula.
+    sh = np.asarray(block_shift)
+    bits = int(sh.sum())
+    slot, offset = blocks.cells >> bits, blocks.cells & ((1 << bits) - 1)
+    inner = np.stack(np.unravel_index(offset, tuple(1 << sh)), axis=1)
+    cells = (index.coords[slot].astype(np.int64) << sh) + inner
+    shape = (*spec.shape, 1)[:3]
     for s in range(2):
         part = slice(flat.scan_offsets[s], flat.scan_offsets[s + 1])
-        order = np.argsort(want[part])
-        np.testing.assert_array_equal(blocks.cells[part], want[part][order])  # each once, increasing
-        np.testing.assert_array_equal(blocks.distance_sigmas[part], flat.distance_sigmas[part][order])
-    with pytest.raises(ValueError, match="scratch"):
-        cast_rays(*args, unknown_from=1.5, block_shift=block_shift, scratch=new_scratch(spec))
-    with pytest.raises(ValueError, match="block_shift"):
-        cast_rays(*args, unknown_from=1.5, block_shift=(1, 1))
+        got = np.ravel_multi_index(tuple(cells[part].T), shape)
+        order = np.argsort(got)
+        np.testing.assert_array_equal(got[order], flat.cells[part])  # each once
+        np.testing.assert_array_equal(blocks.distance_sigmas[part][order], flat.distance_sigmas[part])
+        # a block's cells come together: each block starts one run
+        runs = np.count_nonzero(np.diff(slot[part]) != 0) + 1
+        assert runs == np.unique(slot[part]).size
+    assert index.n == np.unique(slot).size  # the index holds the blocks reached, no other
+    with pytest.raises(ValueError, match="shift"):
+        cast_into(Lattice.of(spec), index, (1, 1), *args, unknown_from=1.5)
+
+
+def _lattice_cells(index: BlockIndex, keys: np.ndarray, shift: tuple[int, int, int]) -> np.ndarray:
+    """Lattice coordinates (n, 3) of cast keys ``slot << bits | offset``."""
+    sh = np.asarray(shift)
+    bits = int(sh.sum())
+    inner = np.stack(np.unravel_index(keys & ((1 << bits) - 1), tuple(1 << sh)), axis=1)
+    return (index.coords[keys >> bits].astype(np.int64) << sh) + inner
+
+
+@pytest.mark.parametrize("ndim", [2, 3])
+def test_the_unbounded_lattice_reaches_what_a_box_at_the_origin_reaches(ndim: int) -> None:
+    # A growing map's lattice starts at the frame's origin; a fixed box with its corner there numbers the same
+    # cells by the same arithmetic, for rays inside it.
+    rng = np.random.default_rng(4)
+    n = 400
+    origins = rng.uniform(6.0, 10.0, (n, ndim))
+    dirs = rng.normal(size=(n, ndim))
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    t_end = rng.uniform(0.5, 5.0, n)
+    measured = np.where(rng.random(n) < 0.3, np.nan, t_end - 0.1)
+    args = (origins, dirs, t_end, measured, np.full(n, 0.05), np.array([0, 150, n]))
+    shift = (2, 2, 2 if ndim == 3 else 0)
+    index = BlockIndex()
+    grown = cast_into(Lattice((0.0,) * ndim, 0.1, None), index, shift, *args, unknown_from=1.5)
+    box = GridSpec(origin=(0.0,) * ndim, size=(16.0,) * ndim, resolution=0.1)
+    fixed = cast_rays(box, *args, unknown_from=1.5)
+    got = np.ravel_multi_index(tuple(_lattice_cells(index, grown.cells, shift)[:, :ndim].T), box.shape)
+    np.testing.assert_array_equal(grown.scan_offsets, fixed.scan_offsets)
+    for s in range(2):
+        part = slice(fixed.scan_offsets[s], fixed.scan_offsets[s + 1])
+        order = np.argsort(got[part])
+        np.testing.assert_array_equal(got[part][order], fixed.cells[part])
+        np.testing.assert_array_equal(grown.distance_sigmas[part][order], fixed.distance_sigmas[part])
+
+
+@pytest.mark.parametrize("ndim", [2, 3])
+def test_the_unbounded_lattice_walks_exactly_across_negative_coordinates(ndim: int) -> None:
+    rng = np.random.default_rng(8)
+    spec = GridSpec(origin=(-1.2,) * ndim, size=(2.4,) * ndim, resolution=0.3)  # the reference's cells
+    shift = (2, 2, 2 if ndim == 3 else 0)
+    for _ in range(40):
+        o = rng.uniform(-0.5, 0.5, ndim)
+        d = rng.normal(size=ndim)
+        d /= np.linalg.norm(d)
+        index = BlockIndex()
+        cast = cast_into(Lattice((0.0,) * ndim, 0.3, None), index, shift, o[None], d[None], np.array([0.6]),
+                         np.zeros(1), np.ones(1), np.array([0, 1]), unknown_from=np.inf)
+        keys = {tuple(int(v) + 4 for v in c[:ndim]) for c in _lattice_cells(index, cast.cells, shift)}
+        ref = _reference(spec, o, d, 0.6)
+        assert {k for k, (overlap, _) in ref.items() if overlap > 1e-9} <= keys
+        assert keys <= {k for k, (overlap, _) in ref.items() if overlap > -1e-9}
 
 
 def test_the_work_estimate_never_overflows_into_a_small_number() -> None:

@@ -1,4 +1,4 @@
-"""Map resources: create (empty, or from a saved map), list, read, delete."""
+"""Map resources: create (empty, or from a saved map), list, read, change, clear a region, delete."""
 
 from __future__ import annotations
 
@@ -8,7 +8,8 @@ from fastapi import APIRouter, Query, Request, Response
 
 from app.formats import etags, saved_maps
 from app.api.deps import MapNamePath, ServiceDep
-from app.schemas import MapCreate, MapImport, MapInfo
+from app.maps.logcodec import Clear, SetForget
+from app.schemas import Cleared, ClearRegion, MapChange, MapCreate, MapImport, MapInfo
 from app.service import map_import
 
 router = APIRouter(prefix="/maps", tags=["maps"])
@@ -81,6 +82,26 @@ async def get_map(name: MapNamePath, service: ServiceDep, response: Response) ->
     info = await service.reads.map_info(name)
     response.headers[etags.VERSION_HEADER] = str(info.version)
     return info
+
+
+@router.patch("/{name}", responses={**_NOT_FOUND, 422: {"description": "a setting that cannot change, or a bayes "
+                                                                       "map's forget_beyond"}})
+async def change_map(name: MapNamePath, body: MapChange, service: ServiceDep) -> MapInfo:
+    """Change a map's settings that may change (``forget_beyond``), in its place among the map's batches: durable
+    before the answer, replayed at every start."""
+    if "forget_beyond" in body.model_fields_set:
+        await service.writes.add_edit(name, SetForget(body.forget_beyond))
+    return await service.reads.map_info(name)
+
+
+@router.post("/{name}/clear", responses={**_NOT_FOUND, 422: {"description": "a box of the wrong dimension, not "
+                                                                             "finite, or min above max"}})
+async def clear_region(name: MapNamePath, body: ClearRegion, service: ServiceDep) -> Cleared:
+    """Set every cell of a box back to never observed (risk 0.5), as octomap_server's ``clear_bbx``: furniture
+    that moved, a person who stood still. Durable before the answer, replayed at every start; blocks left
+    holding nothing are freed."""
+    result = await service.writes.add_edit(name, Clear(tuple(body.min), tuple(body.max)))
+    return Cleared(cells_cleared=result.cells_updated, version=result.version)
 
 
 @router.delete("/{name}", status_code=204, response_class=Response, responses=_NOT_FOUND)
