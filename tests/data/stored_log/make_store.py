@@ -11,7 +11,9 @@ upside-down and not quite unit quaternions) to the service in-process, then writ
 - ``fuzzyrisk.sqlite3``: the service's store, copied by ``app.storage.backup`` while the service ran, so that
   each map keeps the batches after its last snapshot in its log (a clean stop would snapshot them);
 - ``maps.npz``: each map's ``to_arrays()`` and its risk as ``GET /maps/{name}/risk.npy`` serves it, keys
-  ``<map>.<array>``.
+  ``<map>.<array>``;
+- ``batches.npz``: every batch record the service logged (its scans in the map frame, ``app.maps.logcodec``),
+  from a second run that takes no snapshot, keys ``<map>.<version>``.
 
 ``tests/app/maps/test_stored.py`` replays the store and re-posts the requests with today's code and
 compares both with ``maps.npz``, bit for bit. Never re-run this to make that test pass: the files hold the
@@ -36,17 +38,9 @@ from fastapi.testclient import TestClient
 from app.api.factory import create_app
 from app.config import Settings
 from app.storage.backup import DATABASE, backup
-from tests.app._ros import (
-    CLOUD_CT,
-    LASER_CT,
-    cdr,
-    cloud_msg,
-    laser_msg,
-    store,
-    wall_ranges,
-)
+from tests.app._ros import CLOUD_CT, LASER_CT, cdr, cloud_msg, laser_msg, store, wall_ranges
 from tests.app.cli.test_import_bag import cloud_scenario, laser_scenario, write_bag
-from tests.app.maps.test_stored import SNAPSHOT_EVERY, held_arrays, send
+from tests.app.maps.test_stored import NEVER, SNAPSHOT_EVERY, held_arrays, logged_batches, send
 
 HERE = Path(__file__).resolve().parent
 MAPS: list[dict[str, Any]] = [
@@ -68,6 +62,11 @@ ROLLED = _unit([0.97, 0.05, -0.2, 0.08])  # about pi around x: upside down, turn
 PITCHED = _unit([-0.05, 0.31, -0.6, 0.73])
 NEAR_UNIT = (np.array(_unit([0.3, 0.2, -0.1, 0.92])) * (1.0 + 4e-4)).tolist()  # norm 1.0004: normalised inside
 LEVEL_DOWN = _unit([0.0, 1.0, 0.0, 0.0])  # level LaserScan, mounted upside down (z down)
+
+
+def _near_unit(rng: np.random.Generator) -> list[float]:
+    """A random orientation whose norm is off 1 by up to 9e-4 (a pose may be off by 1e-3)."""
+    return (np.array(_unit(rng.normal(size=4))) * (1.0 + rng.uniform(-9e-4, 9e-4))).tolist()
 
 
 def _pose_query(position: list[float], quaternion: list[float], **extra: Any) -> dict[str, Any]:
@@ -130,6 +129,9 @@ def requests(work: Path) -> list[dict[str, Any]]:
     bag = write_bag(laser_scenario(), work / "drive2d", "mcap-jazzy")
     scans("flat", "application/x-mcap", body=bag.read_bytes(), kind="bags")
     scans("flat", CLOUD_CT, body=cloud_cdr(300), **_pose_query([1.0, 1.0, 0.3], NEAR_UNIT, range_max=5.0))
+    for _ in range(4):  # any orientation, norms within the 1e-3 a pose may be off: normalised to varied last bits
+        scans("flat", CLOUD_CT, body=cloud_cdr(100), **_pose_query(rng.uniform(-1.0, 1.0, 3).tolist(),
+                                                                   _near_unit(rng), range_max=5.0))
 
     # 3-D map "hall": clouds with 3-D poses as JSON, .npy and CDR bodies, a tilted LaserScan, a bag placed by TF
     scans("hall", "application/json", json_body={"scans": [
@@ -144,6 +146,9 @@ def requests(work: Path) -> list[dict[str, Any]]:
     scans("hall", "application/x-mcap", body=bag.read_bytes(), kind="bags")
     scans("hall", "application/json", json_body={"scans": [
         _json_cloud({"position": [0.4, 0.4, 0.6], "orientation": PITCHED}, _cloud_points(rng, 500), 4.0)]})
+    scans("hall", "application/json", json_body={"scans": [
+        _json_cloud({"position": rng.uniform(-1.0, 1.0, 3).tolist(), "orientation": _near_unit(rng)},
+                    _cloud_points(rng, 60), 4.0) for _ in range(16)]})
 
     # 3-D Bayes map "bayes": float32 log-odds, as sensitive to a point's last bit as any
     scans("bayes", "application/json", json_body={"scans": [
@@ -152,9 +157,22 @@ def requests(work: Path) -> list[dict[str, Any]]:
     return out
 
 
-def settings(data_dir: Path) -> Settings:
+def settings(data_dir: Path, snapshot_every: int) -> Settings:
     return Settings(data_dir=data_dir, plan_warmup=False, plan_workers=1, disk_reserve_bytes=64 * 1024,
-                    snapshot_every=SNAPSHOT_EVERY)
+                    snapshot_every=snapshot_every)
+
+
+def run(data_dir: Path, sent: list[dict[str, Any]], snapshot_every: int) -> TestClient:
+    """A service on ``data_dir`` (entered: the caller exits it) that created the maps and was sent ``sent``."""
+    client = TestClient(create_app(settings(data_dir, snapshot_every)))
+    client.__enter__()
+    wait_ready(client)
+    for spec in MAPS:
+        assert client.post("/maps", json=spec).status_code == 201
+    for item in sent:
+        response = send(client, item)
+        assert response.status_code == 200, response.text
+    return client
 
 
 def wait_ready(client: TestClient) -> None:
@@ -168,21 +186,29 @@ def main() -> int:
     with tempfile.TemporaryDirectory() as tmp:
         work = Path(tmp)
         sent = requests(work)
-        with TestClient(create_app(settings(work / "service"))) as client:
-            wait_ready(client)
-            for spec in MAPS:
-                assert client.post("/maps", json=spec).status_code == 201
-            for item in sent:
-                response = send(client, item)
-                assert response.status_code == 200, response.text
+        client = run(work / "service", sent, SNAPSHOT_EVERY)
+        try:
             writes = client.app.state.service.writes  # type: ignore[attr-defined]
             while writes.snapshots_being_written:
                 time.sleep(0.01)
             maps = {spec["name"]: held_arrays(client, spec["name"]) for spec in MAPS}
             (HERE / DATABASE).unlink(missing_ok=True)
             backup(work / "service", HERE / DATABASE)
+        finally:
+            client.__exit__(None, None, None)
+        client = run(work / "logged", sent, NEVER)
+        try:
+            logged = {spec["name"]: logged_batches(client, spec["name"]) for spec in MAPS}
+            for spec in MAPS:  # snapshots or not, the same maps
+                again = held_arrays(client, spec["name"])
+                assert all(again[k].tobytes() == v.tobytes() for k, v in maps[spec["name"]].items())
+        finally:
+            client.__exit__(None, None, None)
         np.savez_compressed(HERE / "maps.npz", **{f"{name}.{key}": value for name, arrays in maps.items()
                                                   for key, value in arrays.items()})
+        np.savez_compressed(HERE / "batches.npz", **{f"{name}.{version}": np.frombuffer(payload, np.uint8)
+                                                     for name, batches in logged.items()
+                                                     for version, payload in batches.items()})
         with gzip.GzipFile(HERE / "requests.json.gz", "wb", mtime=0) as out:
             out.write(json.dumps({"maps": MAPS, "requests": sent}, indent=1).encode() + b"\n")
     for path in sorted(HERE.iterdir()):
