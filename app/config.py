@@ -45,7 +45,11 @@ class Settings(BaseSettings):
         None,
         description="Bearer token every API call must carry; unset or empty = no authentication.",
     )
-    max_body_bytes: int = Field(64 * 2**20, ge=1024, description="Largest scan upload body, bytes (413 beyond).")
+    max_body_bytes: int = Field(
+        64 * 2**20, ge=1024,
+        description="Largest upload body (scans, bags, a saved map imported), bytes (413 beyond); also the most a "
+        "saved map's zipped image may inflate to.",
+    )
     max_json_body_bytes: int = Field(
         8 * 2**20, ge=1024,
         description="Largest body of every other route (maps, risk queries, plans), bytes (413 beyond): "
@@ -92,6 +96,11 @@ class Settings(BaseSettings):
         "engine, so the default bounds the maps' memory near 5 GB.",
     )
     max_query_points: int = Field(100_000, ge=1, description="Most points in one risk query.")
+    max_path_points: int = Field(
+        10_000, ge=1,
+        description="Most points in one path check (413 beyond): a plan's path has a point a cell, so 10,000 points "
+        "are 500 m at 0.05 m.",
+    )
     max_plan_time_s: float = Field(30.0, gt=0.0, le=3600.0, description="Largest plan time_limit, seconds.")
     plan_workers: int = Field(2, ge=1, le=64, description="Planner worker processes.")
     plan_workers_per_map: int | None = Field(

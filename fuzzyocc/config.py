@@ -39,6 +39,11 @@ def _finite_tuple(name: str, values: object, dims: int | None = None) -> tuple[f
     return out
 
 
+def _cells(size: float, resolution: float) -> int:
+    """Whole cells of ``resolution`` that cover ``size`` (a hair of tolerance for float noise)."""
+    return max(1, math.ceil(size / resolution - 1e-9))
+
+
 @dataclass(frozen=True)
 class GridSpec:
     """A bounded 2-D or 3-D region cut into square (cubic) cells.
@@ -100,7 +105,21 @@ class GridSpec:
     @property
     def shape(self) -> tuple[int, ...]:
         """Cells along x, y[, z]: ``ceil(size / resolution)`` (a hair of tolerance for float noise)."""
-        return tuple(max(1, math.ceil(s / self.resolution - 1e-9)) for s in self.size)
+        return tuple(_cells(s, self.resolution) for s in self.size)
+
+    @property
+    def built_size(self) -> tuple[float, ...]:
+        """The extent as built, ``shape * resolution``: a size that gives this very shape again.
+
+        Written with 12 significant digits where that keeps the shape (16.0, not 16.000000000000004);
+        a resolution of more digits (1/3) keeps the product as it is.
+        """
+        out = []
+        for n in self.shape:
+            exact = n * self.resolution
+            short = float(f"{exact:.12g}")
+            out.append(short if _cells(short, self.resolution) == n else exact)
+        return tuple(out)
 
     @property
     def num_cells(self) -> int:

@@ -161,11 +161,12 @@ def engine_to_dict(engine: FuzzyEngine) -> dict[str, Any]:
     return out
 
 
-def engine_from_dict(d: Mapping[str, Any], *, cls: type[FuzzyEngine] = FuzzyEngine) -> FuzzyEngine:
+def engine_from_dict(d: Mapping[str, Any], *, cls: type[FuzzyEngine] = FuzzyEngine, root: str = _ROOT) -> FuzzyEngine:
     """The engine ``d`` describes (the inverse of :func:`engine_to_dict`).
 
     A field with a default may be left out. ``cls``: a subclass of :class:`FuzzyEngine` to
-    build instead (its extra fields are read like any other).
+    build instead (its extra fields are read like any other). ``root``: the path the messages
+    name ``d`` by (``engine.definition`` where the definition sits inside another object).
 
     Raises
     ------
@@ -174,14 +175,14 @@ def engine_from_dict(d: Mapping[str, Any], *, cls: type[FuzzyEngine] = FuzzyEngi
         check prefixed with ``engine.`` (coverage, rule table, output order ...).
     """
     if not isinstance(d, Mapping):
-        raise ValueError(f"{_ROOT} must be an object of engine fields, got {_show(d)}")
+        raise ValueError(f"{root} must be an object of engine fields, got {_show(d)}")
     fields = {f.name: f for f in _init_fields(cls)}
     for key in d:
         if key not in fields:
-            raise ValueError(f"{_ROOT}.{key} is not a field of an engine (the fields: {list(fields)})")
+            raise ValueError(f"{root}.{key} is not a field of an engine (the fields: {list(fields)})")
     kwargs: dict[str, Any] = {}
     for name, f in fields.items():
-        path = f"{_ROOT}.{name}"
+        path = f"{root}.{name}"
         if name not in d:
             if f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING:
                 raise ValueError(f"{path} is missing")
@@ -190,17 +191,17 @@ def engine_from_dict(d: Mapping[str, Any], *, cls: type[FuzzyEngine] = FuzzyEngi
     try:
         return cls(**kwargs)
     except ValueError as exc:
-        raise ValueError(_under_root(str(exc), fields)) from None
+        raise ValueError(_under_root(str(exc), fields, root)) from None
 
 
 def _init_fields(cls: type) -> list[dataclasses.Field[Any]]:
     return [f for f in dataclasses.fields(cls) if f.init]
 
 
-def _under_root(message: str, fields: Mapping[str, object]) -> str:
+def _under_root(message: str, fields: Mapping[str, object], root: str) -> str:
     # the engine's messages start with the field they are about ("rules['PO']['EMP'] concludes ...")
     head = message.split(" ", 1)[0].split("[", 1)[0]
-    return f"{_ROOT}.{message}" if head in fields else f"{_ROOT}: {message}"
+    return f"{root}.{message}" if head in fields else f"{root}: {message}"
 
 
 # ---------------------------------------------------------------- plain values

@@ -24,6 +24,7 @@ from __future__ import annotations
 import argparse
 import sys
 from collections.abc import Sequence
+from importlib import metadata
 from pathlib import Path
 from typing import Any
 
@@ -220,12 +221,21 @@ def write_figures(
     return paths
 
 
+def _version() -> str:
+    """The installed fuzzyrisk's version (this package cannot import ``app.ops.version``)."""
+    try:
+        return metadata.version("fuzzyrisk")
+    except metadata.PackageNotFoundError:
+        return "unknown (not installed)"
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Command line entry: ``python -m fuzzyocc.figures --out DIR``."""
     parser = argparse.ArgumentParser(prog="python -m fuzzyocc.figures", description=__doc__.splitlines()[0])
     parser.add_argument("--out", required=True, type=Path, help="directory to write the PNG files into")
     parser.add_argument("--sigma-mm", type=float, default=4.0, help="range sigma of figures 7-9, mm (default 4)")
     parser.add_argument("--shift-mm", type=float, default=10.0, help="shift of the contradictory measurement, mm")
+    parser.add_argument("--version", action="version", version=f"%(prog)s (fuzzyrisk) {_version()}")
     args = parser.parse_args(argv)
     try:
         paths = write_figures(args.out, sigma_mm=args.sigma_mm, shift_mm=args.shift_mm)

@@ -103,6 +103,10 @@ class CellGrid:
         rows = np.ascontiguousarray(state).view(np.uint8).reshape(state.shape[0], -1)
         return bool(_rows_equal_first(rows))
 
+    def ids(self, cells: np.ndarray) -> np.ndarray:
+        """The ids of ``cells`` (flat ids) as :meth:`write` and :meth:`mark_observed` take them: the same."""
+        return np.asarray(cells, dtype=np.int64)
+
     # -- states ---------------------------------------------------------------------------
     def read(self, cells: np.ndarray) -> np.ndarray:
         """States of ``cells`` (flat ids), a copy of shape ``(len(cells), ...)``."""
@@ -312,10 +316,11 @@ class BlockGrid:
         grid._n_dense = _fill_dense(state, grid._shape, grid._shift, grid._nblk, grid._urow, grid._ref,
                                     grid._pool, grid._owner)
         grid._prisk[:n_dense] = _STALE
-        _set_bits(grid._observed, grid._block_ids(np.flatnonzero(observed)))
+        _set_bits(grid._observed, grid.ids(np.flatnonzero(observed)))
         return grid
 
-    def _block_ids(self, cells: np.ndarray) -> np.ndarray:
+    def ids(self, cells: np.ndarray) -> np.ndarray:
+        """The block ids of ``cells`` (flat ids), as :meth:`fuse` and :meth:`mark_observed` take them."""
         blk, off = self._locate(cells)
         return (blk << self._bits) | off
 

@@ -49,6 +49,17 @@ CAST_CHUNK_ENTRIES = 16_000_000
 #: beams one cast may hold (about 300 bytes each while their rays are made and cast: about 20 MB); a scan with
 #: more is cast part by part (see ``_cast_in_parts``)
 CAST_CHUNK_BEAMS = 65_536
+#: The evidence of one agreeing scan in a prior (``OccupancyMap.integrate_prior``), in sigmas from the measured
+#: surface (eq. 5): an occupied cell's is that of the cell a beam ends in, the surface at its centre; a free
+#: cell's that of a cell a beam crosses far in front of its surface (3 m at the default 0.03 m), where every
+#: preset's input functions are flat and the Bayes OPDF has reached its front plateau.
+PRIOR_HIT_SIGMAS = 0.0
+PRIOR_PASS_SIGMAS = -100.0
+#: The prior level of a cell no scan reached: ``integrate_prior`` leaves it as it is.
+PRIOR_UNSEEN = -128
+#: Most agreeing scans one prior cell may stand for: every engine here saturates well before (``evidence`` after
+#: 3 hits or 5 pass-throughs, Bayes at its clamps after 12 hits), and each is one more pass over the cells.
+MAX_PRIOR_SCANS = 20
 
 
 def scan_parts(scan: Scan) -> list[slice]:
@@ -79,6 +90,11 @@ def cast_work(spec: GridSpec, scans: Sequence[Scan]) -> int:
             rays = scan.to_rays(beams=part)
             total += traversal_cells(spec, rays.origin, rays.endpoints)
     return total
+
+
+def _check_weight(weight: object) -> None:
+    if not isinstance(weight, int) or isinstance(weight, bool) or not 1 <= weight <= MAX_PRIOR_SCANS:
+        raise ValueError(f"weight must be a whole number of scans from 1 to {MAX_PRIOR_SCANS}, got {weight!r}")
 
 
 def _check_spec(spec: object) -> None:
@@ -225,6 +241,74 @@ class OccupancyMap:
             cells_traversed=traversed,
             rays_skipped=int(skipped),
         )
+
+    # -- a prior: cells as agreeing scans made them ----------------------------------------
+    def integrate_prior(self, levels: np.ndarray) -> IntegrationStats:
+        """Fuse a prior: each cell as if ``|level|`` scans had agreed on it, hits (``level > 0``) or pass-throughs.
+
+        ``levels`` is int8 of ``spec.shape``: ``PRIOR_UNSEEN`` leaves a cell as it is, 0 marks it observed
+        with no evidence, ``+k`` / ``-k`` (``k <= MAX_PRIOR_SCANS``) marks it observed and fuses
+        ``PRIOR_HIT_SIGMAS`` / ``PRIOR_PASS_SIGMAS`` into it ``k`` times with the map's own fusion: the
+        cell then reads, and later scans change it, exactly as after ``k`` such scans. It has no pose and
+        counts no scan. ``ValueError`` naming ``levels`` (the map unchanged) for a wrong shape, dtype or level.
+        """
+        levels = np.asarray(levels)
+        if levels.shape != self.spec.shape or levels.dtype != np.int8:
+            raise ValueError(f"levels must be int8 of the map's shape {self.spec.shape}, got {levels.dtype.name} of "
+                             f"shape {levels.shape}")
+        flat = levels.reshape(-1)
+        seen = np.flatnonzero(flat != PRIOR_UNSEEN)
+        counts = flat[seen].astype(np.int16)
+        if counts.size and int(np.abs(counts).max()) > MAX_PRIOR_SCANS:
+            raise ValueError(f"levels must lie in -{MAX_PRIOR_SCANS}..{MAX_PRIOR_SCANS} (or be PRIOR_UNSEEN, "
+                             f"{PRIOR_UNSEEN}), got {int(counts[np.abs(counts).argmax()])}")
+        ids = self._grid.ids(seen)
+        order = np.argsort(ids, kind="stable")  # fusion takes its cells in increasing id (a block grid's order)
+        ids, counts = ids[order], counts[order]
+        self._grid.mark_observed(ids)
+        updated = 0
+        strength = np.abs(counts)
+        for k in range(1, int(strength.max(initial=0)) + 1):
+            agree = strength >= k
+            distance = np.where(counts[agree] > 0, np.float32(PRIOR_HIT_SIGMAS), np.float32(PRIOR_PASS_SIGMAS))
+            updated += self._update(ids[agree], distance)
+        return IntegrationStats(scans=0, rays=0, cells_updated=updated)
+
+    def prior_risks(self, weight: int) -> np.ndarray:
+        """The risk of each level ``-weight .. weight`` of a prior, as this map reads a cell ``integrate_prior`` set
+        to it from never observed: float32 of ``2 * weight + 1`` values (pass-throughs first, level 0 in the middle)."""
+        _check_weight(weight)
+        n = 2 * weight + 1
+        probe = self._like(GridSpec(origin=(0.0, 0.0), size=(float(n), 1.0), resolution=1.0))
+        probe.integrate_prior(np.arange(-weight, weight + 1, dtype=np.int8).reshape(n, 1))
+        return np.array(probe.risk().reshape(-1))
+
+    def prior_levels(self, occupancy: np.ndarray, weight: int) -> np.ndarray:
+        """The prior level (``integrate_prior``) of each occupancy probability, int8 of ``occupancy``'s shape.
+
+        NaN (unknown) is ``PRIOR_UNSEEN``, 1 (occupied) ``weight`` hits, 0 (free) ``weight``
+        pass-throughs; any other probability the level among ``-weight .. weight`` whose risk
+        (``prior_risks``) is nearest it, the one of fewer scans on a tie. ``ValueError`` for a
+        probability outside [0, 1].
+        """
+        p = np.asarray(occupancy, dtype=np.float64)
+        known = ~np.isnan(p)
+        if np.any((p[known] < 0.0) | (p[known] > 1.0)):
+            raise ValueError("occupancy must be probabilities in [0, 1] (NaN: unknown)")
+        levels = np.arange(-weight, weight + 1)
+        risks = self.prior_risks(weight).astype(np.float64)
+        by_strength = np.argsort(np.abs(levels), kind="stable")  # argmin keeps the first of equals: fewer scans
+        values, inverse = np.unique(p[known], return_inverse=True)
+        nearest = levels[by_strength][np.argmin(np.abs(values[:, None] - risks[by_strength][None, :]), axis=1)]
+        nearest[values == 1.0] = weight
+        nearest[values == 0.0] = -weight
+        out = np.full(p.shape, PRIOR_UNSEEN, dtype=np.int8)
+        out[known] = nearest[inverse].astype(np.int8)
+        return out
+
+    def _like(self, spec: GridSpec) -> OccupancyMap:
+        """A new map of this model, sensor (and engine) over ``spec``."""
+        return type(self)(spec, self.sensor)
 
     def _cast_chunks(self, scans: list[Scan]) -> list[tuple[int, int]]:
         """Consecutive runs of scans ``[first, last)`` whose cast holds at most ``CAST_CHUNK_ENTRIES`` entries and
@@ -457,6 +541,9 @@ class FuzzyMap(OccupancyMap):
     @property
     def _blocks(self) -> BlockGrid:
         return cast(BlockGrid, self._grid)
+
+    def _like(self, spec: GridSpec) -> FuzzyMap:
+        return FuzzyMap(spec, self.sensor, self.engine)
 
     def _new_grid(self) -> BlockGrid:
         # Without the dense initial state: one uniform row for the whole grid.

@@ -10,11 +10,20 @@ import argparse
 import logging
 import os
 import sys
+from importlib import metadata
 
 from fuzzyrisk_bridge.core import BridgeConfig
 
 #: Exit status when the node cannot start (no rclpy, a bad option).
 EXIT_STARTUP_FAILURE = 1
+
+
+def _version() -> str:
+    """The installed fuzzyrisk's version; the bridge may run from a checkout on PYTHONPATH, never installed."""
+    try:
+        return metadata.version("fuzzyrisk")
+    except metadata.PackageNotFoundError:
+        return "unknown (not installed)"
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -31,6 +40,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--max-delay", type=float, default=0.5, help="longest a scan waits for its batch, s")
     parser.add_argument("--queue-size", type=int, default=200, help="scans held while the service is slow")
     parser.add_argument("--timeout", type=float, default=5.0, help="per request, s (default %(default)s)")
+    parser.add_argument("--version", action="version", version=f"%(prog)s (fuzzyrisk) {_version()}")
     args, ros_args = parser.parse_known_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     try:

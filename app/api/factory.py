@@ -18,6 +18,7 @@ from app.api.auth import is_protected
 from app.api.errors import install_error_handlers
 from app.errors import ErrorBody
 from app.ops.metrics import Metrics
+from app.ops.version import package_version
 from app.api.middleware import ApiKeyMiddleware, BodyBudgetMiddleware, BodyLimitMiddleware, ObserveMiddleware
 from app.api.routes import bags, docs, maps, plans, recordings, risk, scans, system, ui
 from app.schemas import RiskGridJSON, ScanBatch
@@ -179,7 +180,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     # FastAPI's own schema and docs routes off: app/routes/docs.py serves them (pages without a CDN)
     # operation ids are the route functions' names (create_map, post_scans, plan...): what generated
     # clients name their functions after, instead of FastAPI's create_map_maps_post
-    app = FastAPI(title="fuzzyrisk", version="0.1.0", description=DESCRIPTION, lifespan=lifespan,
+    app = FastAPI(title="fuzzyrisk", version=package_version(), description=DESCRIPTION, lifespan=lifespan,
                   openapi_url=None, docs_url=None, redoc_url=None,
                   generate_unique_id_function=lambda route: route.name)
     app.state.settings = settings

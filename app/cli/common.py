@@ -1,13 +1,15 @@
 """What the two importers (``app.cli.import_log``, ``app.cli.import_bag``) share: their command's frame.
 
 The option types and the checks of the options both take (the service, the output files), the
-client of the service's HTTP API, the progress line on stderr, the files written in-process or
-downloaded from the service, and ``import_main``: parse, check, run, one line of summary or error.
+client of the service's HTTP API, the line said when kernels compile (here, or in the service),
+the files written in-process or downloaded from the service, and ``import_main``: parse, check,
+run, one line of summary or error. Their progress is ``app.cli.progress``.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import http.client
 import json
@@ -17,12 +19,14 @@ import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any, TextIO
+from typing import Any
 from urllib.parse import urlencode, urlsplit
 
 import numpy as np
 
+from app.cli.progress import Progress
 from app.formats import exports
+from app.ops.compile_notice import on_first_compile
 from fuzzyocc import GridSpec, SensorModel
 
 #: How long a batch may keep meeting 503 (a full line of batches, a full disk) before we give up, seconds.
@@ -98,21 +102,16 @@ def check_options(p: argparse.ArgumentParser, args: argparse.Namespace) -> None:
             p.error(f"--{option}: directory {str(path.parent)!r} does not exist")
 
 
-# ---------------------------------------------------------------- progress and outputs
+# ---------------------------------------------------------------- compiling and outputs
 
 
-class Progress:
-    """``PROG: done/total what, elapsed`` on a stream, at most once a second, and the last one (``final``)."""
+#: Said once, at the first compilation of a kernel (a cold numba cache), by an import fused here.
+COMPILING = "compiling the fusion kernels (first run only: numba caches them for later runs)..."
 
-    def __init__(self, prog: str, stream: TextIO, started: float, every_s: float = 1.0) -> None:
-        self.prog, self.stream, self.started, self.every_s = prog, stream, started, every_s
-        self._last = -math.inf
 
-    def __call__(self, what: str, done: int, total: int, *, final: bool = False) -> None:
-        now = time.perf_counter()
-        if now - self._last >= self.every_s or final:
-            self._last = now
-            print(f"{self.prog}: {done}/{total} {what}, {now - self.started:.1f} s", file=self.stream, flush=True)
+def compile_notice(progress: Progress) -> contextlib.AbstractContextManager[None]:
+    """Within the block, say ``COMPILING`` when numba starts to compile a kernel (never when all are cached)."""
+    return on_first_compile(lambda: progress.say(COMPILING))
 
 
 def write_outputs(args: argparse.Namespace, spec: GridSpec, risk: np.ndarray, observed: np.ndarray,
@@ -193,6 +192,19 @@ class ServiceClient:
                 time.sleep(min(max(wait, 0.05), max(0.0, deadline - time.monotonic())))
                 continue
             raise ImportFailed(f"{method} {self.url}{path} answered {status}: {_detail(data)}")
+
+
+def say_if_the_service_compiles(client: ServiceClient, progress: Progress) -> None:
+    """Say so when the service is still compiling its fusion kernels (its first start): the first batch waits for
+    them. Its ``GET /ready`` tells; a service that does not answer it is not waited for here."""
+    try:
+        status, data = client.call("GET", "/ready", ok=(200, 503))
+        compiling = status == 503 and json.loads(data).get("kernels_compiled") is False
+    except (ImportFailed, ValueError, AttributeError):
+        return
+    if compiling:
+        progress.say(f"the service at {client.url} is still compiling its fusion kernels (its first start); "
+                     "the first batch waits for them...")
 
 
 def create_map(client: ServiceClient, args: argparse.Namespace, spec: GridSpec, **extra: Any) -> dict[str, Any] | None:

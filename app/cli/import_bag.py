@@ -13,7 +13,8 @@ transforms do not cover is skipped, and the summary counts why. Each message is 
 posted as CDR bodies, posted as JSON batches) give the same map bit for bit.
 
 ``POST /maps/{name}/bags`` (``app/service/bag_upload.py``) reads an uploaded bag with a :class:`BagStream` too.
-Progress goes to stderr, a one-line summary to stdout; errors exit 1 with a message.
+Progress goes to stderr (``app.cli.progress``: a bar on a terminal, else a line every few seconds; a
+first run says when it compiles the fusion kernels), a one-line summary to stdout; errors exit 1 with a message.
 """
 
 from __future__ import annotations
@@ -33,19 +34,22 @@ from rosbags.highlevel import AnyReader
 
 from app.cli.common import (
     ImportFailed,
-    Progress,
     ServiceClient,
     add_output_options,
     add_service_options,
+    compile_notice,
     create_map,
     download_outputs,
     import_main,
     name_taken,
     non_negative,
     positive,
+    say_if_the_service_compiles,
     write_outputs,
 )
+from app.cli.progress import Progress
 from app.config import Settings
+from app.ops.version import add_version_option
 from app.ros import messages_in
 from app.ros.bags import (
     BAG_ERRORS,
@@ -185,6 +189,7 @@ def _parser() -> argparse.ArgumentParser:
     s = add_service_options(p, append="add the scans to the map if it exists")
     s.add_argument("--body", choices=("cdr", "json"), default="cdr",
                    help="post each message as its CDR body with its pose (default), or JSON batches of --batch scans")
+    add_version_option(p)
     return p
 
 
@@ -218,8 +223,11 @@ def summary_reasons(skipped: Counter[str]) -> str:
 def _run(args: argparse.Namespace) -> str:
     """Read the bag in two passes (the first only to size the map: without ``--origin`` or an existing map),
     fusing or posting each batch as it is read: the bag is never held in memory."""
-    started = time.perf_counter()
-    progress = Progress(PROG, sys.stderr, started)
+    with Progress(PROG) as progress, compile_notice(progress):
+        return _import(args, progress, time.perf_counter())
+
+
+def _import(args: argparse.Namespace, progress: Progress, started: float) -> str:
     dims = _dimensions(args)
     client = ServiceClient(args.url, args.api_key) if args.url else None
     existing = _existing_map(client, args.map) if client is not None and args.append else None
@@ -239,31 +247,30 @@ def _run(args: argparse.Namespace) -> str:
                         max_cells=max_cells)
     else:  # a first pass: the bounds of every placed scan, nothing kept
         with BagStream(args.bag, options, dims=dims, limits=DEFAULT_LIMITS,
-                       progress=lambda done, total: progress("scan messages read (sizing the map)", done,
-                                                             total)) as sizing:
+                       progress=lambda done, _: progress.update(done)) as sizing:
+            progress.stage("reading to size the map", sizing.total, "messages")
             spec = grid_for((s.scan for s in sizing), dims, args.resolution, args.margin, max_cells)
-            progress("scan messages read (sizing the map)", sizing.messages, sizing.total, final=True)
+            progress.close()
             placed = f"; {sizing.placed} placed"
     if client is None:
         send, finish = _in_process(args, spec)
     else:
+        say_if_the_service_compiles(client, progress)
         send, finish = _through_service(args, client, existing or _create(client, args, spec, map_frame))
     shape = " x ".join(str(n) for n in spec.shape)
     fused = _Fused()
-
-    def reading(done: int, total: int) -> None:
-        progress(f"scan messages read, {fused.scans} scans fused", done, total)
-
     with BagStream(args.bag, options, dims=dims, limits=DEFAULT_LIMITS, keep_cdr=client is not None and
                    args.body == "cdr", keep_sensor=client is not None and args.body == "json",
-                   progress=reading) as bag:
-        print(f"{PROG}: {args.bag.name}: {bag.total} scan messages on {', '.join(sorted(bag.topics))}, "
-              f"{bag.transforms} transforms{placed}; map {shape} cells of {spec.resolution} m from "
-              f"({', '.join(f'{v:g}' for v in spec.origin)}) in frame {map_frame}", file=sys.stderr, flush=True)
+                   progress=lambda done, _: progress.update(done, f"{fused.scans} scans fused")) as bag:
+        progress.say(f"{args.bag.name}: {bag.total} scan messages on {', '.join(sorted(bag.topics))}, "
+                     f"{bag.transforms} transforms{placed}; map {shape} cells of {spec.resolution} m from "
+                     f"({', '.join(f'{v:g}' for v in spec.origin)}) in frame {map_frame}")
+        progress.stage("fusing", bag.total, "messages")
         for batch in bag.batches(args.batch):
             fused.rays += send(batch)
             fused.scans += len(batch)
-        progress(f"scan messages read, {fused.scans} scans fused", bag.messages, bag.total, final=True)
+        progress.update(bag.messages, f"{fused.scans} scans fused")
+        progress.close()
         where = finish()
         elapsed = time.perf_counter() - started
         return (f"{args.bag.name}: {bag.messages} scan messages read, {fused.scans} fused, "

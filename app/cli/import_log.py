@@ -10,7 +10,8 @@ The map's bounds are those of the log's poses and hits, padded by ``--margin`` (
 service renders them. With ``--url`` the map is created on the service (with the same sensor
 model) and the scans are posted in order as JSON batches; the files are then downloaded.
 Either way the scans are fused in log order, so a new map's risk is the same bit for bit.
-Progress goes to stderr, a one-line summary to stdout; errors exit 1 with a message.
+Progress goes to stderr (``app.cli.progress``: a bar on a terminal, else a line every few seconds; a
+first run says when it compiles the fusion kernels), a one-line summary to stdout; errors exit 1 with a message.
 """
 
 from __future__ import annotations
@@ -30,18 +31,21 @@ import numpy as np
 
 from app.cli.common import (
     ImportFailed,
-    Progress,
     ServiceClient,
     add_output_options,
     add_service_options,
+    compile_notice,
     create_map,
     download_outputs,
     import_main,
     name_taken,
     non_negative,
     positive,
+    say_if_the_service_compiles,
     write_outputs,
 )
+from app.cli.progress import Progress
+from app.ops.version import add_version_option
 from fuzzyocc import BayesMap, FuzzyMap, GridSpec, LaserScan
 from fuzzyocc.carmen import grid_for_scans, read_carmen
 
@@ -72,16 +76,17 @@ class BeamCounts:
 
 
 class FusionProgress:
-    """The scans fused so far and their rays, each step a progress line (``N/total scans fused, R rays``)."""
+    """The scans fused so far and their rays, shown as the stage ``fusing`` of the command's progress."""
 
-    def __init__(self, total: int, line: Progress) -> None:
-        self.total, self.line = total, line
+    def __init__(self, total: int, progress: Progress) -> None:
+        self.progress = progress
         self.scans = self.rays = 0
+        progress.stage("fusing", total, "scans")
 
     def add(self, scans: int, rays: int) -> None:
         self.scans += scans
         self.rays += rays
-        self.line(f"scans fused, {self.rays:,} rays", self.scans, self.total, final=self.scans == self.total)
+        self.progress.update(self.scans, f"{self.rays:,} rays")
 
 
 def _batches(scans: Sequence[LaserScan], size: int) -> list[Sequence[LaserScan]]:
@@ -114,8 +119,9 @@ def _scan_json(scan: LaserScan) -> dict[str, Any]:
             "range_max": scan.range_max, "registration_sigma": scan.registration_sigma}
 
 
-def _create_or_reuse(client: ServiceClient, args: argparse.Namespace, spec: GridSpec) -> dict[str, Any]:
-    """The map's MapInfo: created with ``spec``, or (``--append``) the existing one."""
+def _create_or_reuse(client: ServiceClient, args: argparse.Namespace, spec: GridSpec,
+                     shown: Progress) -> dict[str, Any]:
+    """The map's MapInfo: created with ``spec``, or (``--append``) the existing one (said when it differs)."""
     created = create_map(client, args, spec)
     if created is not None:
         return created
@@ -124,9 +130,8 @@ def _create_or_reuse(client: ServiceClient, args: argparse.Namespace, spec: Grid
     _, data = client.call("GET", f"/maps/{quote(args.map, safe='')}")
     info = dict(json.loads(data))
     if (info["resolution"], info["origin"], info["shape"]) != (spec.resolution, list(spec.origin), list(spec.shape)):
-        print(f"{PROG}: note: appending to {args.map!r} as it is ({info['shape'][0]} x {info['shape'][1]} cells of "
-              f"{info['resolution']} m from {info['origin']}); beams beyond it are cut at its edge",
-              file=sys.stderr)
+        shown.say(f"note: appending to {args.map!r} as it is ({info['shape'][0]} x {info['shape'][1]} cells of "
+                  f"{info['resolution']} m from {info['origin']}); beams beyond it are cut at its edge")
     return info
 
 
@@ -134,7 +139,8 @@ def _through_service(args: argparse.Namespace, scans: Sequence[LaserScan], spec:
                      progress: FusionProgress) -> str:
     """Create (or reuse) the map, post the scans, download the files; the summary's map part."""
     client = ServiceClient(args.url, args.api_key)
-    info = _create_or_reuse(client, args, spec)
+    info = _create_or_reuse(client, args, spec, progress.progress)
+    say_if_the_service_compiles(client, progress.progress)
     name = quote(args.map, safe="")
     version = info.get("version")
     for batch in _batches(scans, args.batch):
@@ -175,6 +181,7 @@ def _parser() -> argparse.ArgumentParser:
                        nav2_mode="default trinary (scale needs --nav2-format png)",
                        npy="write the risk grid (float32 .npy, index [i, j] along x, y) here")
     add_service_options(p, append="add the scans to the map if it exists (else 409 is an error)")
+    add_version_option(p)
     return p
 
 
@@ -184,10 +191,11 @@ def _run(args: argparse.Namespace) -> str:
     scans = everything[::args.every]
     spec = grid_for_scans(scans, args.resolution, args.margin)
     beams = BeamCounts.of(scans)
-    print(f"{PROG}: {args.log.name}: {len(everything)} scans, map {spec.shape[0]} x {spec.shape[1]} cells of "
-          f"{spec.resolution} m from ({spec.origin[0]:g}, {spec.origin[1]:g})", file=sys.stderr, flush=True)
-    progress = FusionProgress(len(scans), Progress(PROG, sys.stderr, started))
-    where = (_through_service if args.url else _in_process)(args, scans, spec, progress)
+    with Progress(PROG) as shown, compile_notice(shown):
+        shown.say(f"{args.log.name}: {len(everything)} scans, map {spec.shape[0]} x {spec.shape[1]} cells of "
+                  f"{spec.resolution} m from ({spec.origin[0]:g}, {spec.origin[1]:g})")
+        progress = FusionProgress(len(scans), shown)
+        where = (_through_service if args.url else _in_process)(args, scans, spec, progress)
     skipped = len(everything) - len(scans)
     why = f" (--every {args.every})" if skipped else ""
     return (f"{args.log.name}: {len(everything)} scans read, {progress.scans} fused, {skipped} skipped{why}; "

@@ -21,7 +21,7 @@ from app.maps import shared_grids
 from app.maps.line import Line
 from app.maps.snapshot import GridStamp
 from app.scans import Scan, ScanView
-from app.schemas import DEFAULT_FRAME_ID, EngineInfo, MapInfo, PlanResult, SensorIn
+from app.schemas import DEFAULT_FRAME_ID, MapCreate, MapInfo, PlanResult
 from app.schemas import engine_choice
 from app.storage import MapHead
 from fuzzyocc import BayesMap, FuzzyMap, GridSpec
@@ -39,10 +39,11 @@ class MapObserver(Protocol):
 
     Called on the event loop, the batch's apply lock held: a method must return at once (hand the
     work to a thread of its own) and should not raise (what it raises is logged, never answered).
-    ``frame_id`` is the map's frame (``MapEntry.frame_id``), what its messages carry.
+    ``frame_id`` is the map's frame (``MapEntry.frame_id``), what its messages carry; ``last_scan`` the last
+    scan fused, None before the first (an imported map's first batch holds none).
     """
 
-    def batch_applied(self, name: str, version: int, last_scan: Scan, frame_id: str) -> None: ...
+    def batch_applied(self, name: str, version: int, last_scan: Scan | None, frame_id: str) -> None: ...
 
     def plan_made(self, name: str, result: PlanResult, frame_id: str) -> None: ...
 
@@ -132,44 +133,45 @@ class MapEntry:
         return GridStamp(self.spec, self.version, self.frame_id, self.updated, self.etag_seed)
 
     @functools.cached_property
-    def engine_info(self) -> EngineInfo | None:
+    def engine_shown(self) -> engine_choice.EngineChoice | None:
         """The fuzzy engine as ``MapInfo`` shows it (once: a map's engine never changes)."""
         if not isinstance(self.map, FuzzyMap):
             return None
-        return EngineInfo(**engine_choice.describe(self.map.engine))
+        return engine_choice.shown(self.map.engine)
 
     def info(self) -> MapInfo:
-        return map_info(self.meta, self.spec, self.engine_info, scans_fused=self.scans_fused, version=self.version,
+        return map_info(self.meta, self.spec, self.engine_shown, scans_fused=self.scans_fused, version=self.version,
                         updated=self.updated)
 
 
-def map_info(meta: Mapping[str, Any], spec: GridSpec, engine: EngineInfo | None, *, scans_fused: int, version: int,
-             updated: str) -> MapInfo:
-    """What ``GET /maps/{name}`` shows of a map, held in memory or only stored."""
-    return MapInfo(
-        name=str(meta["name"]),
-        dimensions=spec.ndim,
-        resolution=spec.resolution,
-        origin=list(spec.origin),
-        size=[float(f"{n * spec.resolution:.12g}") for n in spec.shape],  # as built: whole cells
-        shape=list(spec.shape),
-        model=meta["model"],
-        sensor=SensorIn(**meta["sensor"]),
-        engine=engine,
-        frame_id=str(meta.get("frame_id", DEFAULT_FRAME_ID)),
-        scans_fused=scans_fused,
-        version=version,
-        created=meta["created"],
-        updated=updated,
-    )
+def map_info(meta: Mapping[str, Any], spec: GridSpec, engine: engine_choice.EngineChoice | None, *, scans_fused: int,
+             version: int, updated: str) -> MapInfo:
+    """What ``GET /maps/{name}`` shows of a map, held in memory or only stored.
+
+    Its settings as its meta stores them (a setting the map was made before: its default), the grid
+    as built (``size``: whole cells), the engine as ``engine_choice.shown``, then the facts.
+    """
+    settings = {key: meta[key] for key in MapCreate.model_fields if key in meta}
+    return MapInfo.model_validate({
+        **settings,
+        "dimensions": spec.ndim,
+        "resolution": spec.resolution,
+        "origin": list(spec.origin),
+        "size": list(spec.built_size),
+        "engine": engine,
+        "shape": list(spec.shape),
+        "scans_fused": scans_fused,
+        "version": version,
+        "created": meta["created"],
+        "updated": updated,
+    })
 
 
 def stored_info(head: MapHead) -> MapInfo:
     """``map_info`` of a map this replica does not hold, from its stored row (no map built)."""
     spec = GridSpec(origin=head.meta["origin"], size=head.meta["size"], resolution=head.meta["resolution"],
                     max_cells=UNLIMITED_CELLS)
-    engine = (EngineInfo(**engine_choice.describe(engine_choice.from_meta(head.meta)))
-              if head.meta["model"] == "fuzzy" else None)
+    engine = engine_choice.shown(engine_choice.from_meta(head.meta)) if head.meta["model"] == "fuzzy" else None
     return map_info(head.meta, spec, engine, scans_fused=head.scans, version=head.version, updated=head.updated)
 
 

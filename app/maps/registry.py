@@ -9,7 +9,6 @@ import uuid
 from collections.abc import Callable, Mapping
 from typing import Any, NamedTuple
 
-from app.schemas import engine_choice
 from app.config import Settings
 from app.storage.diskreserve import DiskReserve
 from app.errors import Conflict, InsufficientStorage, Invalid, NotFound, Unavailable
@@ -282,30 +281,37 @@ class MapRegistry:
 
     async def create_map(self, request: MapCreate) -> MapInfo:
         """Create an empty map; ``Conflict`` if the name is taken, ``Invalid`` if the grid is unusable."""
+        return (await self.create(request)).info()
+
+    async def check_new(self, request: MapCreate) -> None:
+        """What ``create`` would refuse for the name and the room (409, 507, 422), before costly work for a map to be
+        created (an import's image decoded). ``create`` checks again."""
+        self._check_room(_meta_of(request, now()), await self._stored_count(request.name))
+
+    async def check_name(self, name: str) -> None:
+        """``Conflict`` if a map named ``name`` exists (``create`` checks again)."""
+        await self._stored_count(name)
+
+    async def _stored_count(self, name: str) -> int | None:
+        """``Conflict`` if ``name`` is taken; with a shared database, how many maps are stored (every replica's)."""
+        if not self.settings.shared_storage:
+            if name in self._maps:
+                raise Conflict(f"a map named {name!r} exists; choose another name or DELETE it first")
+            return None
+        names = await self._workers.run_read(self.storage.map_names)
+        if name in names:
+            raise Conflict(f"a map named {name!r} exists; choose another name or DELETE it first")
+        return len(names)
+
+    async def create(self, request: MapCreate) -> MapEntry:
+        """Create an empty map, as ``create_map``; the map as made (with a shared database, not held: the replica
+        that serves it loads it at its first request)."""
         async with self._create_lock:
-            if request.name in self._maps and not self.settings.shared_storage:  # with replicas: the database says
-                raise Conflict(f"a map named {request.name!r} exists; choose another name or DELETE it first")
             created = now()
-            meta = {
-                "name": request.name,
-                "origin": list(request.origin),
-                "size": list(request.size),
-                "resolution": request.resolution,
-                "model": request.model,
-                "sensor": request.sensor.model_dump(),
-                "frame_id": request.frame_id,
-                "created": created,
-                # tells this map from another of its name made before or after it, on every replica
-                "incarnation": uuid.uuid4().hex,
-            }
-            if request.model == "fuzzy":
-                meta["engine"] = engine_choice.to_meta(request.engine or engine_choice.default())
-            stored = None
-            if self.settings.shared_storage:  # every replica's maps
-                names = await self._workers.run_read(self.storage.map_names)
-                if request.name in names:
-                    raise Conflict(f"a map named {request.name!r} exists; choose another name or DELETE it first")
-                stored = len(names)
+            meta = _meta_of(request, created)
+            # tells this map from another of its name made before or after it, on every replica
+            meta["incarnation"] = uuid.uuid4().hex
+            stored = await self._stored_count(request.name)
             self._check_room(meta, stored)  # before the map's memory is taken
             try:
                 built = await self._workers.run_admin(lambda: build_map(meta, max_cells=self.settings.max_map_cells))
@@ -324,7 +330,20 @@ class MapRegistry:
                 self.metrics.maps.set(len(self._maps))
             # with a shared database the replica that will serve the map (the load balancer's choice for
             # its name) loads it at its first request: the one that made it need not hold it
-            return entry.info()
+            return entry
+
+    async def discard(self, name: str, incarnation: str | None) -> None:
+        """Delete the map ``name`` if it is still the one of ``incarnation`` (an import that failed after creating
+        it: nothing of it stays); any other map of that name is left alone."""
+        if self.settings.shared_storage:
+            await self._workers.run_admin(self._delete_rows, name, incarnation)
+            entry = self._maps.get(name)
+            if entry is not None and entry.incarnation == incarnation:
+                self._forget(entry, reason="deleted")
+            return
+        entry = self._maps.get(name)
+        if entry is not None and not entry.deleted and entry.incarnation == incarnation:
+            await self.delete_map(name)
 
     async def delete_map(self, name: str) -> None:
         """Remove a map and its stored rows (after the batches that arrived before, if any).
@@ -375,6 +394,12 @@ class MapRegistry:
             self._drop(entry, deleted=True)
         finally:
             entry.line.done(ticket)
+
+
+def _meta_of(request: MapCreate, created: str) -> dict[str, Any]:
+    """A new map's stored metadata (without its incarnation): its name and settings as ``GET /maps/{name}`` shows
+    them back."""
+    return {**request.model_dump(mode="json"), "created": created}
 
 
 class Quarantine(NamedTuple):

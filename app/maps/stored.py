@@ -17,10 +17,12 @@ import numpy as np
 
 from app.maps import logcodec
 from app.maps.entry import UNLIMITED_CELLS, MapEntry, OccupancyMap
+from app.maps.logcodec import Batch, Prior
 from app.scans import Scan
 from app.schemas import engine_choice
 from app.storage import StoredMap
-from fuzzyocc import BayesMap, FuzzyMap, GridSpec, SensorModel, cast_work
+from fuzzyocc import BayesMap, FuzzyMap, GridSpec, IntegrationStats, SensorModel, cast_work
+from fuzzyocc.maps import PRIOR_UNSEEN
 
 LOG = logging.getLogger("fuzzyrisk.maps")
 
@@ -46,6 +48,20 @@ def build_map(meta: Mapping[str, Any], *, max_cells: int) -> OccupancyMap:
     if meta["model"] == "fuzzy":
         return FuzzyMap(spec, sensor, engine_choice.from_meta(meta))
     return BayesMap(spec, sensor)
+
+
+def integrate(built: OccupancyMap, batch: Batch) -> IntegrationStats:
+    """Fuse a batch of the log into ``built``: its scans, or its prior."""
+    if isinstance(batch, Prior):
+        return built.integrate_prior(batch.levels)
+    return built.integrate_batch(batch)
+
+
+def batch_work(spec: GridSpec, batch: Batch) -> int:
+    """The cells fusing ``batch`` walks (``cast_work`` of scans; a prior's cells, once a scan it stands for)."""
+    if isinstance(batch, Prior):
+        return int(np.abs(batch.levels[batch.levels != PRIOR_UNSEEN].astype(np.int64)).sum())
+    return cast_work(spec, batch)
 
 
 def restore(stored: StoredMap, up_to: int | None = None) -> MapEntry:
@@ -101,18 +117,20 @@ def replay(built: OccupancyMap, stored: StoredMap, *, after: int, up_to: int | N
         if up_to is not None and version > up_to:
             break
         try:
-            scans = logcodec.decode(payload)
+            batch = logcodec.decode(payload)
         except logcodec.CorruptBatch as exc:
             # an acknowledged batch: never dropped silently; the service refuses to start and says where
             raise RuntimeError(f"map {stored.name!r}: stored batch {version} is corrupt ({exc}); the database "
                                f"needs repair (restore a backup, or delete that row to drop the batch)") from exc
-        progress.log.append((version, len(payload), cast_work(built.spec, scans)))
+        progress.log.append((version, len(payload), batch_work(built.spec, batch)))
         try:
-            built.integrate_batch(scans)
+            integrate(built, batch)
         except ValueError:
             # cannot happen for a batch that was acknowledged (it was applied before the 200)
             LOG.exception("map %s: batch %d cannot be replayed; skipped", stored.name, version)
             continue
-        progress.version, progress.last_scan = version, scans[-1]
+        progress.version = version
+        if not isinstance(batch, Prior):
+            progress.last_scan = batch[-1]
         progress.updated = stored.stamps.get(version, stored.updated)
     return progress

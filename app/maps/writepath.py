@@ -52,7 +52,9 @@ from collections.abc import AsyncIterator, Callable, Mapping
 import numpy as np
 from fastapi.exceptions import RequestValidationError
 
+from app.formats.saved_maps import MapCells
 from app.maps import logcodec
+from app.maps.logcodec import Batch, Prior
 from app.scans import Limits, Scan
 from app.maps import ingest
 from app.storage.committer import GroupCommitter
@@ -67,7 +69,7 @@ from app.errors import (
 )
 from app.maps.entry import MapEntry, now
 from app.maps.line import shielded
-from app.maps.stored import npz, replay, restore
+from app.maps.stored import batch_work, integrate, npz, replay, restore
 from app.ops.metrics import Metrics
 from app.maps.ingest_process import ParseProcess, wants
 from app.maps.shared_grids import PlanGrids
@@ -217,11 +219,11 @@ class WritePath:
         return ingest.prepare(body, content_type, query, entry.spec.ndim, self._limits, entry.spec,
                                  self.settings.max_batch_cells)
 
-    def _apply(self, entry: MapEntry, version: int, scans: list[Scan]) -> BatchResult:
+    def _apply(self, entry: MapEntry, version: int, batch: Batch) -> BatchResult:
         """Fuse a committed batch (in a fusion thread; the caller holds the apply turn and the apply lock)."""
         started = time.perf_counter()
         try:
-            stats = entry.map.integrate_batch(scans)
+            stats = integrate(entry.map, batch)
         except BaseException as exc:
             # never acknowledged: it must not come back at the next start
             try:
@@ -307,7 +309,7 @@ class WritePath:
             elif wants(body, content_type):
                 payload, work = await self._parse_process.prepare(
                     body, content_type, query, entry.spec.ndim, self._limits, entry.spec, self.settings.max_batch_cells)
-                scans = await self._workers.run_parser(logcodec.decode, payload)  # 8 x 2 M ranges: 0.2 s
+                scans = await self._workers.run_parser(logcodec.decode_scans, payload)  # 8 x 2 M ranges: 0.2 s
             else:
                 scans, payload, work = await self._workers.run_parser(self._prepare, entry, body, content_type,
                                                                       query)
@@ -347,7 +349,34 @@ class WritePath:
     def _checked_payload(self, entry: MapEntry, scans: list[Scan]) -> tuple[bytes, int]:
         return ingest.checked_payload(entry.spec, scans, self.settings.max_batch_cells)
 
-    async def _write(self, entry: MapEntry, ticket: int, scans: list[Scan], payload: bytes,
+    async def add_prior(self, name: str, incarnation: str | None, cells: MapCells, weight: int) -> BatchResult:
+        """Fuse a saved map's cells into map ``name`` as its first batch: each as if ``weight`` scans had agreed on
+        it (``OccupancyMap.prior_levels``), committed and applied in the map's line as a scan batch is.
+
+        Call it right after the map is created: with one process holding the maps, no await comes between the
+        creation and the ticket taken here, so no other batch can come first. ``incarnation`` is the map's as
+        created: a map deleted and created again meanwhile answers ``Conflict`` and stores nothing.
+        """
+        entry, _ = await self._registry.held(name)
+        ticket = entry.line.take()
+        if entry.incarnation != incarnation:
+            entry.line.done(ticket)
+            raise Conflict(f"map {name!r} was deleted and created again while it was being imported; nothing of the "
+                           "import was stored")
+        try:
+            prior, payload, work = await self._workers.run_parser(self._prior_payload, entry, cells, weight)
+        except BaseException:
+            entry.line.done(ticket)
+            raise
+        return await shielded(self._write(entry, ticket, prior, payload, work))
+
+    @staticmethod
+    def _prior_payload(entry: MapEntry, cells: MapCells, weight: int) -> tuple[Prior, bytes, int]:
+        # the map's levels come from a probe map of its kind: its own cells are not read (no apply lock needed)
+        prior = Prior(levels=entry.map.prior_levels(cells.occupancy, weight)[cells.codes])
+        return prior, logcodec.encode_prior(prior), batch_work(entry.spec, prior)
+
+    async def _write(self, entry: MapEntry, ticket: int, batch: Batch, payload: bytes,
                      work: int) -> BatchResult:
         """Commit, then apply, a parsed batch in its turns; gives both turns up when done, whatever happens.
 
@@ -361,6 +390,7 @@ class WritePath:
             if entry.deleted:
                 raise NotFound(f"no map named {entry.name!r}")
             updated = now()
+            scans = [] if isinstance(batch, Prior) else batch
             record = BatchRecord(entry.name, entry.incarnation, payload, updated, len(scans))
             try:
                 # the store decides the version (with replicas, theirs and ours come in one order);
@@ -392,7 +422,7 @@ class WritePath:
                 # removal from the log have failed too, the row is still there under this version
                 try:
                     run = self._workers.run_heavy if work > HEAVY_BATCH_CELLS else self._workers.run
-                    result = await run(self._apply, entry, version, scans)
+                    result = await run(self._apply, entry, version, batch)
                 except BaseException:
                     # the map may have changed in part: a grid published for its
                     # current version would no longer be that map
@@ -403,7 +433,8 @@ class WritePath:
                 # assigned here, on the event loop and under the apply lock, so that a reader and
                 # MapInfo never pair the new arrays with the old version (or mix two versions)
                 entry.version, entry.scans_fused, entry.updated = result.version, entry.map.scans_fused, updated
-                entry.last_scan, entry.last_view = scans[-1], None
+                if scans:  # a prior has none: the last scan stays the last one fused
+                    entry.last_scan, entry.last_view = scans[-1], None
                 self._grids.retire(entry.uid, below=entry.version)  # no plan will ask for an older one
                 self._notify("batch_applied", entry.name, entry.version, entry.last_scan, entry.frame_id)
             if self._snapshot_due(entry):

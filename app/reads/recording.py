@@ -23,7 +23,7 @@ topic       type                            holds
 
 Which scans: those of the batches after the map's latest snapshot, up to the grid's version (a
 snapshot drops the batches it covers, so older scans are gone; ``since_version`` says where the
-log starts). At most ``FUZZYRISK_SNAPSHOT_EVERY`` batches, and ``FUZZYRISK_SNAPSHOT_LOG_BYTES``
+log starts). An imported map's first batch (a saved map's cells) holds no scan: the grid shows it. At most ``FUZZYRISK_SNAPSHOT_EVERY`` batches, and ``FUZZYRISK_SNAPSHOT_LOG_BYTES``
 of them (plus one).
 
 Stamps: a batch stores no robot time. Of the N scans, in version order and in order within each
@@ -148,12 +148,14 @@ def grid_cdr(grid: GridSnapshot) -> bytes:
 
 
 def _scans(log: Sequence[tuple[int, bytes]]) -> Iterator[Scan]:
-    """The scans of the log in recorded order, one batch decoded at a time."""
+    """The scans of the log in recorded order, one batch decoded at a time (a prior has none: the grid holds it)."""
     for version, payload in log:
         try:
-            yield from logcodec.decode(payload)
+            batch = logcodec.decode(payload)
         except logcodec.CorruptBatch as exc:
             raise Unavailable(f"the map's stored batch {version} is corrupt ({exc}): it cannot be exported") from None
+        if not isinstance(batch, logcodec.Prior):
+            yield from batch
 
 
 def mcap_file(grid: GridSnapshot, log: Sequence[tuple[int, bytes]], *, since_version: int, max_bytes: int) -> bytes:

@@ -102,6 +102,14 @@ class MapReads:
             return GridSnapshot(entry.spec, entry.version, risk, observed, entry.frame_id, entry.updated,
                                 entry.etag_seed)
 
+    async def computed(self, name: str, compute: Callable[[GridSnapshot], T]) -> T:
+        """``compute(grid)`` in a read thread, on the map's grid at one version (a big map's in its turn in the lane):
+        what is worked out from a grid and answered small, a path check."""
+        entry = await self._current(name)
+        async with self.big_read(entry.spec):
+            grid = await self.read_grid_of(entry)
+            return await self._workers.run_read(compute, grid, heavy=_heavy(entry.spec))
+
     async def render_log(self, name: str, render: Callable[[GridSnapshot, StoredMap], T]) -> T:
         """``render(grid, stored)`` in a read thread: the map's grid and its stored batch log at one version.
 

@@ -1,10 +1,19 @@
-"""A fuzzy engine in a map request (a preset name or an ``EngineDefinition``) and in ``MapInfo`` (``EngineInfo``)."""
+"""A fuzzy map's engine in its settings: taken as a preset name, an ``EngineDefinition`` or an ``EngineInfo``,
+shown as an ``EngineInfo`` (``EngineField``)."""
 
 from __future__ import annotations
 
-from typing import Annotated, Any, Literal
+from typing import Annotated, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, FiniteFloat, PlainValidator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    FiniteFloat,
+    PlainSerializer,
+    PlainValidator,
+    SerializeAsAny,
+)
 
 from app.schemas import engine_choice
 from fuzzyocc.presets import PRESETS
@@ -34,7 +43,7 @@ EXAMPLE_ENGINE = {
 }
 
 
-# These models document the object form of ``MapCreate.engine`` in the OpenAPI document;
+# These models document the object forms of ``MapCreate.engine`` in the OpenAPI document;
 # the request is checked by ``engine_choice.parse`` (``fuzzyocc.engine_spec``), whose messages name
 # the bad field by its path (``engine.input_mfs.PO.peak must be a finite number``).
 
@@ -122,17 +131,31 @@ class EngineDefinition(BaseModel):
 
 EnginePreset = Literal[tuple(PRESETS)]  # type: ignore[valid-type]
 
-#: ``MapCreate.engine``: validated (and built) by ``engine_choice.parse``, documented as a preset or an
-#: EngineDefinition.
-EngineField = Annotated[
-    engine_choice.EngineChoice | None,
-    PlainValidator(engine_choice.parse, json_schema_input_type=EnginePreset | EngineDefinition | None),
-]
-
 
 class EngineInfo(BaseModel):
-    """A fuzzy map's engine."""
+    """A fuzzy map's engine as ``GET /maps/{name}`` shows it, and one form ``POST /maps`` takes.
 
-    preset: str | None = Field(description="the preset the engine equals, or null")
-    definition: dict[str, Any] = Field(description="the engine in full, as an EngineDefinition (the form "
-                                       "POST /maps takes)")
+    Taken: the preset alone, the definition alone, or both when the definition is the preset's
+    engine (else a 422 naming ``engine.preset``).
+    """
+
+    model_config = ConfigDict(extra="forbid")
+
+    preset: EnginePreset | None = Field(None, description="shown: the preset the engine equals, or null")
+    # the definition is shown as engine_spec's dict, checked when the engine was built; SerializeAsAny lets that
+    # dict through while the schema documents it as an EngineDefinition
+    definition: SerializeAsAny[EngineDefinition] | None = Field(None, description="shown: the engine in full")
+
+
+def show(choice: engine_choice.EngineChoice | None) -> EngineInfo | None:
+    """``choice`` as an ``EngineInfo`` (not validated again: its engine was built and checked)."""
+    return None if choice is None else EngineInfo.model_construct(**choice.as_object())
+
+
+#: A map's ``engine``: validated (and built) by ``engine_choice.parse`` from a preset name, an EngineDefinition
+#: or an EngineInfo; shown and stored as an EngineInfo.
+EngineField = Annotated[
+    engine_choice.EngineChoice | None,
+    PlainValidator(engine_choice.parse, json_schema_input_type=EnginePreset | EngineDefinition | EngineInfo | None),
+    PlainSerializer(show, return_type=EngineInfo | None),
+]

@@ -43,14 +43,20 @@ class MapMetaData(BaseModel):
     origin: PoseMsg
 
 
-class OccupancyGrid(BaseModel):
+class OccupancyGridMessage(BaseModel):
+    """``nav_msgs/OccupancyGrid`` as JSON (rosbridge's shape): ``data[j * width + i]`` for cell (i, j) from the
+    origin, 0..100 occupancy, -1 unknown."""
+
+    header: Header
+    info: MapMetaData
+    data: list[int]
+
+
+class OccupancyGrid(OccupancyGridMessage):
     """``nav_msgs/OccupancyGrid``: ``data[j * width + i]`` for cell (i, j) from the origin, -1 unknown.
 
     ``header.stamp`` and ``info.map_load_time`` are the time of the map's last batch (its creation
     before one): every read of one version is the same document. ``version`` is not a message field.
     """
 
-    header: Header
-    info: MapMetaData
-    data: list[int]
     version: int = Field(description="the map version (not part of the ROS message: drop it before publishing)")

@@ -7,6 +7,9 @@ keeps committing meanwhile. Rows whose payload is a file beside the database (``
 get that file's bytes in the copy, so the copy is a self-contained database: point
 ``FUZZYRISK_DATA_DIR`` at a directory holding it as ``fuzzyrisk.sqlite3`` to serve it.
 
+The pages are copied ``PAGES_PER_STEP`` at a time, each step reported to a ``progress`` callback
+(SQLite's backup progress): a caller shows it, and a Ctrl-C stops the copy at the next step.
+
 ``python -m app.backup`` (``app.cli.backup``) is its command line.
 """
 
@@ -15,6 +18,7 @@ from __future__ import annotations
 import errno
 import resource
 import sqlite3
+from collections.abc import Callable
 from pathlib import Path
 from typing import BinaryIO
 
@@ -24,17 +28,29 @@ from app.storage.sqlite import payload_directory
 #: The database's file in the data directory (as ``Settings.database_path`` names it).
 DATABASE = "fuzzyrisk.sqlite3"
 _TABLES = (("batches", "seq"), ("snapshots", "version"))
+#: Pages copied between two progress reports: 4 MiB of the default 4 KiB pages, a few milliseconds of copying.
+PAGES_PER_STEP = 1024
+
+#: Told of the work done so far: ``(what, done, total)``, what being ``pages`` (of the database), then
+#: ``payload files`` (put into the copy's rows).
+BackupProgress = Callable[[str, int, int], None]
+
+
+def _quiet(what: str, done: int, total: int) -> None:
+    pass
 
 
 class BackupDamaged(Exception):
     """The store names payload files it does not have: the maps they belong to are damaged (quarantined)."""
 
 
-def backup(data_dir: Path, dest: Path) -> int:
-    """Copy ``data_dir``'s database to ``dest`` (refusing to overwrite); returns the pages copied.
+def backup(data_dir: Path, dest: Path, progress: BackupProgress = _quiet) -> int:
+    """Copy ``data_dir``'s database to ``dest`` (refusing to overwrite), telling ``progress``; returns the pages
+    copied.
 
-    Written as ``<dest>.partial`` and renamed when complete: an interrupted backup leaves no copy that
-    looks whole.
+    Written as ``<dest>.partial`` and renamed when complete: a backup that fails or is interrupted
+    (an exception, ``KeyboardInterrupt`` included, raised by ``progress`` or anywhere in the copy)
+    removes it, and leaves nothing at ``dest``.
     """
     source_path = data_dir / DATABASE
     if not source_path.is_file():
@@ -44,7 +60,7 @@ def backup(data_dir: Path, dest: Path) -> int:
     partial = dest.with_name(dest.name + ".partial")
     partial.unlink(missing_ok=True)  # left by a backup that was interrupted
     try:
-        _copy(source_path, partial, PayloadFiles(payload_directory(source_path)))
+        _copy(source_path, partial, PayloadFiles(payload_directory(source_path)), progress)
         target = sqlite3.connect(partial)
         try:
             pages = int(target.execute("PRAGMA page_count").fetchone()[0])
@@ -62,7 +78,7 @@ def backup(data_dir: Path, dest: Path) -> int:
 SNAPSHOT_TRIES = 5
 
 
-def _copy(source_path: Path, target_path: Path, files: PayloadFiles) -> None:
+def _copy(source_path: Path, target_path: Path, files: PayloadFiles, progress: BackupProgress) -> None:
     """The database as of one read transaction, with the payload files its rows name put into those rows.
 
     The files are opened inside that transaction, before the pages are copied: a snapshot or a delete
@@ -86,14 +102,18 @@ def _copy(source_path: Path, target_path: Path, files: PayloadFiles) -> None:
                 raise BackupDamaged("the store's rows name payload files that cannot be read, so its maps "
                                     f"{sorted(missing)} are damaged (quarantined by the service); drop them "
                                     "(DELETE /maps/NAME) or restore an earlier backup: " + "; ".join(missing.values()))
-        _copy_pages(source, target)
+        _copy_pages(source, target, progress)
         source.execute("COMMIT")
         target.execute("PRAGMA journal_mode=DELETE")  # the copy is one file; and its log is not a second copy
         target.execute("BEGIN")
+        total, done = sum(len(rows) for rows in named.values()), 0
+        progress("payload files", done, total)
         for (table, key), rows in named.items():
             for name, number, file in rows:
                 target.execute(f"UPDATE {table} SET payload = ?, file = NULL WHERE map = ? AND {key} = ?",
                                (opened[file].read(), name, number))
+                done += 1
+                progress("payload files", done, total)
         target.execute("COMMIT")
     finally:
         _close(opened)
@@ -143,5 +163,8 @@ def _allow_open_files(count: int) -> None:
     resource.setrlimit(resource.RLIMIT_NOFILE, (needed, hard))
 
 
-def _copy_pages(source: sqlite3.Connection, target: sqlite3.Connection) -> None:
-    source.backup(target)  # inside the source's read transaction: the rows _open_named listed
+def _copy_pages(source: sqlite3.Connection, target: sqlite3.Connection, progress: BackupProgress) -> None:
+    # inside the source's read transaction (the rows _open_named listed): its pages cannot change between steps
+    progress("pages", 0, int(source.execute("PRAGMA page_count").fetchone()[0]))
+    source.backup(target, pages=PAGES_PER_STEP,
+                  progress=lambda status, remaining, total: progress("pages", total - remaining, total))

@@ -38,3 +38,18 @@ def test_sensor_sigmas_beyond_their_bounds_are_refused_naming_the_field(field: s
 def test_sensor_sigmas_at_their_bounds_are_accepted() -> None:
     sensor = SensorModel(range_sigma=MAX_SIGMA_M, registration_sigma=MAX_SIGMA_M, range_sigma_per_m=1.0)
     assert sensor.range_sigma == MAX_SIGMA_M
+
+
+@pytest.mark.parametrize("resolution", [0.05, 0.1, 0.03, 1 / 3, 0.123456789, 0.05000001])
+def test_the_built_size_gives_the_same_shape_again(resolution: float) -> None:
+    # a client copies a map by sending the size GET /maps/{name} shows (built_size): the copy must have its cells
+    for n in [1, 7, 302, 8101, 200_006, 399_999]:
+        spec = GridSpec(origin=(0.0, 0.0), size=((n - 0.5) * resolution, resolution), resolution=resolution,
+                        max_cells=10**6)
+        again = GridSpec(origin=(0.0, 0.0), size=spec.built_size, resolution=resolution, max_cells=10**6)
+        assert spec.shape == again.shape == (n, 1), (resolution, n, spec.built_size)
+
+
+def test_the_built_size_is_written_short_where_that_keeps_the_shape() -> None:
+    spec = GridSpec(origin=(0.0, 0.0), size=(0.29, 15.99), resolution=0.1)
+    assert spec.shape == (3, 160) and spec.built_size == (0.3, 16.0)  # 3 * 0.1 is 0.30000000000000004

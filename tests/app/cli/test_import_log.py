@@ -5,11 +5,17 @@ from __future__ import annotations
 import http.server
 import io
 import json
+import os
+import pty
+import re
 import socket
+import struct
 import subprocess
 import sys
+import termios
 import threading
 import zipfile
+from fcntl import ioctl
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -52,7 +58,7 @@ def test_in_process_writes_a_png_a_nav2_zip_and_the_risk_of_the_library_map(
     out, err = capsys.readouterr()
     assert code == 0, err
     assert "237 scans read, 60 fused, 177 skipped (--every 4)" in out and len(out.splitlines()) == 1
-    assert "60/60 scans fused" in err
+    assert "fuzzyrisk-import-log: fusing: 60/60 scans, " in err
 
     scans = read_carmen(orebro)[::4]
     spec = grid_for_scans(scans, 0.05, 1.0)
@@ -74,6 +80,45 @@ def test_in_process_writes_a_png_a_nav2_zip_and_the_risk_of_the_library_map(
             levels = set(np.unique(np.asarray(grey)).tolist())
     assert meta["resolution"] == 0.05 and meta["origin"] == [spec.origin[0], spec.origin[1], 0.0]
     assert {0, 255} <= levels  # occupied walls and free corridors
+
+
+def test_a_first_run_says_it_compiles_and_its_progress_lines_give_total_and_rate(orebro: Path,
+                                                                               tmp_path: Path) -> None:
+    cold = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / "numba-cache")}  # as on a machine never run on
+    first, second = (subprocess.run([sys.executable, "-m", "app.import_log", str(orebro), "--every", "8"], check=False,
+                                    cwd=ROOT, capture_output=True, text=True, timeout=600, env=cold)
+                     for _ in range(2))
+    assert first.returncode == 0 and second.returncode == 0, first.stderr + second.stderr
+    compiling = "fuzzyrisk-import-log: compiling the fusion kernels (first run only: numba caches them for later runs)..."
+    assert first.stderr.splitlines().count(compiling) == 1
+    assert compiling not in second.stderr  # loaded from the cache the first run filled
+    for run in (first, second):  # stderr is a pipe: plain lines, the last one with the whole stage
+        last = [line for line in run.stderr.splitlines() if line.startswith("fuzzyrisk-import-log: fusing: ")][-1]
+        assert re.fullmatch(r"fuzzyrisk-import-log: fusing: 30/30 scans, [\d,]+ rays; [\d.,]+ scans/s, "
+                            r"\d\d:\d\d elapsed, 00:00 left", last), last
+
+
+def test_on_a_terminal_the_progress_is_a_bar(orebro: Path) -> None:
+    leader, follower = pty.openpty()
+    ioctl(follower, termios.TIOCSWINSZ, struct.pack("HHHH", 24, 120, 0, 0))
+    with subprocess.Popen([sys.executable, "-m", "app.import_log", str(orebro), "--every", "4"], cwd=ROOT,
+                          stdout=subprocess.PIPE, stderr=follower, text=True) as process:
+        os.close(follower)  # the child's copy is the only one left: reading ends when it exits
+        shown = b""
+        while True:
+            try:
+                chunk = os.read(leader, 65536)
+            except OSError:  # EIO: the child closed the terminal
+                break
+            if not chunk:
+                break
+            shown += chunk
+        out = process.stdout.read() if process.stdout else ""
+    os.close(leader)
+    assert process.returncode == 0, shown.decode()
+    assert "60 fused" in out  # the summary still goes to stdout, alone
+    screens = [s for s in re.split(r"[\r\n]+", shown.decode()) if s.startswith("fuzzyrisk-import-log: fusing:")]
+    assert "100%|" in screens[-1] and "60/60" in screens[-1] and "scans/s" in screens[-1]
 
 
 def test_a_malformed_log_exits_non_zero_naming_the_line(tmp_path: Path) -> None:
@@ -172,12 +217,15 @@ def test_through_a_real_service_the_risk_equals_the_in_process_map_bit_for_bit(o
 
     local = tmp_path / "local.npy"
     assert main([str(orebro), "--npy", str(local), "--png", str(tmp_path / "local.png")]) == 0
-    server = ServerProcess(data_dir=tmp_path / "data")
+    # a service on a machine it never ran on: it compiles its fusion kernels for tens of seconds after it answers
+    server = ServerProcess(data_dir=tmp_path / "data", env={"NUMBA_CACHE_DIR": str(tmp_path / "numba-cache")})
     server.start()
     try:
         remote = [str(orebro), "--url", server.url, "--map", "orebro"]
         result = run_command(*remote, "--png", str(tmp_path / "remote.png"), "--nav2", str(tmp_path / "remote.zip"))
         assert result.returncode == 0, result.stderr
+        assert (f"fuzzyrisk-import-log: the service at {server.url} is still compiling its fusion kernels (its first "
+                "start); the first batch waits for them...") in result.stderr.splitlines()
         assert "237 scans read, 237 fused, 0 skipped" in result.stdout
         assert "map 'orebro' version 8 on" in result.stdout  # 237 scans in batches of 32
 

@@ -93,6 +93,26 @@ def test_a_full_definition_is_taken_and_shown_as_given(client: TestClient, kit: 
     assert client.get("/maps/lab").json()["engine"] == {"preset": None, "definition": definition}
 
 
+@pytest.mark.parametrize("engine", [
+    {"preset": "paper", "definition": engine_to_dict(FuzzyEngine.paper())},  # as GET shows it
+    {"preset": "paper"},
+    {"preset": "paper", "definition": None},
+])  # fmt: skip
+def test_the_engine_object_get_shows_is_taken_with_its_preset(client: TestClient, kit: Any,
+                                                              engine: dict[str, Any]) -> None:
+    created = client.post("/maps", json={**kit.MAP_2D, "engine": engine})
+    assert created.status_code == 201, created.text
+    assert created.json()["engine"] == {"preset": "paper", "definition": engine_to_dict(FuzzyEngine.paper())}
+    assert stored_meta(client)["lab"]["engine"]["preset"] == "paper"  # as asked for
+
+
+def test_the_engine_object_with_a_definition_alone_is_the_definition(client: TestClient, kit: Any) -> None:
+    created = client.post("/maps", json={**kit.MAP_2D, "engine": {"preset": None, "definition": engine_to_dict(NINE)}})
+    assert created.status_code == 201, created.text
+    assert created.json()["engine"] == {"preset": None, "definition": engine_to_dict(NINE)}
+    assert stored_meta(client)["lab"]["engine"] == {"preset": None, "definition": engine_to_dict(NINE)}
+
+
 def test_a_definition_equal_to_a_preset_is_shown_under_its_name(client: TestClient, kit: Any) -> None:
     definition = engine_to_dict(FuzzyEngine.paper())
     del definition["normalize"]  # a field with a default may be left out
@@ -170,6 +190,23 @@ BAD = [
     ("unknown-field", _edit("colour", "red"), "engine.colour is not a field of an engine"),
     ("unknown-preset", "papr", f"no engine preset named 'papr'; the presets are {sorted(PRESETS)}"),
     ("long-preset", "p" * 100_000, f"engine is a 100000-character string; a preset name is one of {sorted(PRESETS)}"),
+    # the object GET /maps/{name} shows
+    ("object-preset-and-another-engine", {"preset": "paper", "definition": engine_to_dict(NINE)},
+     "engine.preset is 'paper' but engine.definition is another engine (it equals no preset)"),
+    ("object-preset-and-another-preset", {"preset": "paper", "definition": engine_to_dict(presets.preset("evidence"))},
+     "engine.preset is 'paper' but engine.definition is another engine (it equals the preset 'evidence')"),
+    ("object-empty", {"preset": None, "definition": None}, "engine needs a preset or a definition"),
+    ("object-with-engine-fields", {"preset": "paper", "labels": ["EMP", "UNK"]},
+     "engine.labels is not a field of the engine object"),
+    ("object-nan", {"definition": _edit("input_mfs.PO.peak", float("nan"))},
+     "engine.definition.input_mfs.PO.peak must be a finite number"),
+    ("object-too-many-labels", {"definition": _too_many_labels()}, "engine.definition.labels has 17 labels"),
+    ("object-three-outputs-overlap",
+     {"definition": _edit("output_mfs.UNK", {"type": "triangle", "left": 0.2, "peak": 0.5, "right": 0.8})},
+     "engine.definition.output_mfs ['MPE', 'PE', 'UNK'] are all positive"),
+    ("object-unknown-preset", {"preset": "papr"}, "engine.preset: no engine preset named 'papr'"),
+    ("object-preset-not-a-name", {"preset": 3}, "engine.preset must be a preset name"),
+    ("object-definition-not-an-object", {"definition": "paper"}, "engine.definition must be an object of engine"),
 ]
 
 
@@ -253,3 +290,38 @@ def test_a_map_stored_before_engines_keeps_the_papers_engine(make_settings: Any,
     fresh = client.post("/maps", json={k: v for k, v in {**kit.MAP_2D, "name": "fresh"}.items() if k != "engine"})
     assert fresh.json()["engine"]["preset"] == "tuned"
     assert client.get("/maps/lab").json()["engine"]["preset"] == "paper"
+
+
+def test_a_copy_of_a_map_stored_before_engines_gets_the_papers_engine(make_settings: Any, make_client: Any, kit: Any,
+                                                                      tuned_default: None) -> None:
+    settings = make_settings()
+    storage = SqliteStorage(settings.database_path)
+    old_meta = {key: kit.MAP_2D[key] for key in ("name", "origin", "size", "resolution", "model", "sensor")}
+    now = datetime.now(UTC).isoformat(timespec="milliseconds")
+    storage.create_map("lab", {**old_meta, "created": now}, now)
+    storage.close()
+
+    client = make_client()
+    old = client.get("/maps/lab").json()
+    settings_shown = {key: value for key, value in old.items()
+                      if key not in ("shape", "scans_fused", "version", "created", "updated")}  # the facts
+    assert client.post("/maps", json={**settings_shown, "name": "copy"}).status_code == 201
+    copy = client.get("/maps/copy").json()
+    assert copy["engine"] == {"preset": "paper", "definition": engine_to_dict(FuzzyEngine.paper())}  # not "tuned"
+    assert copy["frame_id"] == old["frame_id"] == "map"
+
+
+def test_a_map_whose_preset_moved_on_is_shown_and_copied_with_its_own_engine(make_client: Any, kit: Any,
+                                                                             tuned_default: None,
+                                                                             monkeypatch: pytest.MonkeyPatch) -> None:
+    first = make_client()
+    assert first.post("/maps", json={**kit.MAP_2D, "engine": "tuned"}).status_code == 201  # NINE
+    first.__exit__(None, None, None)
+    presets.preset.cache_clear()
+    monkeypatch.setattr(presets, "PRESETS", {**presets.PRESETS, "tuned": lambda: SIXTEEN})  # a new release's preset
+
+    client = make_client()
+    shown = client.get("/maps/lab").json()["engine"]
+    assert shown == {"preset": None, "definition": engine_to_dict(NINE)}  # what it equals now: no preset
+    assert client.post("/maps", json={**kit.MAP_2D, "name": "copy", "engine": shown}).status_code == 201
+    assert client.get("/maps/copy").json()["engine"] == shown

@@ -24,6 +24,7 @@ from app.ros import bagsize
 from app.api.factory import create_app
 from app.maps import restore
 from app.storage.postgres import PostgresStorage
+from tests.app.api.routes.test_maps import PAPER_BUT_NO_RETURNS_CUT, settings_of
 from tests.app.cli.test_import_bag import laser_scenario, upload, write_bag
 from tests.conftest import error_message
 
@@ -165,6 +166,18 @@ def test_a_replica_holds_only_the_maps_it_serves(replicas: Replicas, kit: Any) -
         time.sleep(0.05)
     assert b.get("/ready").json()["maps_loaded"] == 0
     assert b.get("/maps/two").json()["version"] == 0  # loaded again when asked for
+
+
+def test_a_replica_lists_a_map_it_does_not_hold_with_settings_that_make_the_same_map(replicas: Replicas,
+                                                                                       kit: Any) -> None:
+    a, b = replicas()
+    body = {**kit.MAP_2D, "engine": PAPER_BUT_NO_RETURNS_CUT, "frame_id": "robot1/map", "resolution": 1 / 3}
+    assert a.post("/maps", json=body).status_code == 201
+    shown = a.get("/maps/lab").json()
+    (listed,) = b.get("/maps").json()  # from the stored row: b holds no map
+    assert b.get("/ready").json()["maps_loaded"] == 0 and listed == shown
+    assert b.post("/maps", json={**settings_of(listed), "name": "copy"}).status_code == 201
+    assert settings_of(a.get("/maps/copy").json()) == settings_of(shown)
 
 
 def test_the_map_count_limit_counts_every_replicas_maps(replicas: Replicas, kit: Any) -> None:
@@ -486,3 +499,30 @@ def test_the_list_and_a_maps_own_route_agree_after_a_discarded_batch(
             assert (listed["version"], listed["updated"], listed["scans_fused"]) == \
                 (got["version"], got["updated"], got["scans_fused"])
             assert (got["version"], got["scans_fused"]) == (3, 2)
+
+
+def test_a_map_imported_through_one_replica_is_served_and_scanned_through_the_other(replicas: Replicas,
+                                                                                    kit: Any) -> None:
+    from tests.app.formats.test_saved_maps import nav2_yaml, pgm, zipped
+
+    a, b = replicas()
+    grey = np.full((50, 60), 205, dtype=np.uint8)
+    grey[5:45, 5:55] = 254
+    grey[5, 5:55] = 0
+    saved = zipped({"map.yaml": nav2_yaml(origin=[-3.0, -2.5, 0.0], resolution=0.1, free_thresh=0.196),
+                    "map.pgm": pgm(grey)})
+    zip_type = {"content-type": "application/zip"}
+    made = a.post("/maps/import", params={"name": "floor"}, content=saved, headers=zip_type)
+    assert made.status_code == 201, made.text
+    assert made.json()["version"] == 1
+    assert b.get("/maps/floor").json()["version"] == 1  # loaded by b from the database: its first batch replayed
+    np.testing.assert_array_equal(kit.risk_npy(a, "floor"), kit.risk_npy(b, "floor"))
+    assert b.post("/maps/floor/scans", json={"scans": [kit.laser(wall=1.0)]}).json()["version"] == 2
+    assert kit.version(a, "floor") == 2
+    np.testing.assert_array_equal(kit.risk_npy(a, "floor"), kit.risk_npy(b, "floor"))
+    # the name is taken on every replica; a refused import makes nothing on any
+    assert b.post("/maps/import", params={"name": "floor"}, content=saved, headers=zip_type).status_code == 409
+    bad = b.post("/maps/import", params={"name": "other"}, content=zipped({"map.yaml": b"- not a map\n"}),
+                 headers=zip_type)
+    assert bad.status_code == 422
+    assert [m["name"] for m in a.get("/maps").json()] == ["floor"]

@@ -10,6 +10,9 @@ import pytest
 from fastapi.testclient import TestClient
 from tests.conftest import error_message
 
+from fuzzyocc import FuzzyEngine
+from fuzzyocc.engine_spec import engine_to_dict
+
 
 def test_create_answers_201_with_the_full_map_info(client: TestClient, kit: Any) -> None:
     response = client.post("/maps", json=kit.MAP_2D)
@@ -139,3 +142,72 @@ def test_a_deleted_maps_memory_is_freed_at_the_delete(lab: TestClient, kit: Any)
         assert held() is None
     finally:
         gc.enable()
+
+
+# ---------------------------------------------------------------- what GET shows, POST takes
+#: The read-only facts of a map (docs/api.md): GET /maps/{name} shows them, POST /maps refuses them.
+FACTS = ("shape", "scans_fused", "version", "created", "updated")
+
+
+def settings_of(info: dict[str, Any]) -> dict[str, Any]:
+    """What a client copies from a map's GET: everything but its name and the facts."""
+    return {key: value for key, value in info.items() if key not in (*FACTS, "name")}
+
+
+PAPER_BUT_NO_RETURNS_CUT = {**engine_to_dict(FuzzyEngine.paper()), "no_return_neighbours": 3}  # equals no preset
+#: A map of each kind of setting, as a change to the kit's 2-D map "lab"
+ROUND_TRIPS: dict[str, dict[str, Any]] = {
+    "engine-default": {},
+    "engine-preset": {"engine": "paper"},
+    "engine-definition": {"engine": PAPER_BUT_NO_RETURNS_CUT},
+    "bayes": {"model": "bayes"},
+    "sensor": {"sensor": {"range_sigma": 0.05, "registration_sigma": 0.02, "range_sigma_per_m": 0.01}},
+    "frame": {"frame_id": "robot1/map"},
+    "dimensions-2": {"dimensions": 2},
+    "dimensions-3": {"dimensions": 3, "resolution": 0.2, "origin": [-4.0, -4.0, -1.0], "size": [8.0, 8.0, 3.0]},
+    "box": {"resolution": 0.07, "origin": [-1.5, -3.25], "size": [3.0, 6.3]},  # not whole cells: rounded up
+    "box-odd-resolution": {"resolution": 1 / 3, "origin": [-50.0, -2.0], "size": [100.5, 4.0]},
+}
+
+
+@pytest.mark.parametrize("change", ROUND_TRIPS.values(), ids=ROUND_TRIPS.keys())
+def test_a_maps_settings_as_get_shows_them_make_the_same_map(client: TestClient, kit: Any, change: dict) -> None:
+    assert client.post("/maps", json={**kit.MAP_2D, **change}).status_code == 201
+    scan = kit.laser(wall=1.0) if change.get("dimensions") != 3 else \
+        {"pose": {"position": [0.0, 0.0, 0.5], "orientation": [0.0, 0.0, 0.0, 1.0]},
+         "points": kit.cloud_sensor_points(distance=1.0).tolist(), "range_max": 10.0}
+    assert client.post("/maps/lab/scans", json={"scans": [scan]}).status_code == 200
+    old = client.get("/maps/lab").json()
+
+    created = client.post("/maps", json={"name": "copy", **settings_of(old)})
+    assert created.status_code == 201, created.text
+    new = client.get("/maps/copy").json()
+    assert settings_of(new) == settings_of(old)
+    assert new["shape"] == old["shape"] and (new["version"], new["scans_fused"]) == (0, 0)  # a new map: no scans
+    # the same settings at work: the same scan makes the same cells
+    assert client.post("/maps/copy/scans", json={"scans": [scan]}).status_code == 200
+    assert kit.risk_npy(client, "copy").tobytes() == kit.risk_npy(client, "lab").tobytes()
+
+
+def test_the_facts_get_shows_are_refused_by_post_each_named_and_nothing_is_made(lab: TestClient) -> None:
+    shown = lab.get("/maps/lab").json()
+    response = lab.post("/maps", json={**shown, "name": "copy"})
+    assert response.status_code == 422
+    errors = response.json()["details"]
+    assert [error["loc"] for error in errors] == [["body", fact] for fact in FACTS]
+    assert all(error["msg"] == f"{error['loc'][1]} is read-only: GET /maps/{{name}} shows it, POST /maps does not "
+               "take it; leave it out" for error in errors)
+    assert [m["name"] for m in lab.get("/maps").json()] == ["lab"]
+
+
+def test_the_openapi_document_marks_the_facts_read_only_and_every_other_field_is_taken(client: TestClient) -> None:
+    # a field added to the map's settings is shown by GET and taken by POST (no list of fields to keep in step)
+    schemas = client.get("/openapi.json").json()["components"]["schemas"]
+    shown, taken = schemas["MapInfo"]["properties"], schemas["MapCreate"]["properties"]
+    assert [key for key, field in shown.items() if field.get("readOnly")] == list(FACTS)
+    assert [key for key in shown if key not in FACTS] == list(taken)
+    assert not any(field.get("readOnly") for field in taken.values())
+    assert set(schemas["MapInfo"]["required"]) == set(shown)  # every field is in every answer
+    engine_taken = [choice.get("$ref") for choice in taken["engine"]["anyOf"]]
+    assert shown["engine"]["anyOf"][0]["$ref"] == "#/components/schemas/EngineInfo" and \
+        "#/components/schemas/EngineInfo" in engine_taken  # the very model GET shows
