@@ -27,7 +27,8 @@ print('\n'.join(p['dependencies'] + [d for e in extras for d in p['optional-depe
         > requirements.txt \
     && /opt/fuzzyrisk/bin/pip install --constraint constraints.txt --requirement requirements.txt
 #    then out of the environment, before the image copies it, what the service never loads (an image
-#    of at most 500 MB). scipy, for the 3-D rotations, is 143 MiB installed (du -sh of site-packages: scipy 113M,
+#    of at most 500 MB: 478 MB with the real slim base as ../shared/tools/container-check reckons it, 412 MB before
+#    scipy came back). scipy, for the 3-D rotations, is 143 MiB installed (du -sh of site-packages: scipy 113M,
 #    scipy.libs 30M), 101 MiB after the trims below, 64 MiB once its subpackages the service never imports are out;
 #    tests/e2e/test_container.py checks that the service loads none of what goes:
 #    - the packages' test suites, typing stubs, Cython declarations and static libraries;
