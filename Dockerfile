@@ -27,10 +27,12 @@ print('\n'.join(p['dependencies'] + [d for e in extras for d in p['optional-depe
         > requirements.txt \
     && /opt/fuzzyrisk/bin/pip install --constraint constraints.txt --requirement requirements.txt
 #    then out of the environment, before the image copies it, what the service never loads (an image
-#    of at most 450 MB). With scipy out of the runtime dependencies too, /opt/fuzzyrisk comes to 275 MiB (du -sm;
-#    447 before), and the service, driven through every kind of work without them, answered alike (74 requests, no
-#    5xx); tests/e2e/test_container.py checks that the service loads none of them:
+#    of at most 500 MB: 478 MB with the real slim base as ../shared/tools/container-check reckons it, 412 MB before
+#    scipy came back). scipy, for the 3-D rotations, is 143 MiB installed (du -sh of site-packages: scipy 113M,
+#    scipy.libs 30M), 101 MiB after the trims below, 64 MiB once its subpackages the service never imports are out;
+#    tests/e2e/test_container.py checks that the service loads none of what goes:
 #    - the packages' test suites, typing stubs, Cython declarations and static libraries;
+#    - scipy's subpackages other than spatial and what it imports (linalg, sparse, special, constants, _lib): 37 MiB;
 #    - zstandard's cffi backend (CPython loads the C one), apsw's SQLite extensions and shell tools, numpy's
 #      distutils, C headers and SIMD test module, numba's CUDA target;
 #    - pillow's AVIF, WebP, FreeType and LittleCMS modules and the libraries only they use: the service writes
@@ -44,6 +46,8 @@ RUN cd /opt/fuzzyrisk/lib/python3.11/site-packages \
     && rm -rf zstandard/_cffi.*.so zstandard/backend_cffi.py zstandard/__pycache__/backend_cffi.* \
               apsw/sqlite_extra_binaries numpy/distutils numpy/_pyinstaller numpy/doc numpy/_core/include \
               numpy/_core/_simd.*.so numba/cuda \
+    && rm -rf scipy/optimize scipy/stats scipy/signal scipy/io scipy/interpolate scipy/integrate scipy/ndimage \
+              scipy/fft scipy/fftpack scipy/odr scipy/misc scipy/datasets scipy/cluster scipy/differentiate \
     && rm -rf PIL/_avif.*.so PIL/_webp.*.so PIL/_imagingft.*.so PIL/_imagingcms.*.so pillow.libs/libavif-* \
               pillow.libs/libwebp* pillow.libs/libsharpyuv-* pillow.libs/libfreetype-* pillow.libs/libharfbuzz-* \
               pillow.libs/libbrotli* pillow.libs/libpng16-* pillow.libs/liblcms2-* \

@@ -20,9 +20,9 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from fuzzyocc.config import _finite_tuple
-from fuzzyocc.quaternion import rotate_points
 
 #: A no-return cut at its neighbours' nearest hit stops this far in front of it (see
 #: :meth:`Rays.cut_no_returns`): two cells at 0.05 m, clear of the surface band of that hit.
@@ -366,7 +366,8 @@ class PointCloud:
         quat = np.array(_finite_tuple("quaternion_xyzw", quaternion_xyzw, 4))
         if np.linalg.norm(quat) < 1e-9:
             raise ValueError("quaternion_xyzw must have a non-zero norm")
-        points_map = rotate_points(quat / np.linalg.norm(quat), pts) + position_map if pts.size else pts
+        # normalised here and again by from_quat, as when stored maps were built: one division fewer moves points an ulp
+        points_map = Rotation.from_quat(quat / np.linalg.norm(quat)).apply(pts) + position_map if pts.size else pts
         return cls(points=points_map, origin=tuple(position_map), range_max=range_max,
                    registration_sigma=registration_sigma)
 

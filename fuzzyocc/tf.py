@@ -1,12 +1,13 @@
-"""Rigid transforms between named frames over time: what tf2 does for a recorded bag, in numpy.
+"""Rigid transforms between named frames over time: what tf2 does for a recorded bag, with scipy's rotations.
 
 A :class:`TransformBuffer` takes the samples of ``/tf`` (dynamic) and ``/tf_static`` (static) as
 plain numbers (parent frame, child frame, stamp in nanoseconds, translation, quaternion) and
 answers ``T_target_source`` at any stamp: along the chain of frames from ``source`` up to the
 nearest frame it shares with ``target`` and down again, each dynamic edge interpolated at the stamp
-(translation linearly, rotation by slerp, as tf2 does), the edges composed. A stamp outside an
-edge's samples is not extrapolated: the lookup fails with a :class:`LookupFailed` whose ``reason``
-is short and countable ("before the first transform odom -> base_link").
+(translation linearly, rotation by scipy's ``Slerp``, the shorter way round as tf2 does), the edges
+composed with scipy's ``Rotation``. A stamp outside an edge's samples is not extrapolated: the
+lookup fails with a :class:`LookupFailed` whose ``reason`` is short and countable ("before the
+first transform odom -> base_link").
 
 Quaternions are ``[x, y, z, w]`` (ROS order). Frames in names: ``T_a_b`` maps points of frame
 ``b`` into frame ``a`` (``p_a = T_a_b * p_b``). Nothing here knows of ROS messages or the web.
@@ -18,84 +19,42 @@ from bisect import bisect_left
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.spatial.transform import Rotation, Slerp
 
 #: Longest chain of frames a lookup follows (a cycle in a broken tree stops here, not in a loop).
 MAX_CHAIN = 64
-#: Below this angle between two rotations slerp degenerates; linear interpolation (then normalised) is exact enough.
-_SLERP_LINEAR_BELOW = 1e-6
-
-
-def _unit(q: np.ndarray) -> np.ndarray:
-    norm = float(np.sqrt(q @ q))
-    if not np.isfinite(norm) or norm < 1e-9:
-        raise ValueError(f"quaternion {q.tolist()} has no direction (norm {norm})")
-    return q / norm
-
-
-def quaternion_multiply(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Hamilton product ``a * b`` of ``[x, y, z, w]`` quaternions (apply ``b`` first, then ``a``)."""
-    ax, ay, az, aw = a
-    bx, by, bz, bw = b
-    return np.array([
-        aw * bx + ax * bw + ay * bz - az * by,
-        aw * by - ax * bz + ay * bw + az * bx,
-        aw * bz + ax * by - ay * bx + az * bw,
-        aw * bw - ax * bx - ay * by - az * bz,
-    ])
-
-
-def rotate(q: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """The vector ``v`` (3,) rotated by the unit quaternion ``q``."""
-    u, w = q[:3], q[3]
-    t = 2.0 * np.cross(u, v)
-    return v + w * t + np.cross(u, t)
-
-
-def slerp(q0: np.ndarray, q1: np.ndarray, u: float) -> np.ndarray:
-    """Spherical linear interpolation between unit quaternions, the shorter way round (``u`` in [0, 1])."""
-    dot = float(q0 @ q1)
-    if dot < 0.0:  # q and -q are the same rotation: take the one on q0's side
-        q1, dot = -q1, -dot
-    angle = float(np.arccos(min(dot, 1.0)))
-    if angle < _SLERP_LINEAR_BELOW:
-        return _unit(q0 + u * (q1 - q0))
-    s = np.sin(angle)
-    return _unit((np.sin((1.0 - u) * angle) / s) * q0 + (np.sin(u * angle) / s) * q1)
 
 
 @dataclass(frozen=True)
 class Transform:
-    """A rigid transform ``T_parent_child``: rotate by ``rotation`` (unit ``[x, y, z, w]``), then translate."""
+    """A rigid transform ``T_parent_child``: rotate by ``rotation``, then translate by ``translation`` (metres)."""
 
     translation: np.ndarray
-    rotation: np.ndarray
+    rotation: Rotation
 
     @classmethod
     def of(cls, translation: object, rotation_xyzw: object) -> Transform:
-        """From numbers, checked finite; the quaternion is normalised."""
+        """From numbers, checked finite; the quaternion ``[x, y, z, w]`` is normalised."""
         t = np.array(translation, dtype=np.float64).reshape(3)
         q = np.array(rotation_xyzw, dtype=np.float64).reshape(4)
         if not (np.isfinite(t).all() and np.isfinite(q).all()):
             raise ValueError(f"transform must be finite, got translation {t.tolist()}, rotation {q.tolist()}")
-        return cls(t, _unit(q))
+        norm = float(np.linalg.norm(q))
+        if norm < 1e-9:  # scipy refuses only an exact zero; a quaternion this short has no direction to trust
+            raise ValueError(f"quaternion {q.tolist()} has no direction (norm {norm})")
+        return cls(t, Rotation.from_quat(q))
 
     @classmethod
     def identity(cls) -> Transform:
-        return cls(np.zeros(3), np.array([0.0, 0.0, 0.0, 1.0]))
+        return cls(np.zeros(3), Rotation.identity())
 
     def __mul__(self, other: Transform) -> Transform:
         """``T_a_b * T_b_c = T_a_c``."""
-        return Transform(self.translation + rotate(self.rotation, other.translation),
-                         _unit(quaternion_multiply(self.rotation, other.rotation)))
+        return Transform(self.translation + self.rotation.apply(other.translation), self.rotation * other.rotation)
 
     def inverse(self) -> Transform:
-        conjugate = self.rotation * np.array([-1.0, -1.0, -1.0, 1.0])
-        return Transform(-rotate(conjugate, self.translation), conjugate)
-
-
-def interpolate(a: Transform, b: Transform, u: float) -> Transform:
-    """The transform a fraction ``u`` of the way from ``a`` to ``b``: translation linear, rotation slerp."""
-    return Transform(a.translation + u * (b.translation - a.translation), slerp(a.rotation, b.rotation, u))
+        inverse = self.rotation.inv()
+        return Transform(-inverse.apply(self.translation), inverse)
 
 
 class LookupFailed(LookupError):
@@ -108,20 +67,20 @@ class LookupFailed(LookupError):
 
 @dataclass
 class _Track:
-    """The samples of one dynamic edge ``parent -> child``, sorted by stamp when first looked up."""
+    """The samples of one dynamic edge ``parent -> child``, sorted by stamp and interpolated when first looked up."""
 
     parent: str
     stamps: list[int] = field(default_factory=list)
     transforms: list[Transform] = field(default_factory=list)
-    _sorted: bool = True
+    _slerp: Slerp | None = None
+    _ready: bool = True
 
     def add(self, stamp_ns: int, transform: Transform) -> None:
-        if self.stamps and stamp_ns < self.stamps[-1]:
-            self._sorted = False
         self.stamps.append(stamp_ns)
         self.transforms.append(transform)
+        self._ready = False
 
-    def _sort(self) -> None:
+    def _prepare(self) -> None:
         # stable: of two samples with one stamp the later-recorded wins, as in tf2's cache
         order = sorted(range(len(self.stamps)), key=self.stamps.__getitem__)
         stamps = [self.stamps[i] for i in order]
@@ -129,11 +88,16 @@ class _Track:
         keep = [i for i in range(len(stamps)) if i + 1 == len(stamps) or stamps[i + 1] != stamps[i]]
         self.stamps = [stamps[i] for i in keep]
         self.transforms = [transforms[i] for i in keep]
-        self._sorted = True
+        # nanoseconds since the first sample: exact in float64 for 104 days (since the epoch they would not be)
+        since_first = (np.array(self.stamps, dtype=np.int64) - self.stamps[0]).astype(np.float64)
+        self._slerp = (Slerp(since_first, Rotation.concatenate([t.rotation for t in self.transforms]))
+                       if len(self.stamps) > 1 else None)
+        self._ready = True
 
     def at(self, stamp_ns: int, child: str) -> Transform:
-        if not self._sorted:
-            self._sort()
+        """The sample at ``stamp_ns``, or the two around it interpolated (translation linearly, rotation by slerp)."""
+        if not self._ready:
+            self._prepare()
         stamps = self.stamps
         i = bisect_left(stamps, stamp_ns)
         if i < len(stamps) and stamps[i] == stamp_ns:
@@ -142,13 +106,15 @@ class _Track:
             raise LookupFailed(f"before the first transform {self.parent} -> {child}")
         if i == len(stamps):
             raise LookupFailed(f"after the last transform {self.parent} -> {child}")
-        t0, t1 = stamps[i - 1], stamps[i]
-        return interpolate(self.transforms[i - 1], self.transforms[i], (stamp_ns - t0) / (t1 - t0))
+        assert self._slerp is not None  # two samples at least, one either side
+        a, b = self.transforms[i - 1].translation, self.transforms[i].translation
+        u = (stamp_ns - stamps[i - 1]) / (stamps[i] - stamps[i - 1])
+        return Transform(a + u * (b - a), self._slerp(float(stamp_ns - stamps[0])))
 
     @property
     def span(self) -> tuple[int, int]:
-        if not self._sorted:
-            self._sort()
+        if not self._ready:
+            self._prepare()
         return self.stamps[0], self.stamps[-1]
 
 
@@ -219,11 +185,17 @@ class TransformBuffer:
             chain.append(parent)
         return chain
 
-    def _down(self, chain: list[str], stamp_ns: int) -> Transform:
-        """``T_top_bottom`` along a chain listed bottom first."""
-        out = Transform.identity()
-        for child in reversed(chain[:-1]):
-            out = out * self._edge(child, stamp_ns)
+    def _down(self, chain: list[str], stamp_ns: int) -> Transform | None:
+        """``T_top_bottom`` along a chain listed bottom first; None for a chain of one frame (the identity).
+
+        The edges are looked up from the top (a failure names the highest edge that fails, as it always
+        has), then composed from the bottom up, as a point is carried; with nothing for the identity:
+        each of scipy's calls costs tens of microseconds.
+        """
+        edges = [self._edge(child, stamp_ns) for child in reversed(chain[:-1])]
+        out = edges.pop() if edges else None
+        while edges:
+            out = edges.pop() * out
         return out
 
     def lookup(self, target: str, source: str, stamp_ns: int) -> Transform:
@@ -237,6 +209,6 @@ class TransformBuffer:
             raise LookupFailed(f"no chain of transforms from {source or '(empty frame_id)'} to {target}")
         below_source = up_source[:up_source.index(common) + 1]
         below_target = up_target[:up_target.index(common) + 1]
-        T_common_source = self._down(below_source, stamp_ns)
+        T_common_source = self._down(below_source, stamp_ns) or Transform.identity()
         T_common_target = self._down(below_target, stamp_ns)
-        return T_common_target.inverse() * T_common_source
+        return T_common_source if T_common_target is None else T_common_target.inverse() * T_common_source

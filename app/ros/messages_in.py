@@ -37,12 +37,12 @@ from typing import Any
 import numpy as np
 from pydantic import ValidationError
 from rosbags.serde import SerdeError
+from scipy.spatial.transform import Rotation
 
 from app.scans import Limits, Scan, check_rays, laser_scan, point_cloud
 from app.errors import Invalid
 from app.ros.msgtypes import typestore
 from app.schemas import Pose2D, Pose3D
-from fuzzyocc.quaternion import rotate_points
 from fuzzyocc.tf import Transform
 
 LASER_SCAN = "sensor_msgs/msg/LaserScan"
@@ -86,7 +86,7 @@ class SensorPose:
     @classmethod
     def of(cls, transform: Transform) -> SensorPose:
         x, y, z = (float(v) for v in transform.translation)
-        qx, qy, qz, qw = (float(v) for v in transform.rotation)
+        qx, qy, qz, qw = (float(v) for v in transform.rotation.as_quat())
         return cls((x, y, z), (qx, qy, qz, qw))
 
     def query(self) -> dict[str, float]:
@@ -311,7 +311,7 @@ def sensor_scan(msg: Any, msgtype: str, pose: SensorPose, *, dims: int, limits: 
     if dims == 3:
         return SensorCloud(_pose3d(pose, name), points, float(range_max))
     # a 2-D map: rotated into the map's axes as PointCloud.from_sensor_frame rotates, then z dropped
-    rotated = rotate_points(_unit_quaternion(pose), points) if points.size else points
+    rotated = Rotation.from_quat(_unit_quaternion(pose)).apply(points) if points.size else points
     return SensorCloud(Pose2D(x=pose.position[0], y=pose.position[1], theta=0.0), rotated[:, :2], float(range_max))
 
 

@@ -1,4 +1,4 @@
-"""fuzzyocc.tf: transforms between frames over time, against scipy's rotations."""
+"""fuzzyocc.tf: transforms between frames over time, interpolated and chained as tf2 does."""
 
 from __future__ import annotations
 
@@ -6,25 +6,38 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation, Slerp
 
-from fuzzyocc.tf import LookupFailed, Transform, TransformBuffer, slerp
+from fuzzyocc.tf import LookupFailed, Transform, TransformBuffer
 
 
 def _close(t: Transform, position: np.ndarray, rotation: Rotation) -> bool:
     return bool(np.allclose(t.translation, position, atol=1e-12)
-                and (Rotation.from_quat(t.rotation).inv() * rotation).magnitude() < 1e-12)
+                and (t.rotation.inv() * rotation).magnitude() < 1e-12)
 
 
-def test_slerp_is_scipys() -> None:
-    rng = np.random.default_rng(0)
-    for _ in range(200):
-        pair = Rotation.random(2, random_state=rng)
-        u = float(rng.uniform())
-        ours = slerp(pair[0].as_quat(), pair[1].as_quat(), u)
-        theirs = Slerp([0.0, 1.0], pair)([u])[0]
-        assert (Rotation.from_quat(ours).inv() * theirs).magnitude() < 1e-12
-    same = Rotation.from_euler("z", 0.3).as_quat()
-    assert np.allclose(slerp(same, same, 0.5), same)
-    assert np.allclose(slerp(same, -same, 0.5), same)  # q and -q: no turn at all
+def test_a_rotation_between_two_samples_is_interpolated_the_shorter_way_round() -> None:
+    buffer = TransformBuffer()
+    buffer.add("map", "odom", 0, Transform.of([0, 0, 0], Rotation.from_euler("z", 0.1).as_quat()))
+    buffer.add("map", "odom", 100, Transform.of([1, 0, 0], Rotation.from_euler("z", 0.5).as_quat()))
+    # -q is the same rotation as q: the way from 0.5 to 3.0 rad is 2.5 rad forwards, not through -q's side
+    buffer.add("map", "odom", 200, Transform.of([1, 2, 0], -Rotation.from_euler("z", 3.0).as_quat()))
+    # and from 3.0 to -3.0 rad the shorter way is 0.28 rad forwards, over pi, not 6 rad back
+    buffer.add("map", "odom", 300, Transform.of([1, 2, 0], Rotation.from_euler("z", -3.0).as_quat()))
+    assert _close(buffer.lookup("map", "odom", 25), np.array([0.25, 0, 0]), Rotation.from_euler("z", 0.2))
+    assert _close(buffer.lookup("map", "odom", 160), np.array([1, 1.2, 0]), Rotation.from_euler("z", 0.5 + 0.6 * 2.5))
+    assert _close(buffer.lookup("map", "odom", 250), np.array([1, 2, 0]), Rotation.from_euler("z", np.pi))
+    same = buffer.lookup("map", "odom", 100)  # at a sample: that sample
+    assert _close(same, np.array([1, 0, 0]), Rotation.from_euler("z", 0.5))
+
+
+def test_stamps_since_the_epoch_interpolate_to_the_nanosecond() -> None:
+    # 1.7e18 ns is past float64's exact integers (2**53): stamps are taken from the track's first sample
+    t0 = 1_700_000_000 * 10**9
+    buffer = TransformBuffer()
+    buffer.add("odom", "base_link", t0, Transform.of([0, 0, 0], [0, 0, 0, 1]))
+    buffer.add("odom", "base_link", t0 + 20_000_000, Transform.of([2, 0, 0], Rotation.from_euler("z", 1.0).as_quat()))
+    u = 7_777_777 / 20_000_000
+    assert _close(buffer.lookup("odom", "base_link", t0 + 7_777_777), np.array([2 * u, 0, 0]),
+                  Rotation.from_euler("z", u))
 
 
 def _buffer() -> TransformBuffer:
