@@ -25,13 +25,13 @@ what ``python -m app.import_log --url`` posts), 0.05 m cells.
    its grid each time, so each rep first moves both maps to a new version (a clear of a never-observed cell,
    which changes no cell) and times the first plan on it, then the same plan again. Ratio growing / fixed of
    each (target <= 1.1x). ``time_limit`` is 10 s: the grid search is not bounded by it, but the service gives a
-   plan up 20 s after its clock bound (3 x ``time_limit`` when seeded), and this search of 31 M cells takes
-   10-20 s on a loaded 2-core machine.
+   plan up 20 s after its clock bound (3 x ``time_limit`` when seeded), and this search of 31 M cells took
+   6.5-9 s in a worker, up to 21 s in-process on a loaded 2-core machine.
 
 Reads and plans of more than 4 M cells take turns in the service's big-reads lane, which rests ``1 / share - 1``
 times a read's duration after it (``FUZZYRISK_HEAVY_READ_SHARE``); every timed request here is followed by that rest
-after it, so a time is the request's own. **Time**: about 10 minutes on a loaded 2-core machine (PNGs of 31 M cells
-and their rests, the plans, the posting).
+after it, so a time is the request's own. **Time**: 5-7 minutes on a loaded 2-core machine (PNGs of 31 M cells and
+their rests, the plans, the posting).
 """
 
 from __future__ import annotations
