@@ -115,7 +115,8 @@ def _in_process(args: argparse.Namespace, scans: Sequence[LaserScan], spec: Grid
 # ---------------------------------------------------------------- through the service
 
 
-def _scan_json(scan: LaserScan) -> dict[str, Any]:
+def scan_json(scan: LaserScan) -> dict[str, Any]:
+    """A scan as ``POST /maps/{name}/scans`` takes it (a ``LaserScanIn``), its numbers exact."""
     x, y, theta = scan.pose
     # json writes the shortest repr that reads back to the same float64: the service fuses our numbers
     ranges = ["inf" if math.isinf(r) else r for r in scan.ranges.tolist()]
@@ -151,7 +152,7 @@ def _through_service(args: argparse.Namespace, scans: Sequence[LaserScan], spec:
     name = quote(args.map, safe="")
     version = info.get("version")
     for batch in _batches(scans, args.batch):
-        body = json.dumps({"scans": [_scan_json(s) for s in batch]}).encode()
+        body = json.dumps({"scans": [scan_json(s) for s in batch]}).encode()
         try:
             _, data = client.call("POST", f"/maps/{name}/scans", body)
         except ImportFailed as exc:  # say where the map was left, for a later --append of the rest

@@ -22,6 +22,7 @@ if TYPE_CHECKING:
         MapEntry,
         MapObserver,
         OccupancyMap,
+        copy_limit,
         in_use,
         is_current,
         map_info,
@@ -52,6 +53,7 @@ __all__ = [
     "UNLIMITED_CELLS",
     "WritePath",
     "build_map",
+    "copy_limit",
     "in_use",
     "is_current",
     "map_info",
@@ -65,8 +67,8 @@ __all__ = [
 ]
 
 _LAZY = {
-    **dict.fromkeys(["UNLIMITED_CELLS", "MapEntry", "MapObserver", "OccupancyMap", "in_use", "is_current",
-                     "map_info", "now", "stored_info"], "app.maps.entry"),
+    **dict.fromkeys(["UNLIMITED_CELLS", "MapEntry", "MapObserver", "OccupancyMap", "copy_limit", "in_use",
+                     "is_current", "map_info", "now", "stored_info"], "app.maps.entry"),
     **dict.fromkeys(["Line", "Turns", "shielded"], "app.maps.line"),
     "MapRegistry": "app.maps.registry",
     **dict.fromkeys(["FieldCache", "GridRef", "Lease", "PlanGrids"], "app.maps.shared_grids"),

@@ -16,6 +16,7 @@ from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from typing import Any, Protocol
 
+from app.config import Settings
 from app.errors import Conflict
 from app.formats import etags
 from app.maps import shared_grids
@@ -26,6 +27,7 @@ from app.schemas import DEFAULT_FRAME_ID, MapCreate, MapInfo, PlanResult
 from app.schemas import engine_choice
 from app.storage import MapHead
 from fuzzyocc import BayesMap, FuzzyMap, GridSpec, LatticeSpec
+from fuzzyocc.config import DEFAULT_MAX_CELLS
 
 
 #: Cells a stored map may have whatever ``FUZZYRISK_MAX_MAP_CELLS`` says now: a limit lowered since the map
@@ -33,6 +35,15 @@ from fuzzyocc import BayesMap, FuzzyMap, GridSpec, LatticeSpec
 UNLIMITED_CELLS = 2**62
 
 OccupancyMap = FuzzyMap | BayesMap
+
+
+def copy_limit(settings: Settings, model: str = "fuzzy") -> int:
+    """Most cells of one dense copy of a map: a fixed map's box (its whole-map reads), and a read or a plan's grid
+    of a growing map. A bayes map holds its whole box (``FUZZYRISK_MAX_MAP_CELLS``); a fuzzy map holds only the
+    blocks its scans reached, so a copy of it is bounded apart, as the largest box (``DEFAULT_MAX_CELLS`` at least)."""
+    if model == "bayes":
+        return settings.max_map_cells
+    return max(settings.max_map_cells, DEFAULT_MAX_CELLS)
 
 
 class MapObserver(Protocol):

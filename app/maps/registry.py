@@ -13,7 +13,7 @@ from app.config import Settings
 from app.storage.diskreserve import DiskReserve
 from app.errors import Conflict, InsufficientStorage, Invalid, NotFound, Unavailable
 from app.ops.process_setup import give_back_freed_memory
-from app.maps.entry import UNLIMITED_CELLS, MapEntry, now, spec_of, stored_info
+from app.maps.entry import UNLIMITED_CELLS, MapEntry, copy_limit, now, spec_of, stored_info
 from app.maps.line import shielded
 from app.maps.stored import build_map, restore
 from app.ops.metrics import Metrics
@@ -22,7 +22,6 @@ from app.schemas import MapCreate, MapInfo
 from app.storage import MapHead, NameTaken, Storage, StorageUnavailable
 from app.ops.threads import Workers
 from fuzzyocc import GridSpec
-from fuzzyocc.config import DEFAULT_MAX_CELLS
 
 LOG = logging.getLogger("fuzzyrisk.maps")
 
@@ -252,12 +251,8 @@ class MapRegistry:
         return sum(entry.map.held_cells() for entry in self._maps.values())
 
     def _box_limit(self, meta: Mapping[str, Any]) -> int:
-        """Most cells of a fixed map's box: a bayes map holds its whole box (``FUZZYRISK_MAX_MAP_CELLS``); a fuzzy
-        map holds the blocks its scans reached, and its box only bounds a whole-map read (``DEFAULT_MAX_CELLS`` at
-        least)."""
-        if meta["model"] == "bayes":
-            return self.settings.max_map_cells
-        return max(self.settings.max_map_cells, DEFAULT_MAX_CELLS)
+        """Most cells of a fixed map's box (``copy_limit``: its box bounds a whole-map read)."""
+        return copy_limit(self.settings, meta["model"])
 
     def _check_room(self, meta: Mapping[str, Any], stored: int | None) -> None:
         """``InsufficientStorage`` when a new map would pass ``FUZZYRISK_MAX_MAPS`` or ``FUZZYRISK_MAX_TOTAL_CELLS``.

@@ -10,7 +10,7 @@ from app.ros import messages_out
 from app.ros import msgtypes
 from app.config import Settings
 from app.errors import Invalid, PlanRejected, TooLarge
-from app.maps import GridSnapshot, Lease, MapEntry, PlanGrids, is_current
+from app.maps import GridSnapshot, Lease, MapEntry, PlanGrids, copy_limit, is_current
 from app.ops.metrics import Metrics
 from app.plans.pool import PlanPool
 from app.plans.worker import run_plan, run_shared_plan
@@ -113,10 +113,12 @@ class MapPlans:
                 window = entry.map.window_around(ends, request.robot_radius + GROWING_PLAN_MARGIN_M)
             except ValueError as exc:
                 raise Invalid(str(exc)) from None
-            if window.cells() > self.settings.max_map_cells:
+            # bounded as the grid of a fixed map's plan is, by the largest box: the same cells plan alike in both
+            limit = copy_limit(self.settings)
+            if window.cells() > limit:
                 raise TooLarge(f"a plan between these points works on {window.cells():,} cells of this growing map, "
-                               f"more than FUZZYRISK_MAX_MAP_CELLS ({self.settings.max_map_cells:,}): plan between "
-                               "nearer points")
+                               f"more than a fixed map's largest box ({limit:,}: FUZZYRISK_MAX_MAP_CELLS or 64 M, "
+                               "the larger): plan between nearer points")
         async with self._reads.big_read(window):
             return await self._reads.read_cells(entry, window)
 

@@ -19,7 +19,7 @@ from app.ros import messages_out
 from app.ros import msgtypes
 from app.config import Settings
 from app.errors import Conflict, Invalid, NotFound, TooLarge, Unavailable
-from app.maps import GridSnapshot, GridStamp, MapEntry
+from app.maps import GridSnapshot, GridStamp, MapEntry, copy_limit
 from app.reads.lane import ReadLane, Turn
 from app.schemas import WHOLE_MAP, GridWindow, LastScan, MapInfo, OccupancyGrid, RiskGridJSON, RiskValues
 from app.storage import Storage, StoredMap
@@ -136,10 +136,19 @@ class MapReads:
             return await self._resolved(entry, region)
 
     async def _resolved(self, entry: MapEntry, region: GridWindow) -> Window:
-        """``_window`` under the apply lock (a growing map's bounds are read from its blocks: in a read thread)."""
+        """``_window`` under the apply lock (a growing map's bounds are read from its blocks: in a read thread).
+
+        A growing map's window is bounded as a fixed map's box is (``copy_limit``), before any copy: two scans far
+        apart give bounds of more cells than any memory holds."""
         if not entry.map.growing:
             return _window(entry, region)
-        return await self._workers.run_read(_window, entry, region)
+        window = await self._workers.run_read(_window, entry, region)
+        limit = copy_limit(self.settings)
+        if window.cells() > limit:
+            raise Invalid(f"the read covers {window.cells():,} cells ({' x '.join(map(str, window.shape))}) of this "
+                          f"growing map, more than a fixed map's largest box ({limit:,}: FUZZYRISK_MAX_MAP_CELLS or "
+                          "64 M, the larger): read a window of it (min, max)")
+        return window
 
     async def render_log(self, name: str, render: Callable[[GridSnapshot, StoredMap], T],
                          region: GridWindow = WHOLE_MAP) -> T:

@@ -219,3 +219,40 @@ def test_the_ouster_frames_fit_one_growing_map_under_the_default_limits(client: 
     info = _info(client, "ouster")
     assert info["version"] == 3 and 0 < info["held_cells"] <= Settings().max_map_cells
     assert np.prod(info["shape"]) > Settings().max_map_cells  # what a box around the same cells would take
+
+
+def test_a_growing_map_whose_bounds_pass_the_largest_box_is_read_through_windows(client: TestClient, kit: Any) -> None:
+    """Two scans 1.5 km apart: bounds of 225 M cells, a few thousand held. A whole read would copy every cell of the
+    bounds (a 500 before, out of memory): refused before any copy, as no fixed map's box is that large."""
+    assert client.post("/maps", json=GROWING).status_code == 201
+    for x in (0.0, 1500.0):
+        assert client.post("/maps/explore/scans", json={"scans": [kit.laser(x=x, y=x)]}).status_code == 200
+    info = _info(client)
+    assert info["shape"][0] * info["shape"][1] > 64_000_000 and info["held_cells"] < 100_000
+    for path in ("risk", "risk.npy", "risk.npy?layer=observed", "risk.png", "occupancy_grid.cdr", "export/nav2",
+                 "export/mcap"):
+        response = client.get(f"/maps/explore/{path}")
+        assert response.status_code == 422 and "read a window" in error_message(response), (path, response.text)
+    part = client.get("/maps/explore/risk.npy", params={"min": "1,-2", "max": "5,2"})
+    assert part.status_code == 200 and np.load(io.BytesIO(part.content)).max() > 0.5  # the wall at x = 3
+    refused = client.post("/maps/explore/plan", json={"start": [0.5, 0.0], "goal": [1500.5, 1500.0],
+                                                       "planner": "grid"})
+    assert refused.status_code == 413 and "nearer points" in error_message(refused), refused.text
+    assert _info(client)["version"] == 2
+
+
+def test_a_plan_on_a_growing_map_is_bounded_as_on_the_fixed_map_of_its_bounds(make_client: Any, kit: Any) -> None:
+    """FUZZYRISK_MAX_MAP_CELLS counts what a map holds; a plan's grid is a copy, bounded as a fixed map's box is (64 M
+    at least), so a plan across a growing map is answered where one across the fixed map of its bounds is."""
+    client = make_client(max_map_cells=20_000)
+    assert client.post("/maps", json=GROWING).status_code == 201
+    scans = [kit.laser(x=x, y=x) for x in (0.0, 30.0)]
+    assert client.post("/maps/explore/scans", json={"scans": scans}).status_code == 200
+    info = _info(client)
+    assert info["shape"][0] * info["shape"][1] > 20_000 > info["held_cells"]
+    box = {"name": "box", "resolution": GROWING["resolution"], "origin": info["origin"], "size": info["size"]}
+    assert client.post("/maps", json=box).status_code == 201
+    assert client.post("/maps/box/scans", json={"scans": scans}).status_code == 200
+    for name in ("box", "explore"):
+        plan = client.post(f"/maps/{name}/plan", json={"start": [0.5, 0.0], "goal": [30.5, 30.0], "planner": "grid"})
+        assert plan.status_code == 200 and plan.json()["status"] == "exact", (name, plan.text)
