@@ -57,12 +57,14 @@ Runner = Callable[..., Awaitable[Any]]
 
 @dataclass(frozen=True)
 class GridRef:
-    """What a worker needs to plan on a published grid: its files, resolution and origin."""
+    """What a worker needs to plan on a published grid: its files, resolution, origin and shape (cells along each
+    axis: a growing map's grid is a window, which a later plan reuses only if it needs that very window)."""
 
     risk_path: str
     observed_path: str
     resolution: float
     origin: tuple[float, ...]
+    shape: tuple[int, ...] = ()
 
 
 # ---------------------------------------------------------------- the server's side
@@ -197,7 +199,8 @@ class PlanGrids:
         if not self._make_room(need):
             return None
         stem = self._dir / f"m{uid}-v{version}"
-        ref = GridRef(f"{stem}.risk.npy", f"{stem}.observed.npy", float(resolution), tuple(float(v) for v in origin))
+        ref = GridRef(f"{stem}.risk.npy", f"{stem}.observed.npy", float(resolution), tuple(float(v) for v in origin),
+                      tuple(int(n) for n in risk.shape))
         done: asyncio.Future[None] = asyncio.get_running_loop().create_future()
         self._pending[key] = done
         self._reserved += need

@@ -16,6 +16,7 @@ from app.plans.pool import PlanPool
 from app.plans.worker import run_plan, run_shared_plan
 from app.reads.service import MapReads
 from app.schemas import PlanRequest, PlanResult
+from fuzzyocc.maps import Window
 from planning.budget import wall_clock_limit
 from planning.planners import planner_spec
 
@@ -58,22 +59,33 @@ class MapPlans:
         outcome, source, version = "error", "shared", entry.version
         grid: GridSnapshot | None = None
         lease: Lease | None = None
+        window: Window | None = None
         if entry.map.growing:
             # a growing map's plan works on its bounds grown to hold the start, the goal and the robot (beyond the
-            # bounds: never observed); its grid is shipped with the plan, as the window follows the request
-            grid = await self._grid_around(entry, request)
-            version = grid.version
+            # bounds: never observed); the grid published for the version serves the plans that need that window
+            window, version = await self._window_around(entry, request)
+            lease = self._grids.lease(entry.uid, version)
+            if lease is not None and not _covers(lease, window):
+                lease.release()
+                lease = None
+                grid = await self._copy(entry, window)  # another window than the published one: shipped
+                source, version = "shipped", grid.version
         else:
             lease = self._grids.lease(entry.uid, version)  # no await since the version was read
         try:
             if lease is None and grid is None:
-                async with self._reads.big_read(entry.spec):  # a big map's copy takes its turn as big reads do
-                    grid = await self._reads.read_grid_of(entry)
+                async with self._reads.big_read(entry.spec if window is None else window):
+                    # a big map's copy takes its turn as big reads do
+                    grid = (await self._reads.read_grid_of(entry) if window is None
+                            else await self._reads.read_cells(entry, window))
                     source, version = "published", grid.version
                     lease = await self._grids.publish(
                         entry.uid, grid.version, grid.risk, grid.observed, grid.spec.resolution, grid.spec.origin,
                         current=functools.partial(is_current, entry, grid.version),
                     )
+                    if lease is not None and window is not None and not _covers(lease, window):
+                        lease.release()  # another plan published another window of this version meanwhile
+                        lease = None
             self.metrics.plan_grids.labels("shipped" if lease is None else source).inc()
             if lease is not None:
                 answer = await self._plans.run(run_shared_plan, timeout, lease.ref, params, key=name)
@@ -101,9 +113,9 @@ class MapPlans:
                 lease.release()
             self.metrics.plan_seconds.labels(request.planner, outcome).observe(time.perf_counter() - started)
 
-    async def _grid_around(self, entry: MapEntry, request: PlanRequest) -> GridSnapshot:
-        """A growing map's grid for ``request``: its bounds and the start and goal, grown by the robot's radius and
-        ``GROWING_PLAN_MARGIN_M`` (copied under the apply lock, as a read)."""
+    async def _window_around(self, entry: MapEntry, request: PlanRequest) -> tuple[Window, int]:
+        """A growing map's plan window for ``request`` and the version it is of: its bounds and the start and goal,
+        grown by the robot's radius and ``GROWING_PLAN_MARGIN_M``."""
         ndim = entry.spec.ndim
         ends = [request.start[:ndim], request.goal[:ndim]]
         if any(len(p) < ndim for p in ends):
@@ -119,6 +131,9 @@ class MapPlans:
                 raise TooLarge(f"a plan between these points works on {window.cells():,} cells of this growing map, "
                                f"more than a fixed map's largest box ({limit:,}: FUZZYRISK_MAX_MAP_CELLS or 64 M, "
                                "the larger): plan between nearer points")
+            return window, entry.version
+
+    async def _copy(self, entry: MapEntry, window: Window) -> GridSnapshot:
         async with self._reads.big_read(window):
             return await self._reads.read_cells(entry, window)
 
@@ -137,3 +152,8 @@ class MapPlans:
             raise Invalid(f"goal_yaw is for R2 and R3 paths; in {request.state_space} give the goal's yaw as its "
                           "third value [x, y, theta] and leave goal_yaw out")
 
+
+def _covers(lease: Lease, window: Window) -> bool:
+    """Whether a published grid is exactly ``window`` (a growing map's plans need their own window)."""
+    spec = window.spec()
+    return lease.ref.origin == tuple(float(v) for v in spec.origin) and lease.ref.shape == tuple(window.shape)

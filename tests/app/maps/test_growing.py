@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import io
+import re
 from typing import Any
 
 import numpy as np
@@ -256,3 +257,22 @@ def test_a_plan_on_a_growing_map_is_bounded_as_on_the_fixed_map_of_its_bounds(ma
     for name in ("box", "explore"):
         plan = client.post(f"/maps/{name}/plan", json={"start": [0.5, 0.0], "goal": [30.5, 30.0], "planner": "grid"})
         assert plan.status_code == 200 and plan.json()["status"] == "exact", (name, plan.text)
+
+
+def _grid_sources(client: TestClient) -> dict[str, float]:
+    text = client.get("/metrics").text
+    return {m[1]: float(m[2]) for m in re.finditer(r'^fuzzyrisk_plan_grids_total\{source="(\w+)"\} (\S+)$', text, re.M)}
+
+
+def test_plans_needing_the_same_window_of_a_version_share_its_published_grid(client: TestClient, kit: Any) -> None:
+    assert client.post("/maps", json=GROWING).status_code == 201
+    assert client.post("/maps/explore/scans", json={"scans": [kit.laser(wall=3.0)]}).status_code == 200
+    request = {"start": [0.5, 0.0], "goal": [2.0, 1.0], "planner": "grid"}
+    first, again = (client.post("/maps/explore/plan", json=request) for _ in range(2))
+    assert first.status_code == again.status_code == 200, first.text
+    assert [p["pose"] for p in first.json()["poses"]] == [p["pose"] for p in again.json()["poses"]]
+    sources = _grid_sources(client)
+    assert sources.get("published") == 1 and sources.get("shared") == 1  # the second plan copied nothing
+    far = client.post("/maps/explore/plan", json={**request, "goal": [12.0, 1.0]})  # past the bounds: its own window
+    assert far.status_code == 200, far.text
+    assert _grid_sources(client).get("shipped") == 1
