@@ -200,6 +200,16 @@ def test_the_generated_client_drives_every_operation(generated: tuple[ModuleType
     assert isinstance(checked, m.PathCheckResult) and checked.valid and checked.version == result.version
     assert checked.cost == result.cost
 
+    # a growing map's setting changed, and a region cleared, through the generated models
+    grown = op("maps", "create_map").sync(client=client, body=m.MapCreate.from_dict({"name": "roam", "resolution": 0.1}))
+    assert isinstance(grown, m.MapInfo) and grown.extent == "growing" and grown.bounds is None
+    changed = op("maps", "change_map").sync("roam", client=client, body=m.MapChange.from_dict({"forget_beyond": 25.0}))
+    assert isinstance(changed, m.MapInfo) and changed.forget_beyond == 25.0 and changed.version == 1
+    cleared = op("maps", "clear_region").sync("hall", client=client,
+                                              body=m.ClearRegion.from_dict({"min": [4.0, 0.0], "max": [6.0, 6.0]}))
+    assert isinstance(cleared, m.Cleared) and cleared.cells_cleared > 0
+    assert op("maps", "delete_map").sync_detailed("roam", client=client).status_code == 204
+
     # the key, and a deletion
     anonymous = package.Client(base_url=server.url)
     refused = _op(package, "maps", "list_maps").sync_detailed(client=anonymous)
