@@ -56,13 +56,18 @@ def _samples(values: list[float], every_s: float = 30.0) -> list[Sample]:
 
 
 def test_the_verdict_judges_the_state_after_the_first_minutes() -> None:
-    # every 30 s for 30 minutes: rising for 2 minutes, then level within 5 % of minute 5's
-    level = [100.0 + 50.0 * min(i, 4) for i in range(61)]
-    level = [v * (1.0 + 0.05 * np.sin(i)) if i >= 10 else v for i, v in enumerate(level)]
-    ref, top, ratio = bench_drive.flat_verdict(_samples(level), settle_min=5.0)
-    assert ref.t_s == 300.0 and top.t_s >= 600.0
-    assert ratio == max(int(v) for v in level[20:]) / int(level[10]) and ratio <= bench_drive.FLAT_WITHIN
-    growing = [100.0 + 10.0 * i for i in range(61)]
-    assert bench_drive.flat_verdict(_samples(growing), settle_min=5.0)[2] == pytest.approx(700.0 / 200.0)
+    # every 30 s for 30 minutes: rising for 2 minutes, then level, moving by 5 % either way
+    level = [100_000.0 + 50_000.0 * min(i, 4) for i in range(61)]
+    level = [v * (1.0 + 0.05 * np.sin(i)) if i > 4 else v for i, v in enumerate(level)]
+    flat = bench_drive.flat_verdict(_samples(level), settle_min=5.0)
+    assert flat.first.state == max(int(v) for v in level[1:11])
+    assert flat.at_settle.t_s == 300.0 and flat.later.t_s >= 600.0
+    assert flat.ratio == max(int(v) for v in level[20:]) / flat.first.state and flat.ratio <= bench_drive.FLAT_WITHIN
+    assert flat.ratio_to_settle == flat.later.state / int(level[10])
+    assert abs(flat.slope_mb_per_min) < 0.01
+    growing = [100_000.0 + 10_000.0 * i for i in range(61)]  # 20 kB a minute
+    flat = bench_drive.flat_verdict(_samples(growing), settle_min=5.0)
+    assert flat.ratio == pytest.approx(700_000.0 / 200_000.0) and flat.ratio > bench_drive.FLAT_WITHIN
+    assert flat.slope_mb_per_min == pytest.approx(0.02)
     with pytest.raises(ValueError, match="longer than 10 minutes"):
         bench_drive.flat_verdict(_samples(level[:20]), settle_min=5.0)
