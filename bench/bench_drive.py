@@ -19,9 +19,10 @@ largest state from minute ``2 x --settle`` (10) to the end at most 1.1x the larg
 of held cells and state over time (``--plot``).
 
 A real drive sweeps at 10 Hz with 64 x 1024 beams. The defaults (8,192 beams every 3 s, a sweep every 4.5 m:
-600 sweeps) keep a 30-minute drive to about 4 minutes of CPU on a 2-core machine: a sweep of 8,192 beams
-costs about 0.3 s, a good part of it dropping the blocks forgotten one by one. What the map holds is set by
-the distance it keeps and by how densely the beams cover it, not by how often it is swept.
+600 sweeps) keep a 30-minute drive to about 3.5 minutes of CPU on a 2-core machine: a sweep of 8,192 beams
+costs about 0.35 s with its ray casting, a good part of it dropping the forgotten blocks one by one. What
+the map holds is set by the distance it keeps and by how densely the beams cover it, not by how often it is
+swept.
 """
 
 from __future__ import annotations

@@ -48,9 +48,10 @@ OUSTER_RESOLUTION = 0.1
 OUSTER_RANGE_MAX = 30.0
 PARTS = ("speed", "memory", "ouster")
 #: Part speed runs a log's maps at least this many seconds each in all (more rounds for a short log, at most
-#: ``MAX_ROUNDS``): a run of a third of a second is at the mercy of any burst of other work.
-MIN_SECONDS = 4.0
-MAX_ROUNDS = 15
+#: ``MAX_ROUNDS``): a run of a third of a second is at the mercy of any burst of other work, and with 3 rounds
+#: of 1-3 s the best CPU time of one map still moved by 10 % from one run of the bench to the next.
+MIN_SECONDS = 8.0
+MAX_ROUNDS = 25
 
 
 @dataclass
@@ -136,7 +137,8 @@ def speed(name: str, scans: list[LaserScan], rounds: int) -> FuzzyMap:
     print(f"\n{name}: {len(scans)} scans of {scans[0].ranges.size} beams (range_max {scans[0].range_max:.1f} m), "
           f"{rounds} rounds; "
           f"growing bounds {bounds.shape[0]} x {bounds.shape[1]} cells = "
-          f"{bounds.shape[0] * RESOLUTION:.1f} x {bounds.shape[1] * RESOLUTION:.1f} m from {bounds.origin}")
+          f"{bounds.shape[0] * RESOLUTION:.1f} x {bounds.shape[1] * RESOLUTION:.1f} m from "
+          f"({', '.join(f'{v:.2f}' for v in bounds.origin)})")
     if wide is None:
         print(f"  (b) skipped: the bounds are wider than {WIDE_M:.0f} m")
     print(f"  {'map':16s} {'box cells':>12s} {'wall s':>7s} {'cpu s':>7s} {'scans/s':>8s} {'vs (a)':>7s} "
@@ -284,7 +286,7 @@ def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--logs", default=",".join(DEFAULT_LOGS),
                         help="logs of part speed, comma-separated names (e.g. acapulco,seattle) or 'all'")
-    parser.add_argument("--rounds", type=int, default=3, help="interleaved runs of each map in part speed; the "
+    parser.add_argument("--rounds", type=int, default=5, help="interleaved runs of each map in part speed; the "
                         "fastest is reported")
     parser.add_argument("--only", default=",".join(PARTS), help=f"parts to run, comma-separated: {', '.join(PARTS)}")
     _data.add_option(parser)
@@ -298,6 +300,7 @@ def main(argv: list[str] | None = None) -> None:
     missing = [n for n in names if n not in paths]
     if missing:
         parser.error(f"--logs: no log {', '.join(missing)} in {_logmaps.log_dir()} (there: {', '.join(paths)})")
+    ouster_dir = _data.needed("ouster") if "ouster" in parts else None  # before any work: a missing folder ends it
     t0 = time.perf_counter()
     _warm_up()
     print(f"numba warm-up: {time.perf_counter() - t0:.1f} s (excluded from the timings below)")
@@ -313,8 +316,8 @@ def main(argv: list[str] | None = None) -> None:
         for name in names:
             maps[name] = speed(name, _logmaps.load(paths[name]), args.rounds)
     fused_ouster = None
-    if "ouster" in parts:
-        clouds = ouster_clouds(_data.needed("ouster"))
+    if ouster_dir is not None:
+        clouds = ouster_clouds(ouster_dir)
         fused_ouster = (clouds, *ouster(clouds))
     if "memory" in parts:
         memory(maps, fused_ouster)

@@ -288,9 +288,9 @@ def run(scene: Scene, repeat: int) -> None:
               f"{r.resident / 1e6:11.2f} {r.resident / cells:6.2f} {r.resident / octo.resident:9.2f}x")
     fixed, growing = best["FuzzyMap"], best["Fuzzy/growing"]
     same = _same_cells(cast(FuzzyMap, kept["FuzzyMap"]), cast(FuzzyMap, kept["Fuzzy/growing"]))
-    print(f"  growing map: rays/s {fixed.wall_s / growing.wall_s:.2f}x the fixed FuzzyMap's (target >= 0.9x; by cpu s "
-          f"{cpu['FuzzyMap'] / cpu['Fuzzy/growing']:.2f}x), {octo.wall_s / growing.wall_s:.2f}x OctoMap's (target >= 5x); "
-          f"held cells {growing.held_cells:,} (fixed: {fixed.held_cells:,} of the box's {cells:,}), state "
+    print(f"  growing map: rays/s {fixed.wall_s / growing.wall_s:.2f}x the fixed FuzzyMap's (target >= 0.9x; by cpu "
+          f"s {cpu['FuzzyMap'] / cpu['Fuzzy/growing']:.2f}x), {octo.wall_s / growing.wall_s:.2f}x OctoMap's (target >= "
+          f"5x); held cells {growing.held_cells:,} (fixed: {fixed.held_cells:,} of the box's {cells:,}), state "
           f"{growing.nbytes:,} B = {growing.nbytes / octo.nbytes:.2f}x OctoMap's tree (target <= 1x); "
           f"cells equal to the fixed map's over its bounds: {'yes' if same else 'NO'}")
 
