@@ -1,9 +1,10 @@
 """`python -m app`: serve the product (options override the FUZZYRISK_* environment).
 
-The order matters: settings and logs first; then the port (taken: exit 1 at once) and the
-directories (numba's kernel cache must be set before numba is imported); then the application,
-whose lifespan loads the maps before uvicorn listens, and compiles the kernels and starts the
-planner workers in the background (``GET /ready`` says when they are done).
+The order matters: settings first (one that needs an optional extra not installed: exit 2 at once),
+and logs; then the port (taken: exit 1 at once) and the directories (numba's kernel cache must be
+set before numba is imported); then the application, whose lifespan loads the maps before uvicorn
+listens, and compiles the kernels and starts the planner workers in the background (``GET /ready``
+says when they are done).
 """
 
 from __future__ import annotations
@@ -16,12 +17,14 @@ from pathlib import Path
 from pydantic import ValidationError
 
 from app.config import Settings
-from app.ops.process_setup import GIL_SWITCH_INTERVAL_S, StartupError, bind, foxglove_sdk_missing, prepare_directories
+from app.ops.process_setup import GIL_SWITCH_INTERVAL_S, StartupError, bind, missing_extra, prepare_directories
 from app.ops.logs import configure_logging
 from app.ops.version import add_version_option
 
 #: Exit status when the service cannot start (a bad setting, a port in use, an unusable data directory).
 EXIT_STARTUP_FAILURE = 1
+#: Exit status when a setting needs an optional extra that is not installed (what this install cannot do was asked).
+EXIT_MISSING_EXTRA = 2
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -36,6 +39,9 @@ def main(argv: list[str] | None = None) -> None:
         settings = Settings(**overrides)
     except ValidationError as exc:
         sys.exit(f"python -m app: invalid configuration:\n{exc}")
+    if needed := missing_extra(settings):  # before anything binds or is created: nothing to undo
+        print(f"python -m app: {needed}", file=sys.stderr)
+        sys.exit(EXIT_MISSING_EXTRA)
     configure_logging(log_format=settings.log_format, level=settings.log_level)
     log = logging.getLogger("fuzzyrisk")
     try:
@@ -46,12 +52,6 @@ def main(argv: list[str] | None = None) -> None:
         sys.exit(EXIT_STARTUP_FAILURE)
     if directories.warning:
         log.warning(directories.warning)
-    if settings.foxglove_port is not None:
-        try:  # here, so that a missing optional extra stops the start at once with what to do
-            import foxglove  # noqa: F401
-        except ImportError as exc:
-            log.error("cannot start: %s", foxglove_sdk_missing(exc))
-            sys.exit(EXIT_STARTUP_FAILURE)
     if settings.api_key is None and settings.host not in ("127.0.0.1", "localhost", "::1"):
         log.warning("listening on %s without FUZZYRISK_API_KEY: anyone who can reach it can change maps", settings.host)
     log.info(

@@ -45,7 +45,11 @@ class Settings(BaseSettings):
         None,
         description="Bearer token every API call must carry; unset or empty = no authentication.",
     )
-    max_body_bytes: int = Field(64 * 2**20, ge=1024, description="Largest scan upload body, bytes (413 beyond).")
+    max_body_bytes: int = Field(
+        64 * 2**20, ge=1024,
+        description="Largest upload body (scans, bags, a saved map imported), bytes (413 beyond); also the most a "
+        "saved map's zipped image may inflate to.",
+    )
     max_json_body_bytes: int = Field(
         8 * 2**20, ge=1024,
         description="Largest body of every other route (maps, risk queries, plans), bytes (413 beyond): "
@@ -66,7 +70,16 @@ class Settings(BaseSettings):
         2_000_000, ge=1, description="Most ranges in a LaserScan, or points in a point cloud."
     )
     max_map_cells: int = Field(
-        16_000_000, ge=1, description="Most cells in one map (at most about 13 bytes a cell in memory for a fuzzy map of the default engine)."
+        16_000_000, ge=1,
+        description="Most cells one map holds in memory (507 beyond): a fuzzy map holds a cell of each mixed block, "
+        "one for each uniform block and none for space no scan reached (at most about 13 bytes a cell for the default "
+        "engine); a bayes map its whole box. A batch is refused once the map holds this many (clear a region, set "
+        "forget_beyond or delete the map); a batch under it may pass it by at most FUZZYRISK_MAX_NEW_CELLS_PER_BATCH.",
+    )
+    max_new_cells_per_batch: int = Field(
+        16_000_000, ge=1,
+        description="Most cells one batch may make a fuzzy map hold anew (413 beyond, before it is stored): the "
+        "cells of every block its beams reach, counted as if the map held none of them yet.",
     )
     max_bodies_in_flight_bytes: int = Field(
         256 * 2**20, ge=1024,
@@ -92,6 +105,11 @@ class Settings(BaseSettings):
         "engine, so the default bounds the maps' memory near 5 GB.",
     )
     max_query_points: int = Field(100_000, ge=1, description="Most points in one risk query.")
+    max_path_points: int = Field(
+        10_000, ge=1,
+        description="Most points in one path check (413 beyond): a plan's path has a point a cell, so 10,000 points "
+        "are 500 m at 0.05 m.",
+    )
     max_plan_time_s: float = Field(30.0, gt=0.0, le=3600.0, description="Largest plan time_limit, seconds.")
     plan_workers: int = Field(2, ge=1, le=64, description="Planner worker processes.")
     plan_workers_per_map: int | None = Field(

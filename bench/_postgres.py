@@ -14,7 +14,6 @@ from __future__ import annotations
 import ctypes
 import os
 import pwd
-import re
 import shutil
 import signal
 import socket
@@ -30,8 +29,10 @@ from typing import Any
 import psutil
 import psycopg
 
-INSTALL_HINT = ("PostgreSQL's server binaries (initdb, postgres) are needed: install them with "
-                "`apt-get install postgresql` (Debian/Ubuntu), or set FUZZYRISK_TEST_PG_BINDIR to their directory")
+import dev
+
+INSTALL_HINT = ("PostgreSQL's server binaries (initdb, postgres) are needed: `python3 dev.py test` installs Debian's "
+                "postgresql (or `apt-get install postgresql`), or set FUZZYRISK_TEST_PG_BINDIR to their directory")
 SUPERUSER = "postgres"
 #: Cluster settings for tests: nothing here is about surviving a power cut, so no fsync.
 SETTINGS = {"fsync": "off", "full_page_writes": "off", "max_connections": "200", "shared_buffers": "32MB"}
@@ -45,23 +46,13 @@ class PostgresNotFound(RuntimeError):
 
 
 def find_bindir() -> Path:
-    """The directory holding ``initdb`` and ``postgres``; ``PostgresNotFound`` (with how to install them)."""
-    wanted = ("initdb", "postgres")
-    candidates: list[Path] = []
-    if os.environ.get("FUZZYRISK_TEST_PG_BINDIR"):
-        candidates.append(Path(os.environ["FUZZYRISK_TEST_PG_BINDIR"]))
-    else:
-        def major(path: Path) -> tuple[int, ...]:
-            return tuple(int(part) for part in re.findall(r"\d+", path.parent.name))
-
-        candidates += sorted(Path("/usr/lib/postgresql").glob("*/bin"), key=major, reverse=True)
-        found = shutil.which("initdb")
-        if found:
-            candidates.append(Path(found).resolve().parent)
-    for bindir in candidates:
-        if all(os.access(bindir / name, os.X_OK) for name in wanted):
-            return bindir
-    raise PostgresNotFound(f"{INSTALL_HINT} (looked in: {', '.join(map(str, candidates)) or 'nothing found'})")
+    """The directory holding ``initdb`` and ``postgres`` (``dev.find_pg_bindir``); ``PostgresNotFound`` (with how to
+    install them)."""
+    found = dev.find_pg_bindir()
+    if found is None:
+        looked = ", ".join(map(str, dev.pg_bindir_candidates())) or "nothing found"
+        raise PostgresNotFound(f"{INSTALL_HINT} (looked in: {looked})")
+    return found
 
 
 def _free_port() -> int:

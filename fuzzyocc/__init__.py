@@ -2,7 +2,7 @@
 
 from fuzzyocc.config import GridSpec, LatticeSpec, SensorModel
 from fuzzyocc.engine import FuzzyEngine
-from fuzzyocc.maps import BayesMap, FuzzyMap, IntegrationStats, cast_work
+from fuzzyocc.maps import BayesMap, FuzzyMap, IntegrationStats, allocation_bound, cast_work
 from fuzzyocc.scans import LaserScan, PointCloud
 
 __all__ = [
@@ -15,5 +15,6 @@ __all__ = [
     "LaserScan",
     "PointCloud",
     "SensorModel",
+    "allocation_bound",
     "cast_work",
 ]

@@ -7,9 +7,9 @@ slots live in plain arrays so the compiled kernels of :mod:`fuzzyocc.blockgrid` 
 hash of Teschner et al., "Optimized spatial hashing for collision detection of deformable
 objects" (2003).
 
-Capacity is the caller's: :func:`find_or_add` never grows the table (the caller makes room
-first, see ``BlockGrid.reserve``), and a deletion moves later entries of its probe run back
-(no tombstones), so lookups stay short however many blocks come and go.
+:func:`insert` never grows the table: its caller makes room first (``BlockIndex.reserve``, or the
+cast kernel, which doubles a full index itself), and a deletion moves later entries of its probe
+run back (no tombstones), so lookups stay short however many blocks come and go.
 """
 
 from __future__ import annotations
@@ -108,8 +108,8 @@ class BlockIndex:
     """Blocks of a lattice by integer coordinates, each stored at a slot ``0..n-1`` (slots stay packed).
 
     ``coords[s]`` are the coordinates of the block at slot ``s``; ``touch`` is scratch for a
-    cast (``-1`` everywhere between casts). Arrays grow by :meth:`reserve`, never inside a
-    kernel: a kernel that runs out of room stops and says where.
+    cast (``-1`` everywhere between casts). Arrays grow by :meth:`reserve`, or in the cast kernel,
+    which hands back the doubled arrays.
     """
 
     def __init__(self, capacity: int = 64) -> None:

@@ -207,6 +207,18 @@ class BlockGrid:
         if 2 * self._n_dense < self._pool.shape[0] and self._pool.shape[0] > 64:
             self._grow_pool(self._n_dense + self._n_dense // 4)
 
+    def ids(self, cells: np.ndarray) -> np.ndarray:
+        """The keys of ``cells`` (flat ids over a fixed box), as :meth:`fuse` and :meth:`mark_observed` take them;
+        the blocks they lie in are held from now on (as a cast that reached them would)."""
+        lattice = self._flat_to_cells(cells)
+        blocks = lattice >> self._shift
+        self.index.reserve(int(np.unique(blocks, axis=0).shape[0]) if blocks.size else 0)
+        self.index.n, slots = _enter_blocks(blocks, self.index.keys, self.index.slots, self.index.coords, self.index.n)
+        self.adopt()
+        inner = lattice & ((1 << self._shift) - 1)
+        offsets = (inner[:, 0] << self._shift[1] | inner[:, 1]) << self._shift[2] | inner[:, 2]
+        return (slots.astype(np.int64) << self._bits) | offsets
+
     def mark_observed(self, cells: np.ndarray) -> None:
         """Record that beams reached ``cells`` (keys)."""
         _set_observed(self._obs, np.ascontiguousarray(cells, dtype=np.int64), self._bits)
@@ -706,6 +718,24 @@ def _fill_blocks(state, observed, shape, shift, nblk, kind, keys, slots, coords)
                     n += 1
                 b += 1
     return n
+
+
+@njit(cache=True, nogil=True)
+def _enter_blocks(blocks, keys, slots, coords, n):  # pragma: no cover - compiled
+    """The slot of each block (added to the index if new; room reserved by the caller); returns ``(n, slots)``."""
+    out = np.empty(blocks.shape[0], np.int32)
+    for q in range(blocks.shape[0]):
+        bx, by, bz = blocks[q, 0], blocks[q, 1], blocks[q, 2]
+        s = find(keys, slots, bx, by, bz)
+        if s < 0:
+            s = n
+            _insert(keys, slots, bx, by, bz, s)
+            coords[s, 0] = bx
+            coords[s, 1] = by
+            coords[s, 2] = bz
+            n += 1
+        out[q] = s
+    return n, out
 
 
 @njit(cache=True, nogil=True)

@@ -91,6 +91,10 @@ class CellGrid:
         rows = np.ascontiguousarray(state).view(np.uint8).reshape(state.shape[0], -1)
         return bool(_rows_equal_first(rows))
 
+    def ids(self, cells: np.ndarray) -> np.ndarray:
+        """The ids of ``cells`` (flat ids) as :meth:`write` and :meth:`mark_observed` take them: the same."""
+        return np.asarray(cells, dtype=np.int64)
+
     # -- states ---------------------------------------------------------------------------
     def read(self, cells: np.ndarray) -> np.ndarray:
         """States of ``cells`` (flat ids), a copy of shape ``(len(cells), ...)``."""

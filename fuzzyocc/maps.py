@@ -37,7 +37,7 @@ from fuzzyocc import bayes, presets
 from fuzzyocc.config import MAX_COORDINATE_M, GridSpec, LatticeSpec, SensorModel
 from fuzzyocc.engine import FuzzyEngine
 from fuzzyocc._block_table import BlockIndex
-from fuzzyocc.blockgrid import BlockGrid, block_shift_for
+from fuzzyocc.blockgrid import BLOCK_SHIFT_2D, BLOCK_SHIFT_3D, BlockGrid, block_shift_for
 from fuzzyocc.grid import CellGrid
 from fuzzyocc.keys import coords_to_keys, keys_to_flat
 from fuzzyocc.raycast import CastResult, Lattice, cast_into, traversal_cells
@@ -51,6 +51,17 @@ CAST_CHUNK_ENTRIES = 16_000_000
 #: beams one cast may hold (about 300 bytes each while their rays are made and cast: about 20 MB); a scan with
 #: more is cast part by part (see ``_cast_in_parts``)
 CAST_CHUNK_BEAMS = 65_536
+#: The evidence of one agreeing scan in a prior (``OccupancyMap.integrate_prior``), in sigmas from the measured
+#: surface (eq. 5): an occupied cell's is that of the cell a beam ends in, the surface at its centre; a free
+#: cell's that of a cell a beam crosses far in front of its surface (3 m at the default 0.03 m), where every
+#: preset's input functions are flat and the Bayes OPDF has reached its front plateau.
+PRIOR_HIT_SIGMAS = 0.0
+PRIOR_PASS_SIGMAS = -100.0
+#: The prior level of a cell no scan reached: ``integrate_prior`` leaves it as it is.
+PRIOR_UNSEEN = -128
+#: Most agreeing scans one prior cell may stand for: every engine here saturates well before (``evidence`` after
+#: 3 hits or 5 pass-throughs, Bayes at its clamps after 12 hits), and each is one more pass over the cells.
+MAX_PRIOR_SCANS = 20
 
 
 def scan_parts(scan: Scan) -> list[slice]:
@@ -83,6 +94,38 @@ def cast_work(spec: GridSpec | LatticeSpec, scans: Sequence[Scan]) -> int:
     return total
 
 
+def allocation_bound(spec: GridSpec | LatticeSpec, scans: Sequence[Scan]) -> int:
+    """At most about how many cells fusing ``scans`` makes a fuzzy map of ``spec`` hold anew: the cells of every
+    block their beams reach, as if none were held yet.
+
+    Counted by casting the beams over the lattice of blocks (one cell a block): a few times less work
+    than the fusion, and known before it. A beam's occupied band behind its hit (a few sigmas) is not
+    counted, nor are blocks the map already holds: a bound for refusing a batch that would take a
+    map's memory at once (a cloud of kilometre-long beams), not a forecast.
+    """
+    ndim = spec.ndim
+    side = 1 << (BLOCK_SHIFT_3D if ndim == 3 else BLOCK_SHIFT_2D)
+    if isinstance(spec, GridSpec):
+        lattice = Lattice(tuple(float(v) for v in spec.origin), spec.resolution * side,
+                          tuple(-(-n // side) for n in spec.shape))
+    else:
+        lattice = Lattice((0.0,) * ndim, spec.resolution * side, None)
+    index = BlockIndex()
+    for scan in scans:
+        for part in scan_parts(scan):
+            rays = scan.to_rays(beams=part)
+            n = rays.ranges.size
+            if n:
+                cast_into(lattice, index, (0, 0, 0), np.repeat(rays.origin[None], n, axis=0), rays.directions,
+                          rays.ranges, np.full(n, np.nan), np.ones(n), np.array([0, n]), unknown_from=np.inf)
+    return index.n * side**ndim
+
+
+def _check_weight(weight: object) -> None:
+    if not isinstance(weight, int) or isinstance(weight, bool) or not 1 <= weight <= MAX_PRIOR_SCANS:
+        raise ValueError(f"weight must be a whole number of scans from 1 to {MAX_PRIOR_SCANS}, got {weight!r}")
+
+
 def _check_spec(spec: object) -> None:
     if not isinstance(spec, (GridSpec, LatticeSpec)):
         raise ValueError(f"spec must be a GridSpec (a fixed box) or a LatticeSpec (a growing map), got "
@@ -106,6 +149,10 @@ class Window:
         """Cells along each axis."""
         return tuple(h - lo for lo, h in zip(self.lo, self.hi))
 
+    def cells(self) -> int:
+        """Cells in the window."""
+        return math.prod(self.shape)
+
     @property
     def origin(self) -> tuple[float, ...]:
         """Corner of the first cell, metres."""
@@ -117,8 +164,9 @@ class Window:
         return tuple(b + i * self.resolution for b, i in zip(self.lower, self.hi))
 
     def spec(self) -> GridSpec:
-        """The window as a fixed box (for a planner or an export)."""
-        return GridSpec(origin=self.origin, size=tuple(n * self.resolution for n in self.shape),
+        """The window as a fixed box (for a planner or an export), its corner as a person writes it (-1.3, not the
+        -1.2999999999999998 of -5.0 + 37 * 0.1: 15 significant digits keep any coordinate within 1e7 m to 10 nm)."""
+        return GridSpec(origin=tuple(float(f"{v:.15g}") for v in self.origin), size=tuple(n * self.resolution for n in self.shape),
                         resolution=self.resolution, max_cells=2 * math.prod(self.shape) + 16)
 
 
@@ -283,6 +331,76 @@ class OccupancyMap:
             cells_traversed=traversed,
             rays_skipped=int(skipped),
         )
+
+    # -- a prior: cells as agreeing scans made them ----------------------------------------
+    def integrate_prior(self, levels: np.ndarray) -> IntegrationStats:
+        """Fuse a prior: each cell as if ``|level|`` scans had agreed on it, hits (``level > 0``) or pass-throughs.
+
+        ``levels`` is int8 of ``spec.shape``: ``PRIOR_UNSEEN`` leaves a cell as it is, 0 marks it observed
+        with no evidence, ``+k`` / ``-k`` (``k <= MAX_PRIOR_SCANS``) marks it observed and fuses
+        ``PRIOR_HIT_SIGMAS`` / ``PRIOR_PASS_SIGMAS`` into it ``k`` times with the map's own fusion: the
+        cell then reads, and later scans change it, exactly as after ``k`` such scans. It has no pose and
+        counts no scan. ``ValueError`` naming ``levels`` (the map unchanged) for a wrong shape, dtype or level.
+        """
+        levels = np.asarray(levels)
+        if not isinstance(self.spec, GridSpec):
+            raise ValueError("a prior is a fixed map's: a growing map has no box for its levels")
+        if levels.shape != self.spec.shape or levels.dtype != np.int8:
+            raise ValueError(f"levels must be int8 of the map's shape {self.spec.shape}, got {levels.dtype.name} of "
+                             f"shape {levels.shape}")
+        flat = levels.reshape(-1)
+        seen = np.flatnonzero(flat != PRIOR_UNSEEN)
+        counts = flat[seen].astype(np.int16)
+        if counts.size and int(np.abs(counts).max()) > MAX_PRIOR_SCANS:
+            raise ValueError(f"levels must lie in -{MAX_PRIOR_SCANS}..{MAX_PRIOR_SCANS} (or be PRIOR_UNSEEN, "
+                             f"{PRIOR_UNSEEN}), got {int(counts[np.abs(counts).argmax()])}")
+        ids = self._grid.ids(seen)
+        order = np.argsort(ids, kind="stable")  # fusion takes its cells in increasing id (a block grid's order)
+        ids, counts = ids[order], counts[order]
+        self._grid.mark_observed(ids)
+        updated = 0
+        strength = np.abs(counts)
+        for k in range(1, int(strength.max(initial=0)) + 1):
+            agree = strength >= k
+            distance = np.where(counts[agree] > 0, np.float32(PRIOR_HIT_SIGMAS), np.float32(PRIOR_PASS_SIGMAS))
+            updated += self._update(ids[agree], distance)
+        return IntegrationStats(scans=0, rays=0, cells_updated=updated)
+
+    def prior_risks(self, weight: int) -> np.ndarray:
+        """The risk of each level ``-weight .. weight`` of a prior, as this map reads a cell ``integrate_prior`` set
+        to it from never observed: float32 of ``2 * weight + 1`` values (pass-throughs first, level 0 in the middle)."""
+        _check_weight(weight)
+        n = 2 * weight + 1
+        probe = self._like(GridSpec(origin=(0.0, 0.0), size=(float(n), 1.0), resolution=1.0))
+        probe.integrate_prior(np.arange(-weight, weight + 1, dtype=np.int8).reshape(n, 1))
+        return np.array(probe.risk().reshape(-1))
+
+    def prior_levels(self, occupancy: np.ndarray, weight: int) -> np.ndarray:
+        """The prior level (``integrate_prior``) of each occupancy probability, int8 of ``occupancy``'s shape.
+
+        NaN (unknown) is ``PRIOR_UNSEEN``, 1 (occupied) ``weight`` hits, 0 (free) ``weight``
+        pass-throughs; any other probability the level among ``-weight .. weight`` whose risk
+        (``prior_risks``) is nearest it, the one of fewer scans on a tie. ``ValueError`` for a
+        probability outside [0, 1].
+        """
+        p = np.asarray(occupancy, dtype=np.float64)
+        known = ~np.isnan(p)
+        if np.any((p[known] < 0.0) | (p[known] > 1.0)):
+            raise ValueError("occupancy must be probabilities in [0, 1] (NaN: unknown)")
+        levels = np.arange(-weight, weight + 1)
+        risks = self.prior_risks(weight).astype(np.float64)
+        by_strength = np.argsort(np.abs(levels), kind="stable")  # argmin keeps the first of equals: fewer scans
+        values, inverse = np.unique(p[known], return_inverse=True)
+        nearest = levels[by_strength][np.argmin(np.abs(values[:, None] - risks[by_strength][None, :]), axis=1)]
+        nearest[values == 1.0] = weight
+        nearest[values == 0.0] = -weight
+        out = np.full(p.shape, PRIOR_UNSEEN, dtype=np.int8)
+        out[known] = nearest[inverse].astype(np.int8)
+        return out
+
+    def _like(self, spec: GridSpec) -> OccupancyMap:
+        """A new map of this model, sensor (and engine) over ``spec``."""
+        return type(self)(spec, self.sensor)
 
     def _cast_chunks(self, scans: list[Scan]) -> list[tuple[int, int]]:
         """Consecutive runs of scans ``[first, last)`` whose cast holds at most ``CAST_CHUNK_ENTRIES`` entries and
@@ -467,6 +585,24 @@ class OccupancyMap:
         if any(h <= lo_ for lo_, h in zip(lo, hi)):
             return None
         return Window(tuple(lo), tuple(hi), res, lower)
+
+    def window_around(self, points: object, margin: float) -> Window:
+        """A growing map's bounds and the cells of ``points`` ((M, D), metres), grown by ``margin`` metres on every
+        side: what a plan between those points works on (beyond the bounds, never observed)."""
+        if not self.growing:
+            raise ValueError("window_around is for growing maps; a fixed map's plans work on its box")
+        d, res = self.lattice.ndim, self.lattice.resolution
+        pts = np.asarray(points, dtype=np.float64).reshape(-1, d)
+        if not np.all(np.abs(pts) <= MAX_COORDINATE_M):
+            raise ValueError(f"points must be finite and within {MAX_COORDINATE_M:.0e} m of the map frame's origin")
+        pad = int(math.ceil(margin / res))
+        cells = np.floor(pts / res).astype(np.int64)
+        lo, hi = cells.min(axis=0) - pad, cells.max(axis=0) + 1 + pad
+        bounds = self.bounds()
+        if bounds is not None:
+            lo = np.minimum(lo, np.asarray(bounds.lo) - pad)
+            hi = np.maximum(hi, np.asarray(bounds.hi) + pad)
+        return Window(tuple(int(v) for v in lo), tuple(int(v) for v in hi), res, self.lattice.lower)
 
     def _box(self, window: Window) -> tuple[np.ndarray, np.ndarray]:
         lo, hi = np.zeros(3, dtype=np.int64), np.ones(3, dtype=np.int64)
@@ -677,6 +813,9 @@ class FuzzyMap(OccupancyMap):
     def _blocks(self) -> BlockGrid:
         return cast(BlockGrid, self._grid)
 
+    def _like(self, spec: GridSpec) -> FuzzyMap:
+        return FuzzyMap(spec, self.sensor, self.engine)
+
     def _new_grid(self) -> BlockGrid:
         # Without the dense initial state: no block is held until a ray reaches it.
         box = self.spec.shape if isinstance(self.spec, GridSpec) else None
@@ -741,6 +880,8 @@ class FuzzyMap(OccupancyMap):
             arrays = self._common_arrays()
             arrays["state"] = self._blocks.dense().reshape(*cast(GridSpec, self.spec).shape, -1)
         arrays["labels"] = np.array(self.engine.labels)
+        if self._forget_beyond is not None:
+            arrays["forget_beyond"] = np.array(self._forget_beyond, dtype=np.float64)
         return arrays
 
     @classmethod
@@ -761,11 +902,13 @@ class FuzzyMap(OccupancyMap):
             restored = cls(spec, sensor, engine)
             restored._grid = BlockGrid.from_blocks(spec.ndim, arrays, restored._unknown_row(), restored._risk_fn())
             restored._scans_fused = scans
-            return restored
-        observed, scans = cls._common_from_arrays(spec, arrays)
-        state = cls._take(arrays, "state", (*spec.shape, engine.num_labels), np.uint8)
-        restored = cls(spec, sensor, engine)
-        restored._restore(state.reshape(spec.num_cells, -1), observed, scans)  # compressed: a copy
+        else:
+            observed, scans = cls._common_from_arrays(spec, arrays)
+            state = cls._take(arrays, "state", (*spec.shape, engine.num_labels), np.uint8)
+            restored = cls(spec, sensor, engine)
+            restored._restore(state.reshape(spec.num_cells, -1), observed, scans)  # compressed: a copy
+        if "forget_beyond" in arrays:
+            restored.forget_beyond = float(cls._take(arrays, "forget_beyond", (), np.float64))
         return restored
 
 

@@ -4,11 +4,12 @@
 from planning import RiskField, plan, PlanError, PlanResult, available_planners
 field = RiskField(risk, resolution=0.05, origin=(0.0, 0.0), observed=mask)
 result = plan(field, start=(x, y), goal=(x, y), planner="RRTstar", robot_radius=0.2, max_risk=0.45)
+check = check_path(field, result.path, robot_radius=0.2, max_risk=0.45)  # later, on a newer field
 ```
 
 Knows nothing of fuzzy labels or HTTP: a risk grid in, a path out.
 
-``plan``, ``warm_up``, ``quiet_ompl`` and ``STATE_SPACES`` are imported at their first use: the
+``plan``, ``check_path``, ``warm_up``, ``quiet_ompl`` and ``STATE_SPACES`` are imported at their first use: the
 modules behind them compile numba kernels as they are imported (seconds on a cold cache), which a
 process that only names planners and state spaces (the service's web process: plans run in its
 worker processes) should not pay for.
@@ -22,16 +23,18 @@ from typing import TYPE_CHECKING, Any
 from planning.budget import wall_clock_limit
 from planning.field import DEFAULT_MAX_RISK, RiskField
 from planning.planners import STATE_SPACE_NAMES, available_planners
-from planning.result import PLAN_ERROR_CODES, PlanError, PlanResult
+from planning.result import PLAN_ERROR_CODES, PathCheck, PlanError, PlanResult
 
 if TYPE_CHECKING:
     from planning.ompl_solve import quiet_ompl
+    from planning.path_check import check_path
     from planning.query import plan
     from planning.spaces import STATE_SPACES
     from planning.warming import warm_up
 
 __all__ = [
     "DEFAULT_MAX_RISK",
+    "PathCheck",
     "PLAN_ERROR_CODES",
     "STATE_SPACES",
     "STATE_SPACE_NAMES",
@@ -39,6 +42,7 @@ __all__ = [
     "PlanResult",
     "RiskField",
     "available_planners",
+    "check_path",
     "plan",
     "quiet_ompl",
     "wall_clock_limit",
@@ -46,7 +50,7 @@ __all__ = [
 ]
 
 _LAZY = {"plan": "planning.query", "quiet_ompl": "planning.ompl_solve", "warm_up": "planning.warming",
-         "STATE_SPACES": "planning.spaces"}
+         "STATE_SPACES": "planning.spaces", "check_path": "planning.path_check"}
 
 
 def __getattr__(name: str) -> Any:

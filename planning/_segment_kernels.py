@@ -299,16 +299,30 @@ def evaluate_polyline(buf: np.ndarray, points: np.ndarray) -> tuple[float, float
     segment that leaves the grid or crosses an invalid cell is returned, -1 when none
     does; a single point is checked as a zero-length segment.
     """
+    return evaluate_walk(buf, points, points)
+
+
+@njit(cache=True, nogil=True)  # a path check runs in the service's read threads: other requests run meanwhile
+def evaluate_walk(buf: np.ndarray, walk: np.ndarray, points: np.ndarray) -> tuple[float, float, float, int]:
+    """:func:`evaluate_polyline` of ``points``, its cells walked along ``walk``: the same polyline in the buffer's frame.
+
+    ``walk`` places each point in the grid the buffer holds (header origin and resolution), ``points``
+    gives the lengths in metres. ``planning.path_check`` packs a window of a map with origin 0 and
+    resolution 1, and walks each point's cell coordinates in the whole map less the window's offset:
+    the walk then meets the same cells at the same parameters as on the whole map, bit for bit.
+    """
     length = 0.0
     integral = 0.0
     peak = 0.0
     bad = -1
     count = points.shape[0]
     for s in range(max(count - 1, 1)):
-        a = points[s]
-        b = points[min(s + 1, count - 1)]
+        a = walk[s]
+        b = walk[min(s + 1, count - 1)]
         acc, top, ok = _walk(buf, a[0], a[1], a[2], b[0], b[1], b[2], False)
-        seg = math.sqrt((b[0] - a[0]) ** 2 + (b[1] - a[1]) ** 2 + (b[2] - a[2]) ** 2)
+        p = points[s]
+        q = points[min(s + 1, count - 1)]
+        seg = math.sqrt((q[0] - p[0]) ** 2 + (q[1] - p[1]) ** 2 + (q[2] - p[2]) ** 2)
         length += seg
         integral += acc * seg
         if top > peak:

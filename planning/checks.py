@@ -1,7 +1,8 @@
 """What ``plan`` refuses before any planner runs: arguments out of range, and an unusable start or goal.
 
 A wrong argument raises ValueError naming it; a start or goal outside the map or not valid
-raises PlanError with Nav2's code.
+raises PlanError with Nav2's code. ``check_path`` holds a path to the same rules, checked here too
+(``check_rules``).
 """
 
 from __future__ import annotations
@@ -25,10 +26,21 @@ from planning.result import (
 )
 from planning.spaces import STATE_SPACES, SpaceSpec
 
-#: Bounds a plan's parameters get from its map (``_max_robot_radius``): a robot's dilation may
+#: Bounds a plan's parameters get from its map (``max_robot_radius``): a robot's dilation may
 #: cost at most this many (cell x cell of radius), about 10 s; the risk weight at most this.
 MAX_DILATION_WORK = 1e9
 MAX_RISK_WEIGHT = 1e4
+
+
+@dataclass(frozen=True)
+class Rules:
+    """What a position is held to and what a path costs, checked: the robot's disk, the risk bound, unknown space,
+    the weight of risk in the cost."""
+
+    robot_radius: float
+    max_risk: float
+    risk_weight: float
+    allow_unknown: bool
 
 
 @dataclass(frozen=True)
@@ -38,10 +50,7 @@ class Arguments:
     start: tuple[float, ...]
     goal: tuple[float, ...]
     time_limit: float
-    robot_radius: float
-    max_risk: float
-    risk_weight: float
-    allow_unknown: bool
+    rules: Rules
     seed: int | None
     tolerance: float
     turning_radius: float | None
@@ -49,7 +58,7 @@ class Arguments:
     grid_seed: bool
 
 
-def _max_robot_radius(field: RiskField, diagonal: float) -> float:
+def max_robot_radius(field: RiskField, diagonal: float) -> float:
     """Half the map's diagonal, and no wider than a dilation of ``MAX_DILATION_WORK`` cell-radii.
 
     The dilation by the robot (``field.py``) costs about the map's cells times the radius in
@@ -60,7 +69,8 @@ def _max_robot_radius(field: RiskField, diagonal: float) -> float:
     return min(0.5 * diagonal, field.resolution * max(1.0, MAX_DILATION_WORK / cells))
 
 
-def _point(name: str, value: Any, size: int, space: str) -> tuple[float, ...]:
+def check_point(name: str, value: Any, size: int, space: str) -> tuple[float, ...]:
+    """``value`` as ``size`` finite floats, the layout of a state of ``space``; ValueError naming ``name``."""
     try:
         pts = tuple(float(v) for v in value)
     except (TypeError, ValueError):
@@ -112,6 +122,17 @@ def check_endpoint(grid: PackedGrid, point: tuple[float, ...], which: str, max_r
     )
 
 
+def check_rules(field: RiskField, robot_radius: Any, max_risk: Any, risk_weight: Any, allow_unknown: Any) -> Rules:
+    """The rules of a plan or a path check on ``field``, checked; ValueError naming the first wrong one."""
+    diagonal = math.hypot(*(n * field.resolution for n in field.shape))
+    radius = ROBOT_RADIUS.check(robot_radius, high=max_robot_radius(field, diagonal))
+    limit = MAX_RISK.check(max_risk)
+    weight = RISK_WEIGHT.check(risk_weight, high=MAX_RISK_WEIGHT)
+    if not isinstance(allow_unknown, bool | np.bool_):
+        raise ValueError(f"allow_unknown: must be a bool, got {allow_unknown!r}")
+    return Rules(radius, limit, weight, bool(allow_unknown))
+
+
 def check_arguments(
     field: RiskField,
     pspec: PlannerSpec,
@@ -133,10 +154,8 @@ def check_arguments(
     if pspec.make is None and sspec.name not in ("R2", "R3"):
         raise ValueError(f"planner: {GRID!r} plans in R2 and R3 only, not in {sspec.name}")
     time_limit = TIME_LIMIT.check(time_limit)
+    rules = check_rules(field, robot_radius, max_risk, risk_weight, allow_unknown)
     diagonal = math.hypot(*(n * field.resolution for n in field.shape))
-    robot_radius = ROBOT_RADIUS.check(robot_radius, high=_max_robot_radius(field, diagonal))
-    max_risk = MAX_RISK.check(max_risk)
-    risk_weight = RISK_WEIGHT.check(risk_weight, high=MAX_RISK_WEIGHT)
     tolerance = (
         field.resolution if goal_tolerance is None
         else GOAL_TOLERANCE.check(goal_tolerance, high=diagonal)
@@ -154,11 +173,9 @@ def check_arguments(
         isinstance(max_iterations, bool) or not isinstance(max_iterations, int | np.integer) or max_iterations < 1
     ):
         raise ValueError(f"max_iterations: must be a positive integer, got {max_iterations!r}")
-    if not isinstance(allow_unknown, bool | np.bool_):
-        raise ValueError(f"allow_unknown: must be a bool, got {allow_unknown!r}")
     if not isinstance(grid_seed, bool | np.bool_):
         raise ValueError(f"grid_seed: must be a bool, got {grid_seed!r}")
-    start_pt = _point("start", start, sspec.state_dim, sspec.name)
-    goal_pt = _point("goal", goal, sspec.state_dim, sspec.name)
-    return Arguments(start_pt, goal_pt, time_limit, robot_radius, max_risk, risk_weight, bool(allow_unknown), seed,
-                     tolerance, turning_radius, max_iterations, bool(grid_seed))
+    start_pt = check_point("start", start, sspec.state_dim, sspec.name)
+    goal_pt = check_point("goal", goal, sspec.state_dim, sspec.name)
+    return Arguments(start_pt, goal_pt, time_limit, rules, seed, tolerance, turning_radius, max_iterations,
+                     bool(grid_seed))

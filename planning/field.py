@@ -28,6 +28,12 @@ UNKNOWN_RISK = 0.5  # risk of never-observed space (and of space outside the map
 DEFAULT_MAX_RISK = 0.45
 
 
+def footprint_reach(robot_radius: float, resolution: float) -> int:
+    """Cells the footprint reaches from its centre cell along an axis: a cell's dilated value depends on no
+    cell farther."""
+    return int(math.floor(robot_radius / resolution)) + 1
+
+
 def footprint(robot_radius: float, resolution: float, ndim: int) -> np.ndarray:
     """Cells whose risk a robot standing somewhere in the centre cell can overlap.
 
@@ -46,7 +52,7 @@ def footprint(robot_radius: float, resolution: float, ndim: int) -> np.ndarray:
         True for the offsets ``d`` with ``d == 0`` or ``gap(d) < robot_radius``.
     """
     rc = robot_radius / resolution
-    m = int(math.floor(rc)) + 1
+    m = footprint_reach(robot_radius, resolution)
     axes = np.meshgrid(*([np.arange(-m, m + 1)] * ndim), indexing="ij")
     gap2 = sum(np.maximum(np.abs(a) - 1, 0) ** 2 for a in axes)
     fp = gap2 < rc * rc

@@ -124,10 +124,11 @@ def plan(
     args = check_arguments(field, pspec, sspec, start, goal, time_limit, robot_radius, max_risk, risk_weight,
                            allow_unknown, seed, goal_tolerance, turning_radius, max_iterations, grid_seed)
 
-    grid = PackedGrid(field, args.robot_radius, args.max_risk, args.allow_unknown, args.risk_weight,
+    rules = args.rules
+    grid = PackedGrid(field, rules.robot_radius, rules.max_risk, rules.allow_unknown, rules.risk_weight,
                       args.turning_radius)
-    check_endpoint(grid, args.start, "start", args.max_risk)
-    check_endpoint(grid, args.goal, "goal", args.max_risk)
+    check_endpoint(grid, args.start, "start", rules.max_risk)
+    check_endpoint(grid, args.goal, "goal", rules.max_risk)
     grid.endpoint_cells = tuple(grid.cell_index(p[: field.ndim]) for p in (args.start, args.goal))  # type: ignore[misc]
 
     if pspec.make is None:

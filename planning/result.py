@@ -1,4 +1,5 @@
-"""What a plan returns (``PlanResult``, and its JSON form), and how an unusable start or goal is refused."""
+"""What a plan returns (``PlanResult``, and its JSON form), how an unusable start or goal is refused, and what a
+path check returns (``PathCheck``)."""
 
 from __future__ import annotations
 
@@ -128,3 +129,27 @@ def _json_value(value: Any) -> Any:
     if isinstance(value, int | np.integer):
         return int(value)
     return str(value)
+
+
+@dataclass(frozen=True)
+class PathCheck:
+    """A given path held to a plan's rules and measured as a plan measures its own (``planning.check_path``).
+
+    Attributes
+    ----------
+    valid : bool
+        Every cell every segment crosses is valid, and every point lies on the map.
+    first_invalid_index : int or None
+        The first point whose segment to the next is invalid (a segment with an end off the map
+        included), or the point itself when the path is that one point; None when valid.
+    max_risk, cost, length : float or None
+        Over the whole path, as ``PlanResult``'s: the largest dilated risk met, ``length +
+        risk_weight * integral of dilated risk``, and the length in metres; None when a point lies
+        off the map, where the field holds no risk.
+    """
+
+    valid: bool
+    first_invalid_index: int | None
+    max_risk: float | None
+    cost: float | None
+    length: float | None

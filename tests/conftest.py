@@ -10,6 +10,7 @@
 
 from __future__ import annotations
 
+import gzip
 import multiprocessing.forkserver
 import multiprocessing.resource_tracker
 import os
@@ -18,6 +19,7 @@ import uuid
 from collections.abc import Iterator
 from pathlib import Path
 
+import numpy as np
 import psutil
 import pytest
 
@@ -92,3 +94,18 @@ def carmen_log(name: str) -> Path:
         pytest.fail(f"{path} is missing: the CARMEN logs the tests read are kept in the repository under "
                     "tests/data/carmen (see tests/data/README.md); restore them from git")
     return path
+
+
+def ouster_frames() -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """The three OS-1-128 frames of ``tests/data/ouster``: ``(points, rotation, translation)`` each, the points in the
+    sensor frame (no-return rows dropped), the pose of the sensor in the first frame's frame (``R @ p + t``)."""
+    folder = DATA_DIR / "ouster"
+    if not (folder / "poses.txt").is_file():
+        pytest.fail(f"{folder} is missing: the Ouster frames the tests read are kept in the repository")
+    poses = np.loadtxt(folder / "poses.txt").reshape(-1, 3, 4)
+    frames = []
+    for i, pose in enumerate(poses):
+        raw = np.frombuffer(gzip.decompress((folder / f"{i:06d}.bin.gz").read_bytes()), dtype=np.float32)
+        points = raw.reshape(-1, 4)[:, :3].astype(np.float64)
+        frames.append((points[np.any(points != 0.0, axis=1)], pose[:, :3], pose[:, 3]))
+    return frames

@@ -19,13 +19,18 @@ from app.errors import error_body, status_code_name
 from app.ops.logs import ACCESS
 from app.ops.metrics import Metrics
 
-#: The routes whose bodies may be large (scan and bag uploads): every other body gets the small limit.
-UPLOAD_PATH = re.compile(r"^/maps/[^/]+/(scans|bags)$")
+#: The routes whose bodies may be large (scan and bag uploads, a saved map imported): every other body gets the
+#: small limit.
+UPLOAD_PATH = re.compile(r"^/maps/(import|[^/]+/(scans|bags))$")
 
 
-def _too_large_message(limit: int, setting: str, upload: bool) -> str:
-    advice = ("split the scans into several batches, or use the binary .npy upload" if upload
-              else "split the request")
+def _too_large_message(limit: int, setting: str, path: str) -> str:
+    if path == "/maps/import":
+        advice = "send the map as a zip or a PNG (compressed), or at a coarser resolution"
+    elif UPLOAD_PATH.match(path):
+        advice = "split the scans into several batches, or use the binary .npy upload"
+    else:
+        advice = "split the request"
     return f"request body larger than {limit} bytes ({setting}): {advice}"
 
 
@@ -64,7 +69,7 @@ class ApiKeyMiddleware:
 class BodyLimitMiddleware:
     """Answer 413 once a body exceeds its limit: at once from Content-Length, else while reading.
 
-    Scan uploads (``UPLOAD_PATH``) may carry ``max_bytes``, every other route ``small_bytes``
+    Uploads (``UPLOAD_PATH``) may carry ``max_bytes``, every other route ``small_bytes``
     (a risk query's points, a map, a plan). The check is made on the bytes as they arrive, so a
     client that lies about (or omits) Content-Length cannot make the service buffer more.
     """
@@ -83,7 +88,7 @@ class BodyLimitMiddleware:
             limit, setting = self.max_bytes, "FUZZYRISK_MAX_BODY_BYTES"
         else:
             limit, setting = self.small_bytes, "FUZZYRISK_MAX_JSON_BODY_BYTES"
-        too_large = _too_large_message(limit, setting, upload)
+        too_large = _too_large_message(limit, setting, scope["path"])
         declared = dict(scope["headers"]).get(b"content-length")
         if declared is not None and declared.isdigit() and int(declared) > limit:
             await _answer(send, 413, too_large)

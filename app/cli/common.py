@@ -207,11 +207,14 @@ def say_if_the_service_compiles(client: ServiceClient, progress: Progress) -> No
                      "the first batch waits for them...")
 
 
-def create_map(client: ServiceClient, args: argparse.Namespace, spec: GridSpec, **extra: Any) -> dict[str, Any] | None:
-    """``POST /maps`` of ``--map`` with ``spec``, ``--model`` and ``extra`` fields: its MapInfo; None when the name
-    is taken (409)."""
-    request = {"name": args.map, "dimensions": spec.ndim, "resolution": spec.resolution, "origin": list(spec.origin),
-               "size": list(spec.size), "model": args.model,
+def create_map(client: ServiceClient, args: argparse.Namespace, spec: GridSpec | None, **extra: Any
+               ) -> dict[str, Any] | None:
+    """``POST /maps`` of ``--map`` with ``spec`` (None: a growing 2-D map at ``--resolution``), ``--model`` and
+    ``extra`` fields: its MapInfo; None when the name is taken (409)."""
+    box: dict[str, Any] = ({"dimensions": 2, "resolution": args.resolution, "extent": "growing"} if spec is None else
+                           {"dimensions": spec.ndim, "resolution": spec.resolution, "origin": list(spec.origin),
+                            "size": list(spec.size)})
+    request = {"name": args.map, **box, "model": args.model,
                # the in-process default, stated: both paths must fuse with the same sensor model
                "sensor": dataclasses.asdict(SensorModel()), **extra}
     status, data = client.call("POST", "/maps", json.dumps(request).encode(), ok=(201, 409))

@@ -46,7 +46,7 @@ from app.cli.common import (
 )
 from app.cli.progress import Progress
 from app.ops.version import add_version_option
-from fuzzyocc import BayesMap, FuzzyMap, GridSpec, LaserScan
+from fuzzyocc import BayesMap, FuzzyMap, GridSpec, LaserScan, LatticeSpec
 from fuzzyocc.carmen import grid_for_scans, read_carmen
 
 PROG = "fuzzyrisk-import-log"
@@ -99,11 +99,16 @@ def _batches(scans: Sequence[LaserScan], size: int) -> list[Sequence[LaserScan]]
 def _in_process(args: argparse.Namespace, scans: Sequence[LaserScan], spec: GridSpec,
                 progress: FusionProgress) -> str:
     """Fuse here and write the files; the summary's map part."""
-    occupancy: FuzzyMap | BayesMap = FuzzyMap(spec) if args.model == "fuzzy" else BayesMap(spec)
+    if args.growing:
+        occupancy: FuzzyMap | BayesMap = FuzzyMap(LatticeSpec(2, spec.resolution))
+    else:
+        occupancy = FuzzyMap(spec) if args.model == "fuzzy" else BayesMap(spec)
     for batch in _batches(scans, args.batch):
         stats = occupancy.integrate_batch(batch)
         progress.add(stats.scans, stats.rays)
-    write_outputs(args, spec, occupancy.risk(), occupancy.observed(), args.log.name)
+    bounds = occupancy.window()
+    if bounds is not None:  # a growing map's files cover its bounds
+        write_outputs(args, bounds.spec(), occupancy.risk(bounds), occupancy.observed(bounds), args.log.name)
     return f"{args.model} map in-process"
 
 
@@ -122,13 +127,15 @@ def _scan_json(scan: LaserScan) -> dict[str, Any]:
 def _create_or_reuse(client: ServiceClient, args: argparse.Namespace, spec: GridSpec,
                      shown: Progress) -> dict[str, Any]:
     """The map's MapInfo: created with ``spec``, or (``--append``) the existing one (said when it differs)."""
-    created = create_map(client, args, spec)
+    created = create_map(client, args, None if args.growing else spec)
     if created is not None:
         return created
     if not args.append:
         raise name_taken(client, args.map)
     _, data = client.call("GET", f"/maps/{quote(args.map, safe='')}")
     info = dict(json.loads(data))
+    if info.get("extent") == "growing":  # it covers wherever the scans reach
+        return info
     if (info["resolution"], info["origin"], info["shape"]) != (spec.resolution, list(spec.origin), list(spec.shape)):
         shown.say(f"note: appending to {args.map!r} as it is ({info['shape'][0]} x {info['shape'][1]} cells of "
                   f"{info['resolution']} m from {info['origin']}); beams beyond it are cut at its edge")
@@ -174,6 +181,9 @@ def _parser() -> argparse.ArgumentParser:
                         "(default: the log's largest reading)")
     g.add_argument("--every", type=positive(int), default=1, metavar="N", help="take every Nth scan (default 1)")
     g.add_argument("--model", choices=("fuzzy", "bayes"), default="fuzzy", help="map model (default fuzzy)")
+    g.add_argument("--growing", action="store_true",
+                   help="a growing map (no box: its cells are held where the scans reach; fuzzy only); the files "
+                        "cover its bounds")
     g.add_argument("--batch", type=positive(int), default=32,
                    help="scans per fusion batch / request (default 32; the service takes at most "
                         "FUZZYRISK_MAX_SCANS_PER_BATCH, 256 by default)")
@@ -186,6 +196,8 @@ def _parser() -> argparse.ArgumentParser:
 
 
 def _run(args: argparse.Namespace) -> str:
+    if args.growing and args.model != "fuzzy":
+        raise ImportFailed("--growing makes a fuzzy map: a bayes map needs a box (leave --growing out)")
     started = time.perf_counter()
     everything = read_carmen(args.log, max_range=args.max_range)
     scans = everything[::args.every]

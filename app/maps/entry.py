@@ -16,6 +16,7 @@ from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from typing import Any, Protocol
 
+from app.errors import Conflict
 from app.formats import etags
 from app.maps import shared_grids
 from app.maps.line import Line
@@ -24,7 +25,7 @@ from app.scans import Scan, ScanView
 from app.schemas import DEFAULT_FRAME_ID, MapCreate, MapInfo, PlanResult
 from app.schemas import engine_choice
 from app.storage import MapHead
-from fuzzyocc import BayesMap, FuzzyMap, GridSpec
+from fuzzyocc import BayesMap, FuzzyMap, GridSpec, LatticeSpec
 
 
 #: Cells a stored map may have whatever ``FUZZYRISK_MAX_MAP_CELLS`` says now: a limit lowered since the map
@@ -39,10 +40,11 @@ class MapObserver(Protocol):
 
     Called on the event loop, the batch's apply lock held: a method must return at once (hand the
     work to a thread of its own) and should not raise (what it raises is logged, never answered).
-    ``frame_id`` is the map's frame (``MapEntry.frame_id``), what its messages carry.
+    ``frame_id`` is the map's frame (``MapEntry.frame_id``), what its messages carry; ``last_scan`` the last
+    scan fused, None before the first (an imported map's first batch holds none).
     """
 
-    def batch_applied(self, name: str, version: int, last_scan: Scan, frame_id: str) -> None: ...
+    def batch_applied(self, name: str, version: int, last_scan: Scan | None, frame_id: str) -> None: ...
 
     def plan_made(self, name: str, result: PlanResult, frame_id: str) -> None: ...
 
@@ -114,8 +116,19 @@ class MapEntry:
         return str(self.meta["name"])
 
     @property
-    def spec(self) -> GridSpec:
+    def spec(self) -> GridSpec | LatticeSpec:
+        """The map's geometry: a fixed map's box, a growing map's lattice."""
         return self.map.spec
+
+    def read_spec(self) -> GridSpec:
+        """The cells a read covers: a fixed map's box, a growing map's bounds (read it under ``apply_lock``).
+
+        ``Conflict`` for a growing map that has observed nothing yet: it has no cell to show."""
+        window = self.map.window()
+        if window is None:
+            raise Conflict(f"map {self.name!r} is a growing map that has observed nothing yet: its bounds are null "
+                           "until the first scan reaches a cell")
+        return self.map.spec if isinstance(self.map.spec, GridSpec) else window.spec()
 
     @property
     def frame_id(self) -> str:
@@ -129,7 +142,7 @@ class MapEntry:
 
     def stamp(self) -> GridStamp:
         """This version's ``GridStamp`` (read it under ``apply_lock``, with the cells it stamps)."""
-        return GridStamp(self.spec, self.version, self.frame_id, self.updated, self.etag_seed)
+        return GridStamp(self.read_spec(), self.version, self.frame_id, self.updated, self.etag_seed)
 
     @functools.cached_property
     def engine_shown(self) -> engine_choice.EngineChoice | None:
@@ -139,26 +152,36 @@ class MapEntry:
         return engine_choice.shown(self.map.engine)
 
     def info(self) -> MapInfo:
-        return map_info(self.meta, self.spec, self.engine_shown, scans_fused=self.scans_fused, version=self.version,
-                        updated=self.updated)
+        bounds = self.map.bounds()
+        # a PATCH changes forget_beyond after the meta was stored: the map holds the setting as it is now
+        meta = {**self.meta, "forget_beyond": self.map.forget_beyond} if isinstance(self.map, FuzzyMap) else self.meta
+        return map_info(meta, self.spec, self.engine_shown, scans_fused=self.scans_fused, version=self.version,
+                        updated=self.updated, bounds=None if bounds is None else bounds.spec(),
+                        held_cells=self.map.held_cells())
 
 
-def map_info(meta: Mapping[str, Any], spec: GridSpec, engine: engine_choice.EngineChoice | None, *, scans_fused: int,
-             version: int, updated: str) -> MapInfo:
+def map_info(meta: Mapping[str, Any], spec: GridSpec | LatticeSpec, engine: engine_choice.EngineChoice | None, *,
+             scans_fused: int, version: int, updated: str, bounds: GridSpec | None,
+             held_cells: int | None) -> MapInfo:
     """What ``GET /maps/{name}`` shows of a map, held in memory or only stored.
 
     Its settings as its meta stores them (a setting the map was made before: its default), the grid
-    as built (``size``: whole cells), the engine as ``engine_choice.shown``, then the facts.
+    as built (``size``: whole cells; a growing map's: its ``bounds``), the engine as
+    ``engine_choice.shown``, then the facts.
     """
     settings = {key: meta[key] for key in MapCreate.model_fields if key in meta}
+    box = spec if isinstance(spec, GridSpec) else bounds
     return MapInfo.model_validate({
         **settings,
         "dimensions": spec.ndim,
         "resolution": spec.resolution,
-        "origin": list(spec.origin),
-        "size": list(spec.built_size),
+        "extent": "fixed" if isinstance(spec, GridSpec) else "growing",
+        "origin": None if box is None else list(box.origin),
+        "size": None if box is None else list(box.built_size),
         "engine": engine,
-        "shape": list(spec.shape),
+        "shape": None if box is None else list(box.shape),
+        "bounds": None if bounds is None else {"min": list(bounds.origin), "max": list(bounds.upper)},
+        "held_cells": held_cells,
         "scans_fused": scans_fused,
         "version": version,
         "created": meta["created"],
@@ -166,12 +189,20 @@ def map_info(meta: Mapping[str, Any], spec: GridSpec, engine: engine_choice.Engi
     })
 
 
+def spec_of(meta: Mapping[str, Any], *, max_cells: int) -> GridSpec | LatticeSpec:
+    """A map's geometry as its meta stores it: a box, or the lattice of a growing map (maps stored before growing
+    maps existed have a box)."""
+    if meta.get("extent") == "growing":
+        return LatticeSpec(int(meta["dimensions"]), float(meta["resolution"]))
+    return GridSpec(origin=meta["origin"], size=meta["size"], resolution=meta["resolution"], max_cells=max_cells)
+
+
 def stored_info(head: MapHead) -> MapInfo:
-    """``map_info`` of a map this replica does not hold, from its stored row (no map built)."""
-    spec = GridSpec(origin=head.meta["origin"], size=head.meta["size"], resolution=head.meta["resolution"],
-                    max_cells=UNLIMITED_CELLS)
+    """``map_info`` of a map this replica does not hold, from its stored row (no map built: no bounds, no cells)."""
+    spec = spec_of(head.meta, max_cells=UNLIMITED_CELLS)
     engine = engine_choice.shown(engine_choice.from_meta(head.meta)) if head.meta["model"] == "fuzzy" else None
-    return map_info(head.meta, spec, engine, scans_fused=head.scans, version=head.version, updated=head.updated)
+    return map_info(head.meta, spec, engine, scans_fused=head.scans, version=head.version, updated=head.updated,
+                    bounds=None, held_cells=None)
 
 
 @contextlib.contextmanager

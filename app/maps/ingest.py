@@ -7,6 +7,9 @@ them in a process of its own.
 from __future__ import annotations
 
 from collections.abc import Mapping
+from dataclasses import dataclass
+
+import numpy as np
 
 from fastapi.exceptions import RequestValidationError
 from pydantic import ValidationError
@@ -14,9 +17,10 @@ from pydantic import ValidationError
 from app.maps import logcodec
 from app.scans import BINARY_TYPES, Limits, Scan, from_binary, from_json
 from app.ros import messages_in
-from app.errors import TooLarge, UnsupportedMediaType
+from app.errors import Invalid, TooLarge, UnsupportedMediaType
 from app.schemas import ScanBatch, ScanQuery
-from fuzzyocc import GridSpec, cast_work
+from fuzzyocc import GridSpec, LaserScan, LatticeSpec, allocation_bound, cast_work
+from fuzzyocc.maps import scan_parts
 
 
 def parse(body: bytes, content_type: str, query: Mapping[str, str], dims: int,
@@ -58,37 +62,78 @@ def media_of(content_type: str) -> str:
     return content_type.split(";")[0].strip().lower()
 
 
-def check_work(spec: GridSpec, scans: list[Scan], max_batch_cells: int) -> int:
-    """The batch's cast work; 413 when its rays would walk more than ``FUZZYRISK_MAX_BATCH_CELLS`` cells of the map.
+@dataclass(frozen=True)
+class BatchBudget:
+    """What one batch may cost its map, checked before it is stored: the cells its rays walk
+    (``FUZZYRISK_MAX_BATCH_CELLS``) and, for a map that holds blocks where scans reach (a fuzzy map), the
+    cells it may make the map hold anew (``FUZZYRISK_MAX_NEW_CELLS_PER_BATCH``; None: not counted)."""
+
+    walk: int
+    new_cells: int | None
+
+
+#: Farthest a growing map's sensor or beam end may lie from the frame's origin, metres (422 beyond): its cells'
+#: block coordinates are 32-bit, and a robot this far from its map frame has lost it.
+MAX_GROWING_COORDINATE_M = 1e6
+
+
+def check_work(spec: GridSpec | LatticeSpec, scans: list[Scan], budget: BatchBudget) -> int:
+    """The batch's cast work; 413 when its rays would walk more than ``FUZZYRISK_MAX_BATCH_CELLS`` cells of the map,
+    or make it hold more than ``FUZZYRISK_MAX_NEW_CELLS_PER_BATCH`` new cells; 422 for a growing map's sensor or
+    hit farther than ``MAX_GROWING_COORDINATE_M`` from the frame's origin.
 
     Before it is stored: one small request (12 scans of 16,384 beams reaching past a 16 M-cell
     map's edges) would otherwise hold a fusion thread for a minute, and every restart replays it.
     """
+    if isinstance(spec, LatticeSpec):
+        _check_reach(scans)
     work = cast_work(spec, scans)
-    if work > max_batch_cells:
+    if work > budget.walk:
         raise TooLarge(
             f"the batch's rays walk about {work:,} cells of this map, more than FUZZYRISK_MAX_BATCH_CELLS "
-            f"({max_batch_cells:,}): send fewer scans per batch, or shorter range_max"
+            f"({budget.walk:,}): send fewer scans per batch, or shorter range_max"
         )
+    if budget.new_cells is not None:
+        new = allocation_bound(spec, scans)
+        if new > budget.new_cells:
+            raise TooLarge(
+                f"the batch's beams reach blocks of about {new:,} cells, more than FUZZYRISK_MAX_NEW_CELLS_PER_BATCH "
+                f"({budget.new_cells:,}) the map may take on at once: send fewer scans per batch, or shorter range_max"
+            )
     return work
 
 
-def checked_payload(spec: GridSpec, scans: list[Scan], max_batch_cells: int) -> tuple[bytes, int]:
+def _check_reach(scans: list[Scan]) -> None:
+    for i, scan in enumerate(scans):
+        sensor = np.asarray(scan.pose[:2] if isinstance(scan, LaserScan) else scan.origin, dtype=np.float64)
+        if np.any(np.abs(sensor) > MAX_GROWING_COORDINATE_M):
+            raise Invalid(f"scans[{i}]: the sensor at {sensor.tolist()} is farther than {MAX_GROWING_COORDINATE_M:.0e} "
+                          "m from the map frame's origin: use a local map frame")
+        for part in scan_parts(scan):
+            rays = scan.to_rays(beams=part)
+            hits = rays.endpoints[rays.hit]
+            far = np.flatnonzero(np.any(np.abs(hits) > MAX_GROWING_COORDINATE_M, axis=1))
+            if far.size:
+                raise Invalid(f"scans[{i}]: a beam ends at {hits[far[0]].tolist()}, farther than "
+                              f"{MAX_GROWING_COORDINATE_M:.0e} m from the map frame's origin: use a local map frame")
+
+
+def checked_payload(spec: GridSpec | LatticeSpec, scans: list[Scan], budget: BatchBudget) -> tuple[bytes, int]:
     """``check_work``, then the scans encoded for the log (a refused batch is not encoded): (payload, work)."""
-    work = check_work(spec, scans, max_batch_cells)
+    work = check_work(spec, scans, budget)
     return logcodec.encode(scans), work
 
 
 def prepare(body: bytes, content_type: str, query: Mapping[str, str], dims: int, limits: Limits,
-            spec: GridSpec, max_batch_cells: int) -> tuple[list[Scan], bytes, int]:
+            spec: GridSpec | LatticeSpec, budget: BatchBudget) -> tuple[list[Scan], bytes, int]:
     """``parse`` and ``checked_payload``: the scans, their encoding and their cast work."""
     scans = parse(body, content_type, query, dims, limits)
-    return scans, *checked_payload(spec, scans, max_batch_cells)
+    return scans, *checked_payload(spec, scans, budget)
 
 
 def prepare_encoded(body: bytes, content_type: str, query: Mapping[str, str], dims: int, limits: Limits,
-                    spec: GridSpec, max_batch_cells: int) -> tuple[bytes, int]:
+                    spec: GridSpec | LatticeSpec, budget: BatchBudget) -> tuple[bytes, int]:
     """``prepare`` without the scans (``logcodec.decode`` gives them back): what a parse process returns (bytes
     cross a pipe at the cost of a copy; scans would be pickled object by object)."""
-    _, payload, work = prepare(body, content_type, query, dims, limits, spec, max_batch_cells)
+    _, payload, work = prepare(body, content_type, query, dims, limits, spec, budget)
     return payload, work

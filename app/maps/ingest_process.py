@@ -26,7 +26,7 @@ from app.ops import process_setup
 from app.ops import forkserver
 from app.maps import ingest
 from app.errors import Unavailable
-from fuzzyocc import GridSpec
+from fuzzyocc import GridSpec, LatticeSpec
 
 LOG = logging.getLogger("fuzzyrisk.maps")
 
@@ -69,11 +69,11 @@ class ParseProcess:
                 self._executor = None
 
     async def prepare(self, body: bytes, content_type: str, query: Mapping[str, str], dims: int,
-                      limits: Limits, spec: GridSpec, max_batch_cells: int) -> tuple[bytes, int]:
+                      limits: Limits, spec: GridSpec | LatticeSpec, budget: ingest.BatchBudget) -> tuple[bytes, int]:
         """``ingest.prepare_encoded`` in the process: the batch encoded (``logcodec.decode`` gives the scans)
         and its cast work; its errors as the parsing threads raise them."""
         loop = asyncio.get_running_loop()
-        args = (ingest.prepare_encoded, body, content_type, dict(query), dims, limits, spec, max_batch_cells)
+        args = (ingest.prepare_encoded, body, content_type, dict(query), dims, limits, spec, budget)
         for attempt in (1, 2):
             pool = await loop.run_in_executor(None, self._pool)  # may start the forkserver: not on the loop
             try:

@@ -1,7 +1,10 @@
-"""The batch log's record: a batch of checked scans as the bytes stored, and back, bit for bit.
+"""The batch log's record: a batch as the bytes stored, and back, bit for bit.
 
-Storage keeps these bytes opaque (versioned payloads with their checksums); the maps write them
-before a batch is applied (``app.maps.ingest``) and replay them at a restart (``app.maps.stored``).
+A batch is checked scans, a ``Prior`` (a saved map's cells, a map's first batch when it is
+imported), or an edit (``Clear``: a region set back to never observed; ``SetForget``: the map's
+``forget_beyond`` from then on), replayed in its place among the scans. Storage keeps these bytes opaque (versioned payloads with their checksums); the maps
+write them before a batch is applied (``app.maps.ingest``, ``app.maps.writepath``) and replay them
+at a restart (``app.maps.stored``).
 """
 
 from __future__ import annotations
@@ -10,17 +13,58 @@ import io
 import json
 import math
 import struct
+import zlib
 from collections.abc import Sequence
+from dataclasses import dataclass
 
 import numpy as np
 
 from app.scans import Scan
 from fuzzyocc import LaserScan, PointCloud
 
+
+@dataclass(frozen=True)
+class Prior:
+    """A saved map's cells as a batch: ``levels`` (int8 of the map's shape) for ``OccupancyMap.integrate_prior``.
+
+    Each cell reads as if ``|level|`` scans had agreed on it (hits above 0, pass-throughs below),
+    ``PRIOR_UNSEEN`` never observed. It has no pose and counts no scan: re-placing a map's scans
+    (a corrected trajectory) leaves it as it is.
+    """
+
+    levels: np.ndarray
+
+
+@dataclass(frozen=True)
+class Clear:
+    """A region set back to never observed (``OccupancyMap.clear``): the cells from the one containing ``low`` to the
+    one containing ``high``, metres."""
+
+    low: tuple[float, ...]
+    high: tuple[float, ...]
+
+
+@dataclass(frozen=True)
+class SetForget:
+    """The map's ``forget_beyond`` from this batch on (metres; None: keep everything)."""
+
+    metres: float | None
+
+
+#: An edit of a map, logged and replayed in its place among the scans.
+Edit = Clear | SetForget
+#: What a batch record holds.
+Batch = list[Scan] | Prior | Edit
+
 #: A stored batch: this magic, a little-endian uint32 header length, a JSON header, then per scan its
 #: float64 scalars and its values, raw little-endian. Batches stored before it are ``.npz`` files
 #: (they start with ``PK``, the zip magic) and still decode.
 _MAGIC = b"FRB\x01"
+#: A stored prior: this magic, the header as a batch's (``{"shape": [nx, ny]}``), then the levels deflated
+#: (zlib): a saved map is mostly a few levels in long runs.
+_PRIOR_MAGIC = b"FRP\x01"
+#: A stored edit: this magic, then its JSON (floats written as Python's repr: read back bit for bit).
+_EDIT_MAGIC = b"FRE\x01"
 _HEADER_LENGTH = struct.Struct("<I")
 _VALUE_DTYPES = {"<f4": np.dtype("<f4"), "<f8": np.dtype("<f8")}
 
@@ -79,12 +123,17 @@ class CorruptBatch(ValueError):
 _SCALARS = {"laser": (8,), "cloud": (4, 5)}  # laser: pose, angles, ranges, sigma; cloud: origin (2 or 3), max, sigma
 
 
-def decode(payload: bytes) -> list[Scan]:
-    """The scans of an :func:`encode` blob, or of a batch stored as ``.npz`` by an earlier version.
+def decode(payload: bytes) -> Batch:
+    """The batch of an :func:`encode` or :func:`encode_prior` blob, or the scans of a batch stored as ``.npz`` by an
+    earlier version.
 
     Raises :class:`CorruptBatch` for bytes that are not such a blob, never reading past them.
     """
     try:
+        if payload.startswith(_PRIOR_MAGIC):
+            return _decode_prior(payload)
+        if payload.startswith(_EDIT_MAGIC):
+            return _decode_edit(payload)
         if not payload.startswith(_MAGIC):
             return _decode_npz(payload)
         return _decode_framed(payload)
@@ -92,6 +141,60 @@ def decode(payload: bytes) -> list[Scan]:
         raise
     except Exception as exc:  # noqa: BLE001 - any failure to decode is corruption, named as such
         raise CorruptBatch(f"stored batch does not decode: {type(exc).__name__}: {exc}") from exc
+
+
+def decode_scans(payload: bytes) -> list[Scan]:
+    """The scans of a scan batch's blob (``decode``); ``CorruptBatch`` for a prior's."""
+    batch = decode(payload)
+    if not isinstance(batch, list):
+        raise CorruptBatch(f"stored batch is a {type(batch).__name__.lower()}, not scans")
+    return batch
+
+
+def encode_prior(prior: Prior) -> bytes:
+    """A prior as bytes that :func:`decode` turns back into an equal one."""
+    levels = np.ascontiguousarray(prior.levels, dtype=np.int8)
+    header = json.dumps({"shape": list(levels.shape)}).encode()
+    return b"".join([_PRIOR_MAGIC, _HEADER_LENGTH.pack(len(header)), header, zlib.compress(levels.tobytes(), 6)])
+
+
+def encode_edit(edit: Edit) -> bytes:
+    """An edit as bytes that :func:`decode` turns back into an equal one."""
+    if isinstance(edit, Clear):
+        body = {"op": "clear", "low": list(edit.low), "high": list(edit.high)}
+    else:
+        body = {"op": "forget_beyond", "metres": edit.metres}
+    return _EDIT_MAGIC + json.dumps(body).encode()
+
+
+def _decode_edit(payload: bytes) -> Edit:
+    body = json.loads(payload[len(_EDIT_MAGIC):])
+    if body.get("op") == "clear":
+        low, high = tuple(float(v) for v in body["low"]), tuple(float(v) for v in body["high"])
+        if len(low) not in (2, 3) or len(high) != len(low):
+            raise CorruptBatch(f"stored clear has malformed corners {body!r}")
+        return Clear(low, high)
+    if body.get("op") == "forget_beyond":
+        metres = body["metres"]
+        return SetForget(None if metres is None else float(metres))
+    raise CorruptBatch(f"stored edit is of no known kind: {body!r}")
+
+
+def _decode_prior(payload: bytes) -> Prior:
+    offset = len(_PRIOR_MAGIC)
+    (length,) = _HEADER_LENGTH.unpack_from(payload, offset)
+    offset += _HEADER_LENGTH.size
+    if offset + length > len(payload):
+        raise CorruptBatch("stored prior is truncated inside its header")
+    shape = tuple(int(n) for n in json.loads(payload[offset:offset + length])["shape"])
+    if len(shape) not in (2, 3) or any(n < 1 for n in shape):
+        raise CorruptBatch(f"stored prior has a malformed shape {shape}")
+    size = math.prod(shape)
+    inflate = zlib.decompressobj()
+    raw = inflate.decompress(payload[offset + length:], size + 1)  # never more than the shape holds
+    if len(raw) != size or not inflate.eof or inflate.unused_data:
+        raise CorruptBatch(f"stored prior does not hold the {size} levels of its shape {shape}")
+    return Prior(levels=np.frombuffer(raw, dtype=np.int8).reshape(shape))
 
 
 def _take(payload: bytes, offset: int, dtype: np.dtype, count: int) -> np.ndarray:

@@ -13,7 +13,7 @@ from app.config import Settings
 from app.storage.diskreserve import DiskReserve
 from app.errors import Conflict, InsufficientStorage, Invalid, NotFound, Unavailable
 from app.ops.process_setup import give_back_freed_memory
-from app.maps.entry import UNLIMITED_CELLS, MapEntry, now, stored_info
+from app.maps.entry import UNLIMITED_CELLS, MapEntry, now, spec_of, stored_info
 from app.maps.line import shielded
 from app.maps.stored import build_map, restore
 from app.ops.metrics import Metrics
@@ -22,6 +22,7 @@ from app.schemas import MapCreate, MapInfo
 from app.storage import MapHead, NameTaken, Storage, StorageUnavailable
 from app.ops.threads import Workers
 from fuzzyocc import GridSpec
+from fuzzyocc.config import DEFAULT_MAX_CELLS
 
 LOG = logging.getLogger("fuzzyrisk.maps")
 
@@ -190,13 +191,13 @@ class MapRegistry:
     def _make_room(self, cells: int) -> None:
         """Drop idle maps, least recently used first, until a map of ``cells`` fits in FUZZYRISK_MAX_TOTAL_CELLS
         beside the maps held and those being loaded."""
-        used = sum(entry.spec.num_cells for entry in self._maps.values()) + self._loading_cells
+        used = sum(entry.map.held_cells() for entry in self._maps.values()) + self._loading_cells
         for entry in sorted(self._maps.values(), key=lambda e: e.last_used):
             if used + cells <= self.settings.max_total_cells:
                 break
             if _idle(entry):
                 self._forget(entry, reason="memory")
-                used -= entry.spec.num_cells
+                used -= entry.map.held_cells()
         if used + cells > self.settings.max_total_cells:
             raise InsufficientStorage(
                 f"this replica cannot load a map of {cells:,} cells: its maps in use hold {used:,} of its "
@@ -246,6 +247,18 @@ class MapRegistry:
                 LOG.warning("map %s left out of the list: its stored metadata cannot be used (%s)", head.name, exc)
         return infos
 
+    def held_cells(self) -> int:
+        """Cells the maps held here hold in memory, together (``FUZZYRISK_MAX_TOTAL_CELLS`` counts them)."""
+        return sum(entry.map.held_cells() for entry in self._maps.values())
+
+    def _box_limit(self, meta: Mapping[str, Any]) -> int:
+        """Most cells of a fixed map's box: a bayes map holds its whole box (``FUZZYRISK_MAX_MAP_CELLS``); a fuzzy
+        map holds the blocks its scans reached, and its box only bounds a whole-map read (``DEFAULT_MAX_CELLS`` at
+        least)."""
+        if meta["model"] == "bayes":
+            return self.settings.max_map_cells
+        return max(self.settings.max_map_cells, DEFAULT_MAX_CELLS)
+
     def _check_room(self, meta: Mapping[str, Any], stored: int | None) -> None:
         """``InsufficientStorage`` when a new map would pass ``FUZZYRISK_MAX_MAPS`` or ``FUZZYRISK_MAX_TOTAL_CELLS``.
 
@@ -257,11 +270,11 @@ class MapRegistry:
         if held >= self.settings.max_maps:
             raise InsufficientStorage(f"the service holds {held} maps, its limit (FUZZYRISK_MAX_MAPS); DELETE one first")
         try:
-            cells = GridSpec(origin=meta["origin"], size=meta["size"], resolution=meta["resolution"],
-                             max_cells=self.settings.max_map_cells).num_cells
+            spec_of(meta, max_cells=self._box_limit(meta))
         except ValueError as exc:
-            hint = " (FUZZYRISK_MAX_MAP_CELLS)" if "limit" in str(exc) else ""
+            hint = " (FUZZYRISK_MAX_MAP_CELLS)" if "limit" in str(exc) and meta["model"] == "bayes" else ""
             raise Invalid(f"{exc}{hint}") from None
+        cells = _cells(meta)
         if stored is not None:
             # a replica takes a map's memory when it loads it (``_make_room``), not when it creates it; a map that
             # no replica could load is refused now
@@ -271,7 +284,7 @@ class MapRegistry:
                     "(FUZZYRISK_MAX_TOTAL_CELLS); use a coarser resolution or a smaller region"
                 )
             return
-        used = sum(entry.spec.num_cells for entry in self._maps.values())
+        used = self.held_cells()
         if used + cells > self.settings.max_total_cells:
             raise InsufficientStorage(
                 f"a map of {cells:,} cells does not fit: the maps hold {used:,} of the service's "
@@ -281,25 +294,40 @@ class MapRegistry:
 
     async def create_map(self, request: MapCreate) -> MapInfo:
         """Create an empty map; ``Conflict`` if the name is taken, ``Invalid`` if the grid is unusable."""
+        return (await self.create(request)).info()
+
+    async def check_new(self, request: MapCreate) -> None:
+        """What ``create`` would refuse for the name and the room (409, 507, 422), before costly work for a map to be
+        created (an import's image decoded). ``create`` checks again."""
+        self._check_room(_meta_of(request, now()), await self._stored_count(request.name))
+
+    async def check_name(self, name: str) -> None:
+        """``Conflict`` if a map named ``name`` exists (``create`` checks again)."""
+        await self._stored_count(name)
+
+    async def _stored_count(self, name: str) -> int | None:
+        """``Conflict`` if ``name`` is taken; with a shared database, how many maps are stored (every replica's)."""
+        if not self.settings.shared_storage:
+            if name in self._maps:
+                raise Conflict(f"a map named {name!r} exists; choose another name or DELETE it first")
+            return None
+        names = await self._workers.run_read(self.storage.map_names)
+        if name in names:
+            raise Conflict(f"a map named {name!r} exists; choose another name or DELETE it first")
+        return len(names)
+
+    async def create(self, request: MapCreate) -> MapEntry:
+        """Create an empty map, as ``create_map``; the map as made (with a shared database, not held: the replica
+        that serves it loads it at its first request)."""
         async with self._create_lock:
-            if request.name in self._maps and not self.settings.shared_storage:  # with replicas: the database says
-                raise Conflict(f"a map named {request.name!r} exists; choose another name or DELETE it first")
             created = now()
-            meta = {
-                **request.model_dump(mode="json"),  # name and settings, as GET /maps/{name} shows them back
-                "created": created,
-                # tells this map from another of its name made before or after it, on every replica
-                "incarnation": uuid.uuid4().hex,
-            }
-            stored = None
-            if self.settings.shared_storage:  # every replica's maps
-                names = await self._workers.run_read(self.storage.map_names)
-                if request.name in names:
-                    raise Conflict(f"a map named {request.name!r} exists; choose another name or DELETE it first")
-                stored = len(names)
+            meta = _meta_of(request, created)
+            # tells this map from another of its name made before or after it, on every replica
+            meta["incarnation"] = uuid.uuid4().hex
+            stored = await self._stored_count(request.name)
             self._check_room(meta, stored)  # before the map's memory is taken
             try:
-                built = await self._workers.run_admin(lambda: build_map(meta, max_cells=self.settings.max_map_cells))
+                built = await self._workers.run_admin(lambda: build_map(meta, max_cells=self._box_limit(meta)))
             except ValueError as exc:  # the grid was checked by _check_room: the sensor or the engine
                 raise Invalid(str(exc)) from None
             try:
@@ -315,7 +343,20 @@ class MapRegistry:
                 self.metrics.maps.set(len(self._maps))
             # with a shared database the replica that will serve the map (the load balancer's choice for
             # its name) loads it at its first request: the one that made it need not hold it
-            return entry.info()
+            return entry
+
+    async def discard(self, name: str, incarnation: str | None) -> None:
+        """Delete the map ``name`` if it is still the one of ``incarnation`` (an import that failed after creating
+        it: nothing of it stays); any other map of that name is left alone."""
+        if self.settings.shared_storage:
+            await self._workers.run_admin(self._delete_rows, name, incarnation)
+            entry = self._maps.get(name)
+            if entry is not None and entry.incarnation == incarnation:
+                self._forget(entry, reason="deleted")
+            return
+        entry = self._maps.get(name)
+        if entry is not None and not entry.deleted and entry.incarnation == incarnation:
+            await self.delete_map(name)
 
     async def delete_map(self, name: str) -> None:
         """Remove a map and its stored rows (after the batches that arrived before, if any).
@@ -368,6 +409,12 @@ class MapRegistry:
             entry.line.done(ticket)
 
 
+def _meta_of(request: MapCreate, created: str) -> dict[str, Any]:
+    """A new map's stored metadata (without its incarnation): its name and settings as ``GET /maps/{name}`` shows
+    them back."""
+    return {**request.model_dump(mode="json"), "created": created}
+
+
 class Quarantine(NamedTuple):
     """A map set aside: why, and the incarnation whose rows were damaged (another one made since loads)."""
 
@@ -376,6 +423,10 @@ class Quarantine(NamedTuple):
 
 
 def _cells(meta: Mapping[str, Any]) -> int:
+    """Cells a map takes in memory before it has fused anything: a bayes map's whole box; a fuzzy map's none (its
+    blocks come with the scans, counted once loaded: ``MapEntry.held_cells``)."""
+    if meta["model"] != "bayes":
+        return 0
     return GridSpec(origin=meta["origin"], size=meta["size"], resolution=meta["resolution"],
                     max_cells=UNLIMITED_CELLS).num_cells
 

@@ -11,16 +11,18 @@ import io
 import logging
 from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 
 from app.maps import logcodec
-from app.maps.entry import UNLIMITED_CELLS, MapEntry, OccupancyMap
+from app.maps.entry import UNLIMITED_CELLS, MapEntry, OccupancyMap, spec_of
+from app.maps.logcodec import Batch, Clear, Prior, SetForget
 from app.scans import Scan
 from app.schemas import engine_choice
 from app.storage import StoredMap
-from fuzzyocc import BayesMap, FuzzyMap, GridSpec, SensorModel, cast_work
+from fuzzyocc import BayesMap, FuzzyMap, GridSpec, LatticeSpec, IntegrationStats, SensorModel, cast_work
+from fuzzyocc.maps import PRIOR_UNSEEN
 
 LOG = logging.getLogger("fuzzyrisk.maps")
 
@@ -41,11 +43,35 @@ def unnpz(payload: bytes) -> dict[str, np.ndarray]:
 
 def build_map(meta: Mapping[str, Any], *, max_cells: int) -> OccupancyMap:
     """An empty map as ``meta`` describes it (a new map is built from its meta too: what is stored is what runs)."""
-    spec = GridSpec(origin=meta["origin"], size=meta["size"], resolution=meta["resolution"], max_cells=max_cells)
+    spec = spec_of(meta, max_cells=max_cells)
     sensor = SensorModel(**meta["sensor"])
     if meta["model"] == "fuzzy":
-        return FuzzyMap(spec, sensor, engine_choice.from_meta(meta))
-    return BayesMap(spec, sensor)
+        built = FuzzyMap(spec, sensor, engine_choice.from_meta(meta))
+        built.forget_beyond = meta.get("forget_beyond")
+        return built
+    return BayesMap(cast(GridSpec, spec), sensor)
+
+
+def integrate(built: OccupancyMap, batch: Batch) -> IntegrationStats:
+    """Fuse a batch of the log into ``built``: its scans, its prior, or its edit (the cells a clear set back to never
+    observed count as updated)."""
+    if isinstance(batch, Prior):
+        return built.integrate_prior(batch.levels)
+    if isinstance(batch, Clear):
+        return IntegrationStats(scans=0, rays=0, cells_updated=built.clear(batch.low, batch.high))
+    if isinstance(batch, SetForget):
+        built.forget_beyond = batch.metres
+        return IntegrationStats(scans=0, rays=0, cells_updated=0)
+    return built.integrate_batch(batch)
+
+
+def batch_work(spec: GridSpec | LatticeSpec, batch: Batch) -> int:
+    """The cells fusing ``batch`` walks (``cast_work`` of scans; a prior's cells, once a scan it stands for)."""
+    if isinstance(batch, Prior):
+        return int(np.abs(batch.levels[batch.levels != PRIOR_UNSEEN].astype(np.int64)).sum())
+    if isinstance(batch, (Clear, SetForget)):
+        return 0  # a clear walks the map's blocks once, not rays
+    return cast_work(spec, batch)
 
 
 def restore(stored: StoredMap, up_to: int | None = None) -> MapEntry:
@@ -64,6 +90,7 @@ def restore(stored: StoredMap, up_to: int | None = None) -> MapEntry:
     if stored.snapshot is not None:
         arrays = unnpz(stored.snapshot)
         if isinstance(built, FuzzyMap):
+            # the snapshot holds forget_beyond as it was at its version (a PATCH logged before it is not replayed)
             built = FuzzyMap.from_arrays(built.spec, built.sensor, arrays, built.engine)
         else:
             built = BayesMap.from_arrays(built.spec, built.sensor, arrays)
@@ -101,18 +128,20 @@ def replay(built: OccupancyMap, stored: StoredMap, *, after: int, up_to: int | N
         if up_to is not None and version > up_to:
             break
         try:
-            scans = logcodec.decode(payload)
+            batch = logcodec.decode(payload)
         except logcodec.CorruptBatch as exc:
             # an acknowledged batch: never dropped silently; the service refuses to start and says where
             raise RuntimeError(f"map {stored.name!r}: stored batch {version} is corrupt ({exc}); the database "
                                f"needs repair (restore a backup, or delete that row to drop the batch)") from exc
-        progress.log.append((version, len(payload), cast_work(built.spec, scans)))
+        progress.log.append((version, len(payload), batch_work(built.spec, batch)))
         try:
-            built.integrate_batch(scans)
+            integrate(built, batch)
         except ValueError:
             # cannot happen for a batch that was acknowledged (it was applied before the 200)
             LOG.exception("map %s: batch %d cannot be replayed; skipped", stored.name, version)
             continue
-        progress.version, progress.last_scan = version, scans[-1]
+        progress.version = version
+        if isinstance(batch, list) and batch:  # a prior or an edit fuses no scan
+            progress.last_scan = batch[-1]
         progress.updated = stored.stamps.get(version, stored.updated)
     return progress

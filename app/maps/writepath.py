@@ -45,6 +45,7 @@ import collections
 import contextlib
 import functools
 import logging
+import math
 import time
 import traceback
 from collections.abc import AsyncIterator, Callable, Mapping
@@ -52,13 +53,16 @@ from collections.abc import AsyncIterator, Callable, Mapping
 import numpy as np
 from fastapi.exceptions import RequestValidationError
 
+from app.formats.saved_maps import MapCells
 from app.maps import logcodec
+from app.maps.logcodec import Batch, Edit, Prior, SetForget
 from app.scans import Limits, Scan
 from app.maps import ingest
 from app.storage.committer import GroupCommitter
 from app.config import Settings
 from app.errors import (
     Conflict,
+    InsufficientStorage,
     Invalid,
     NotFound,
     TooLarge,
@@ -67,7 +71,7 @@ from app.errors import (
 )
 from app.maps.entry import MapEntry, now
 from app.maps.line import shielded
-from app.maps.stored import npz, replay, restore
+from app.maps.stored import batch_work, integrate, npz, replay, restore
 from app.ops.metrics import Metrics
 from app.maps.ingest_process import ParseProcess, wants
 from app.maps.shared_grids import PlanGrids
@@ -75,7 +79,8 @@ from app.maps.registry import MapRegistry
 from app.schemas import BatchResult
 from app.storage import BatchRecord, MapGone, Storage, StorageUnavailable
 from app.ops.threads import Workers
-from fuzzyocc import LaserScan
+from fuzzyocc import FuzzyMap, LaserScan
+from fuzzyocc.config import MAX_COORDINATE_M
 
 LOG = logging.getLogger("fuzzyrisk.maps")
 
@@ -215,13 +220,13 @@ class WritePath:
         map state). In a parsing thread, or on the event loop for a small body (``INLINE_PARSE_BYTES``).
         """
         return ingest.prepare(body, content_type, query, entry.spec.ndim, self._limits, entry.spec,
-                                 self.settings.max_batch_cells)
+                                 self._budget(entry))
 
-    def _apply(self, entry: MapEntry, version: int, scans: list[Scan]) -> BatchResult:
+    def _apply(self, entry: MapEntry, version: int, batch: Batch) -> BatchResult:
         """Fuse a committed batch (in a fusion thread; the caller holds the apply turn and the apply lock)."""
         started = time.perf_counter()
         try:
-            stats = entry.map.integrate_batch(scans)
+            stats = integrate(entry.map, batch)
         except BaseException as exc:
             # never acknowledged: it must not come back at the next start
             try:
@@ -290,6 +295,20 @@ class WritePath:
                 headers={"Retry-After": "1"},
             )
 
+    def _check_memory(self, entry: MapEntry) -> None:
+        """507 for scans to a map that holds ``FUZZYRISK_MAX_MAP_CELLS`` cells, or when the maps together hold
+        ``FUZZYRISK_MAX_TOTAL_CELLS`` (a clear, ``forget_beyond`` or a delete make room; an edit is never refused)."""
+        held = entry.map.held_cells()
+        if held >= self.settings.max_map_cells:
+            raise InsufficientStorage(
+                f"map {entry.name!r} holds {held:,} cells, its limit (FUZZYRISK_MAX_MAP_CELLS): clear a region "
+                "(POST /maps/{name}/clear), set forget_beyond (PATCH /maps/{name}), or delete the map")
+        total = self._registry.held_cells()
+        if total >= self.settings.max_total_cells:
+            raise InsufficientStorage(
+                f"the maps hold {total:,} cells, the service's limit (FUZZYRISK_MAX_TOTAL_CELLS): clear regions, set "
+                "forget_beyond, or delete maps")
+
     async def add_scans(
         self, name: str, *, body: bytes, content_type: str, query: Mapping[str, str]
     ) -> BatchResult:
@@ -298,6 +317,7 @@ class WritePath:
         Batches to one map are committed and applied in the order they arrived here.
         """
         entry, _ = await self._registry.held(name)
+        self._check_memory(entry)
         # no await between the check and the take: together they are atomic on the event loop
         self._admit(entry)
         ticket = entry.line.take()  # before any await: this fixes the batch's place in line
@@ -306,8 +326,8 @@ class WritePath:
                 scans, payload, work = self._prepare(entry, body, content_type, query)
             elif wants(body, content_type):
                 payload, work = await self._parse_process.prepare(
-                    body, content_type, query, entry.spec.ndim, self._limits, entry.spec, self.settings.max_batch_cells)
-                scans = await self._workers.run_parser(logcodec.decode, payload)  # 8 x 2 M ranges: 0.2 s
+                    body, content_type, query, entry.spec.ndim, self._limits, entry.spec, self._budget(entry))
+                scans = await self._workers.run_parser(logcodec.decode_scans, payload)  # 8 x 2 M ranges: 0.2 s
             else:
                 scans, payload, work = await self._workers.run_parser(self._prepare, entry, body, content_type,
                                                                       query)
@@ -330,6 +350,7 @@ class WritePath:
         so it is not refused for the line's length (an import is refused whole, or not at all).
         """
         entry, _ = await self._registry.held(name)
+        self._check_memory(entry)
         if not admitted:
             self._admit(entry)
         ticket = entry.line.take()
@@ -344,10 +365,57 @@ class WritePath:
             raise
         return await shielded(self._write(entry, ticket, scans, payload, work))
 
-    def _checked_payload(self, entry: MapEntry, scans: list[Scan]) -> tuple[bytes, int]:
-        return ingest.checked_payload(entry.spec, scans, self.settings.max_batch_cells)
+    def _budget(self, entry: MapEntry) -> ingest.BatchBudget:
+        """What a batch may cost this map (a bayes map holds its whole box: it takes on no cell)."""
+        fuzzy = isinstance(entry.map, FuzzyMap)
+        return ingest.BatchBudget(walk=self.settings.max_batch_cells,
+                                  new_cells=self.settings.max_new_cells_per_batch if fuzzy else None)
 
-    async def _write(self, entry: MapEntry, ticket: int, scans: list[Scan], payload: bytes,
+    def _checked_payload(self, entry: MapEntry, scans: list[Scan]) -> tuple[bytes, int]:
+        return ingest.checked_payload(entry.spec, scans, self._budget(entry))
+
+    async def add_edit(self, name: str, edit: Edit) -> BatchResult:
+        """Apply an edit of map ``name`` (a region cleared, ``forget_beyond`` changed) in the map's line, committed
+        first as a batch is: durable before the answer, replayed in its place among the scans."""
+        entry, _ = await self._registry.held(name)
+        self._admit(entry)
+        ticket = entry.line.take()
+        try:
+            _check_edit(entry, edit)
+            payload = logcodec.encode_edit(edit)
+        except BaseException:
+            entry.line.done(ticket)
+            raise
+        return await shielded(self._write(entry, ticket, edit, payload, 0))
+
+    async def add_prior(self, name: str, incarnation: str | None, cells: MapCells, weight: int) -> BatchResult:
+        """Fuse a saved map's cells into map ``name`` as its first batch: each as if ``weight`` scans had agreed on
+        it (``OccupancyMap.prior_levels``), committed and applied in the map's line as a scan batch is.
+
+        Call it right after the map is created: with one process holding the maps, no await comes between the
+        creation and the ticket taken here, so no other batch can come first. ``incarnation`` is the map's as
+        created: a map deleted and created again meanwhile answers ``Conflict`` and stores nothing.
+        """
+        entry, _ = await self._registry.held(name)
+        ticket = entry.line.take()
+        if entry.incarnation != incarnation:
+            entry.line.done(ticket)
+            raise Conflict(f"map {name!r} was deleted and created again while it was being imported; nothing of the "
+                           "import was stored")
+        try:
+            prior, payload, work = await self._workers.run_parser(self._prior_payload, entry, cells, weight)
+        except BaseException:
+            entry.line.done(ticket)
+            raise
+        return await shielded(self._write(entry, ticket, prior, payload, work))
+
+    @staticmethod
+    def _prior_payload(entry: MapEntry, cells: MapCells, weight: int) -> tuple[Prior, bytes, int]:
+        # the map's levels come from a probe map of its kind: its own cells are not read (no apply lock needed)
+        prior = Prior(levels=entry.map.prior_levels(cells.occupancy, weight)[cells.codes])
+        return prior, logcodec.encode_prior(prior), batch_work(entry.spec, prior)
+
+    async def _write(self, entry: MapEntry, ticket: int, batch: Batch, payload: bytes,
                      work: int) -> BatchResult:
         """Commit, then apply, a parsed batch in its turns; gives both turns up when done, whatever happens.
 
@@ -361,6 +429,7 @@ class WritePath:
             if entry.deleted:
                 raise NotFound(f"no map named {entry.name!r}")
             updated = now()
+            scans = batch if isinstance(batch, list) else []  # a prior or an edit fuses no scan
             record = BatchRecord(entry.name, entry.incarnation, payload, updated, len(scans))
             try:
                 # the store decides the version (with replicas, theirs and ours come in one order);
@@ -392,7 +461,7 @@ class WritePath:
                 # removal from the log have failed too, the row is still there under this version
                 try:
                     run = self._workers.run_heavy if work > HEAVY_BATCH_CELLS else self._workers.run
-                    result = await run(self._apply, entry, version, scans)
+                    result = await run(self._apply, entry, version, batch)
                 except BaseException:
                     # the map may have changed in part: a grid published for its
                     # current version would no longer be that map
@@ -403,7 +472,8 @@ class WritePath:
                 # assigned here, on the event loop and under the apply lock, so that a reader and
                 # MapInfo never pair the new arrays with the old version (or mix two versions)
                 entry.version, entry.scans_fused, entry.updated = result.version, entry.map.scans_fused, updated
-                entry.last_scan, entry.last_view = scans[-1], None
+                if scans:  # a prior has none: the last scan stays the last one fused
+                    entry.last_scan, entry.last_view = scans[-1], None
                 self._grids.retire(entry.uid, below=entry.version)  # no plan will ask for an older one
                 self._notify("batch_applied", entry.name, entry.version, entry.last_scan, entry.frame_id)
             if self._snapshot_due(entry):
@@ -478,3 +548,22 @@ class WritePath:
 
 def _rays(scan: Scan) -> int:
     return len(scan.ranges) if isinstance(scan, LaserScan) else len(scan.points)
+
+
+def _check_edit(entry: MapEntry, edit: Edit) -> None:
+    """``Invalid`` for an edit the map cannot take (checked before it is stored: nothing changes on a refusal)."""
+    if isinstance(edit, SetForget):
+        if not isinstance(entry.map, FuzzyMap):
+            raise Invalid("forget_beyond is for fuzzy maps; a bayes map holds its whole box")
+        return
+    dims = entry.spec.ndim
+    for corner, values in (("min", edit.low), ("max", edit.high)):
+        if len(values) != dims:
+            raise Invalid(f"{corner} has {len(values)} coordinates; this map is {dims}-D")
+        if not all(math.isfinite(v) and abs(v) <= MAX_COORDINATE_M for v in values):
+            raise Invalid(f"{corner} must be finite coordinates within {MAX_COORDINATE_M:.0e} m of the frame's origin")
+    low, high = np.asarray(edit.low), np.asarray(edit.high)
+    if np.any(high < low):
+        axis = int(np.flatnonzero(high < low)[0])
+        raise Invalid(f"max[{axis}] = {high[axis]} is below min[{axis}] = {low[axis]}: give the box's lower corner "
+                      "as min")

@@ -1,5 +1,6 @@
 """What the service's processes need from the operating system, set up before anything else runs.
 
+* ``missing_extra``: a setting that needs an optional extra not installed here stops the start first;
 * ``bind``: the listening socket, bound first, so that a port in use stops the start at once;
 * ``prepare_directories``: numba's kernel cache and, on a read-only root, the temporary files
   in the data directory (before numba is imported: it reads ``NUMBA_CACHE_DIR`` then);
@@ -11,6 +12,7 @@ from __future__ import annotations
 
 import ctypes
 import errno
+import importlib.util
 import multiprocessing
 import os
 import shutil
@@ -38,16 +40,47 @@ class StartupError(Exception):
 GIL_SWITCH_INTERVAL_S = 0.001
 
 
-def foxglove_sdk_missing(exc: ImportError) -> StartupError:
-    """The error when ``FUZZYRISK_FOXGLOVE_PORT`` is set and the Foxglove SDK cannot be imported.
+@dataclass(frozen=True)
+class Extra:
+    """An optional extra of ``pyproject.toml`` that a setting needs once it is set."""
 
-    Said by ``python -m app`` before anything starts, and by ``app.reads.foxglove`` when imported
-    (``create_app`` in a process of one's own): one message, what to do included.
-    """
-    return StartupError(
-        f"FUZZYRISK_FOXGLOVE_PORT is set but the Foxglove SDK is not installed ({exc}): install the foxglove extra "
-        "(pip install 'fuzzyrisk[foxglove]', i.e. foxglove-sdk), or unset FUZZYRISK_FOXGLOVE_PORT"
-    )
+    name: str  # pip install 'fuzzyrisk[name]'
+    setting: str  # the ``Settings`` field
+    modules: tuple[str, ...]  # what the extra installs, by import name
+
+    @property
+    def variable(self) -> str:
+        return f"{Settings.model_config['env_prefix']}{self.setting.upper()}"
+
+    def missing(self) -> list[str]:
+        """Its modules that cannot be found here (looked up, not imported: importing is the server's business)."""
+        return [module for module in self.modules if importlib.util.find_spec(module) is None]
+
+    def needed(self, what: str) -> str:
+        """One line: the setting needs ``what``, and how to install it."""
+        return (f"{self.variable} needs {what}, which is not installed: pip install 'fuzzyrisk[{self.name}]' "
+                f"(an image: docker build --build-arg EXTRAS={self.name}), or unset {self.variable}")
+
+
+#: The settings that need an optional extra (the plots, test and bench extras serve no setting).
+POSTGRES_EXTRA = Extra("postgres", "database_url", ("psycopg", "psycopg_pool"))
+FOXGLOVE_EXTRA = Extra("foxglove", "foxglove_port", ("foxglove",))
+EXTRAS = (POSTGRES_EXTRA, FOXGLOVE_EXTRA)
+
+
+def missing_extra(settings: Settings) -> str | None:
+    """The line that stops ``python -m app`` before anything starts when a setting given needs an extra that is not
+    installed; None when every such extra is there."""
+    for extra in EXTRAS:
+        if getattr(settings, extra.setting) is not None and (missing := extra.missing()):
+            return extra.needed(", ".join(missing))
+    return None
+
+
+def foxglove_sdk_missing(exc: ImportError) -> StartupError:
+    """The error of ``app.reads.foxglove`` imported without the Foxglove SDK (``create_app`` in a process of one's
+    own: ``python -m app`` stops before, on ``missing_extra``), in the same words."""
+    return StartupError(FOXGLOVE_EXTRA.needed(f"the Foxglove SDK ({exc})"))
 
 
 def bind(host: str, port: int) -> socket.socket:

@@ -3,8 +3,9 @@
 numba compiles a kernel at its first call, for the types of that call, and caches the machine
 code in ``NUMBA_CACHE_DIR`` (the service points it into its data directory). A cold cache costs
 tens of seconds of compilation, a warm one a fraction of a second. The service runs
-``warm_fusion`` in a fusion thread as it starts (its readiness, ``GET /ready``, waits for it);
-the planner kernels are warmed in the planner workers (``app.plans.pool``).
+``warm_fusion`` in a fusion thread as it starts (its readiness, ``GET /ready``, waits for it). The planner
+kernels are warmed in the planner workers (``app.plans.pool``), and here those of a path check, which runs
+in the server's read threads (``app.plans.path_check``).
 """
 
 from __future__ import annotations
@@ -45,12 +46,27 @@ def _fuse_3d(model: type[FuzzyMap] | type[BayesMap]) -> None:
     model.from_arrays(spec, SensorModel(), solid.to_arrays())
 
 
+def _check_paths() -> None:
+    """Paths checked on small 2-D and 3-D fields, with unknown space allowed and not: the walk and the dilations."""
+    from planning import RiskField
+    from planning.path_check import check_path
+
+    for shape in ((6, 6), (6, 6, 3)):
+        observed = np.ones(shape, bool)
+        observed[-1] = False
+        field = RiskField(np.full(shape, 0.2, np.float32), 0.1, (0.0,) * len(shape), observed=observed)
+        for allow_unknown in (True, False):
+            check_path(field, [[0.15] * len(shape), [0.45] * len(shape)], robot_radius=0.1,
+                       allow_unknown=allow_unknown)
+
+
 #: In the order a robot's first requests need them: a LaserScan on a 2-D fuzzy map first.
 STEPS: tuple[tuple[str, Callable[[], None]], ...] = (
     ("2-D fuzzy fusion", lambda: _fuse_2d(FuzzyMap)),
     ("3-D fuzzy fusion", lambda: _fuse_3d(FuzzyMap)),
     ("2-D Bayes fusion", lambda: _fuse_2d(BayesMap)),
     ("3-D Bayes fusion", lambda: _fuse_3d(BayesMap)),
+    ("path checks", _check_paths),
 )
 
 

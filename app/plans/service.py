@@ -9,7 +9,7 @@ from collections.abc import Awaitable, Callable
 from app.ros import messages_out
 from app.ros import msgtypes
 from app.config import Settings
-from app.errors import Invalid, PlanRejected
+from app.errors import Invalid, PlanRejected, TooLarge
 from app.maps import GridSnapshot, Lease, MapEntry, PlanGrids, is_current
 from app.ops.metrics import Metrics
 from app.plans.pool import PlanPool
@@ -21,6 +21,11 @@ from planning.planners import planner_spec
 
 #: Grace added to a plan's time limit before its worker is presumed stuck: setup, dilation, dense check.
 PLAN_GRACE_S = 20.0
+
+
+#: Metres a growing map's plan grid reaches past its bounds, the start and the goal (and the robot's radius): room to
+#: go around what the map has seen, through never-observed space where ``allow_unknown`` lets it.
+GROWING_PLAN_MARGIN_M = 2.0
 
 
 class MapPlans:
@@ -51,10 +56,17 @@ class MapPlans:
         params = request.model_dump(exclude_none=True, exclude={"goal_yaw"})
         timeout = wall_clock_limit(request.time_limit, request.seed is not None) + PLAN_GRACE_S
         outcome, source, version = "error", "shared", entry.version
-        lease: Lease | None = self._grids.lease(entry.uid, version)  # no await since the version was read
         grid: GridSnapshot | None = None
+        lease: Lease | None = None
+        if entry.map.growing:
+            # a growing map's plan works on its bounds grown to hold the start, the goal and the robot (beyond the
+            # bounds: never observed); its grid is shipped with the plan, as the window follows the request
+            grid = await self._grid_around(entry, request)
+            version = grid.version
+        else:
+            lease = self._grids.lease(entry.uid, version)  # no await since the version was read
         try:
-            if lease is None:
+            if lease is None and grid is None:
                 async with self._reads.big_read(entry.spec):  # a big map's copy takes its turn as big reads do
                     grid = await self._reads.read_grid_of(entry)
                     source, version = "published", grid.version
@@ -88,6 +100,25 @@ class MapPlans:
             if lease is not None:
                 lease.release()
             self.metrics.plan_seconds.labels(request.planner, outcome).observe(time.perf_counter() - started)
+
+    async def _grid_around(self, entry: MapEntry, request: PlanRequest) -> GridSnapshot:
+        """A growing map's grid for ``request``: its bounds and the start and goal, grown by the robot's radius and
+        ``GROWING_PLAN_MARGIN_M`` (copied under the apply lock, as a read)."""
+        ndim = entry.spec.ndim
+        ends = [request.start[:ndim], request.goal[:ndim]]
+        if any(len(p) < ndim for p in ends):
+            raise Invalid(f"start and goal need {ndim} coordinates on this {ndim}-D map")
+        async with entry.apply_lock:  # the bounds of the version read
+            try:
+                window = entry.map.window_around(ends, request.robot_radius + GROWING_PLAN_MARGIN_M)
+            except ValueError as exc:
+                raise Invalid(str(exc)) from None
+            if window.cells() > self.settings.max_map_cells:
+                raise TooLarge(f"a plan between these points works on {window.cells():,} cells of this growing map, "
+                               f"more than FUZZYRISK_MAX_MAP_CELLS ({self.settings.max_map_cells:,}): plan between "
+                               "nearer points")
+        async with self._reads.big_read(window):
+            return await self._reads.read_cells(entry, window)
 
     def _check_plan(self, request: PlanRequest) -> None:
         """What can be refused without a worker: the service's time limit, and an unknown planner."""

@@ -23,7 +23,7 @@ topic       type                            holds
 
 Which scans: those of the batches after the map's latest snapshot, up to the grid's version (a
 snapshot drops the batches it covers, so older scans are gone; ``since_version`` says where the
-log starts). At most ``FUZZYRISK_SNAPSHOT_EVERY`` batches, and ``FUZZYRISK_SNAPSHOT_LOG_BYTES``
+log starts). An imported map's first batch (a saved map's cells) holds no scan: the grid shows it. At most ``FUZZYRISK_SNAPSHOT_EVERY`` batches, and ``FUZZYRISK_SNAPSHOT_LOG_BYTES``
 of them (plus one).
 
 Stamps: a batch stores no robot time. Of the N scans, in version order and in order within each
@@ -55,6 +55,7 @@ from app.formats.exports import NAV2_FREE_THRESH, NAV2_OCCUPIED_THRESH
 from app.ros import msgtypes
 from app.ros.msgtypes import typestore
 from app.maps import GridSnapshot
+from app.schemas import WHOLE_MAP, GridWindow
 from app.storage import StoredMap
 from fuzzyocc import LaserScan
 
@@ -148,12 +149,15 @@ def grid_cdr(grid: GridSnapshot) -> bytes:
 
 
 def _scans(log: Sequence[tuple[int, bytes]]) -> Iterator[Scan]:
-    """The scans of the log in recorded order, one batch decoded at a time."""
+    """The scans of the log in recorded order, one batch decoded at a time (a prior or an edit has none: the grid
+    holds what they did)."""
     for version, payload in log:
         try:
-            yield from logcodec.decode(payload)
+            batch = logcodec.decode(payload)
         except logcodec.CorruptBatch as exc:
             raise Unavailable(f"the map's stored batch {version} is corrupt ({exc}): it cannot be exported") from None
+        if isinstance(batch, list):
+            yield from batch
 
 
 def mcap_file(grid: GridSnapshot, log: Sequence[tuple[int, bytes]], *, since_version: int, max_bytes: int) -> bytes:
@@ -232,14 +236,15 @@ class Recording:
 
 
 def export(grid: GridSnapshot, stored: StoredMap, *, media_type: str, max_bytes: int,
-           if_none_match: str | None) -> Recording:
-    """The recording of a map's grid and stored log (``MapReads.render_log`` runs it in a read thread).
+           if_none_match: str | None, window: GridWindow = WHOLE_MAP) -> Recording:
+    """The recording of a map's grid (cut to ``window``, as ``MapReads.render_log`` read it) and stored log
+    (``MapReads.render_log`` runs it in a read thread).
 
     The ETag covers the snapshot version: a snapshot taken at the map's version empties the log,
     and with it the file changes while the version does not.
     """
     variant: dict[str, object] = {"read": "export/mcap", "since_version": stored.snapshot_version,
-                                  "media_type": media_type}
+                                  "media_type": media_type, **window.variant()}
     etag = grid.etag(variant)
     if etags.matches(if_none_match, etag):
         return Recording(grid, variant, etag, stored.snapshot_version, None)

@@ -4,7 +4,9 @@ OccupancyGrid, MCAP); copies under the map's apply lock, encodings in the read t
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import logging
+import math
 from collections.abc import AsyncIterator, Awaitable, Callable, Mapping
 from typing import Any, Literal, TypeVar
 
@@ -16,13 +18,14 @@ from app.formats import exports
 from app.ros import messages_out
 from app.ros import msgtypes
 from app.config import Settings
-from app.errors import Invalid, NotFound, TooLarge, Unavailable
+from app.errors import Conflict, Invalid, NotFound, TooLarge, Unavailable
 from app.maps import GridSnapshot, GridStamp, MapEntry
 from app.reads.lane import ReadLane, Turn
-from app.schemas import LastScan, MapInfo, OccupancyGrid, RiskGridJSON, RiskValues
+from app.schemas import WHOLE_MAP, GridWindow, LastScan, MapInfo, OccupancyGrid, RiskGridJSON, RiskValues
 from app.storage import Storage, StoredMap
 from app.ops.threads import Workers
 from fuzzyocc import GridSpec
+from fuzzyocc.maps import Window
 
 LOG = logging.getLogger("fuzzyrisk.maps")
 T = TypeVar("T")
@@ -50,10 +53,10 @@ class MapReads:
         self._lane = ReadLane(share=settings.heavy_read_share, queue=settings.heavy_read_queue)
 
     @contextlib.asynccontextmanager
-    async def big_read(self, spec: GridSpec) -> AsyncIterator[Turn | None]:
-        """A turn in the big reads' lane for a read of a map of more than ``HEAVY_READ_CELLS`` (its copy, its render
+    async def big_read(self, spec: GridSpec | Window) -> AsyncIterator[Turn | None]:
+        """A turn in the big reads' lane for a read of more than ``HEAVY_READ_CELLS`` cells (its copy, its render
         and, handed over to the response, the sending of its body; or a plan's copy and publication); None for a
-        smaller map."""
+        smaller read."""
         if _heavy(spec):
             async with self._lane.turn() as turn:
                 yield turn
@@ -84,26 +87,64 @@ class MapReads:
         entry = await self._current(name)
         return etags.entity_tag(entry.etag_seed, entry.version, variant), entry.version
 
-    async def read_grid(self, name: str) -> GridSnapshot:
-        """The map's risk and observed arrays, consistent with one version.
+    async def read_grid(self, name: str, region: GridWindow = WHOLE_MAP) -> GridSnapshot:
+        """The map's risk and observed arrays over ``region``, consistent with one version.
 
         ``risk()`` and ``observed()`` already hand out new read-only arrays, so no copy is needed.
         """
         entry = await self._current(name)
-        async with self.big_read(entry.spec):
-            return await self.read_grid_of(entry)
+        async with self.big_read(await self._planned(entry, region)):
+            return await self.read_grid_of(entry, region)
 
-    async def read_grid_of(self, entry: MapEntry) -> GridSnapshot:
-        """``read_grid`` of a map already looked up; a caller of a big map holds its ``big_read`` turn."""
+    async def read_grid_of(self, entry: MapEntry, region: GridWindow = WHOLE_MAP) -> GridSnapshot:
+        """``read_grid`` of a map already looked up; a caller of a big read holds its ``big_read`` turn.
+
+        Only the window's cells are copied, under the apply lock: the cost follows the window, not the map.
+        """
         async with entry.apply_lock:
-            risk, observed = await self._workers.run_read(lambda: (entry.map.risk(), entry.map.observed()),
-                                                          heavy=_heavy(entry.spec))
+            window = await self._resolved(entry, region)
+            risk, observed = await self._workers.run_read(
+                lambda: (entry.map.risk(window), entry.map.observed(window)), heavy=_heavy(window))
             # version and updated are assigned together under this lock (``_write``): they match the arrays
-            return GridSnapshot(entry.spec, entry.version, risk, observed, entry.frame_id, entry.updated,
+            return GridSnapshot(_spec_of(entry, window), entry.version, risk, observed, entry.frame_id,
+                                entry.updated, entry.etag_seed)
+
+    async def read_cells(self, entry: MapEntry, window: Window) -> GridSnapshot:
+        """The map's grid over ``window`` as given (a growing map's plan reaches past its bounds: never observed
+        there), at one version; a caller of a big read holds its ``big_read`` turn."""
+        async with entry.apply_lock:
+            risk, observed = await self._workers.run_read(
+                lambda: (entry.map.risk(window), entry.map.observed(window)), heavy=_heavy(window))
+            return GridSnapshot(window.spec(), entry.version, risk, observed, entry.frame_id, entry.updated,
                                 entry.etag_seed)
 
-    async def render_log(self, name: str, render: Callable[[GridSnapshot, StoredMap], T]) -> T:
-        """``render(grid, stored)`` in a read thread: the map's grid and its stored batch log at one version.
+    async def computed(self, name: str, compute: Callable[[GridSnapshot], T]) -> T:
+        """``compute(grid)`` in a read thread, on the map's grid at one version (a big map's in its turn in the lane):
+        what is worked out from a grid and answered small, a path check."""
+        entry = await self._current(name)
+        async with self.big_read(await self._planned(entry, WHOLE_MAP)):
+            grid = await self.read_grid_of(entry)
+            return await self._workers.run_read(compute, grid, heavy=_heavy(grid.spec))
+
+    async def _planned(self, entry: MapEntry, region: GridWindow) -> Window:
+        """The cells a read of ``region`` would cover now, for its limits and its lane, before any copy: a fixed
+        map's from its box alone; a growing map's from its bounds under the apply lock (they may grow before
+        the copy, which reads them again)."""
+        if not entry.map.growing:
+            return _window(entry, region)
+        async with entry.apply_lock:
+            return await self._resolved(entry, region)
+
+    async def _resolved(self, entry: MapEntry, region: GridWindow) -> Window:
+        """``_window`` under the apply lock (a growing map's bounds are read from its blocks: in a read thread)."""
+        if not entry.map.growing:
+            return _window(entry, region)
+        return await self._workers.run_read(_window, entry, region)
+
+    async def render_log(self, name: str, render: Callable[[GridSnapshot, StoredMap], T],
+                         region: GridWindow = WHOLE_MAP) -> T:
+        """``render(grid, stored)`` in a read thread: the map's grid over ``region`` and its stored batch log at one
+        version.
 
         The grid is copied and the log read (``Storage.load_map``: the latest snapshot's version and the
         batches after it) together under the apply lock, so no batch is applied between the two: the log
@@ -112,20 +153,22 @@ class MapReads:
         (``app.reads.recording``); ``stored.snapshot`` is dropped, the arrays are not needed.
         """
         entry = await self._current(name)
-        async with self.big_read(entry.spec):
-            return await self._render_log(name, entry, render)
+        async with self.big_read(await self._planned(entry, region)):
+            return await self._render_log(name, entry, render, region)
 
-    async def _render_log(self, name: str, entry: MapEntry, render: Callable[[GridSnapshot, StoredMap], T]) -> T:
+    async def _render_log(self, name: str, entry: MapEntry, render: Callable[[GridSnapshot, StoredMap], T],
+                          region: GridWindow) -> T:
         """``render_log`` of a map looked up (looked up again when another replica's snapshot is newer)."""
         for attempt in range(3):
             if attempt:
                 entry = await self._current(name)
             async with entry.apply_lock:
+                window = await self._resolved(entry, region)
                 risk, observed, stored = await self._workers.run_read(
-                    lambda e=entry: (e.map.risk(), e.map.observed(), self.storage.load_map(e.name)),
-                    heavy=_heavy(entry.spec))
-                grid = GridSnapshot(entry.spec, entry.version, risk, observed, entry.frame_id, entry.updated,
-                                    entry.etag_seed)
+                    lambda e=entry, w=window: (e.map.risk(w), e.map.observed(w), self.storage.load_map(e.name)),
+                    heavy=_heavy(window))
+                grid = GridSnapshot(_spec_of(entry, window), entry.version, risk, observed, entry.frame_id,
+                                    entry.updated, entry.etag_seed)
             # another replica's snapshot newer than this grid dropped the batches up to it: catch up, again
             if stored is None or stored.snapshot_version <= grid.version:
                 break
@@ -159,15 +202,16 @@ class MapReads:
                 raise Invalid(str(exc)) from None
             return RiskValues(risk=[float(v) for v in values], version=entry.version)
 
-    async def risk_json(self, name: str) -> tuple[bytes, GridSnapshot]:
+    async def risk_json(self, name: str, region: GridWindow = WHOLE_MAP) -> tuple[bytes, GridSnapshot]:
         """The grid as ``RiskGridJSON``, serialised (off the event loop: big maps make big documents)."""
         entry = await self._current(name)
-        if entry.spec.num_cells > MAX_JSON_CELLS:
+        cells = _cells(await self._planned(entry, region))
+        if cells > MAX_JSON_CELLS:
             raise Invalid(
-                f"the map has {entry.spec.num_cells} cells, too many for JSON (at most {MAX_JSON_CELLS}); "
-                "ask for format=npy or format=png"
+                f"the read has {cells} cells, too many for JSON (at most {MAX_JSON_CELLS}); "
+                "ask for format=npy or format=png, or a smaller window (min, max)"
             )
-        grid = await self.read_grid_of(entry)  # not a big map: no turn in the lane
+        grid = await self.read_grid_of(entry, region)  # not a big read: no turn in the lane
 
         def encode() -> bytes:
             return RiskGridJSON(
@@ -178,26 +222,31 @@ class MapReads:
 
         return await self._workers.run_read(encode, heavy=_heavy(grid.spec)), grid
 
-    async def _rendered(self, entry: MapEntry, render: Callable[[GridSnapshot], T]) -> tuple[T, GridSnapshot, Sent]:
-        """``render(grid)`` of the map's grid at one version, in a read thread: for a big map in its turn in the lane,
-        handed over to the response (``Sent``)."""
-        async with self.big_read(entry.spec) as turn:
-            grid = await self.read_grid_of(entry)
-            return await self._workers.run_read(render, grid, heavy=_heavy(entry.spec)), grid, _hand_over(turn)
+    async def _rendered(self, entry: MapEntry, render: Callable[[GridSnapshot], T], region: GridWindow,
+                        planned: Window | None = None) -> tuple[T, GridSnapshot, Sent]:
+        """``render(grid)`` of the map's grid over ``region`` at one version, in a read thread: for a big read in its
+        turn in the lane, handed over to the response (``Sent``). ``planned``: ``_planned``, if already known."""
+        planned = await self._planned(entry, region) if planned is None else planned
+        async with self.big_read(planned) as turn:
+            grid = await self.read_grid_of(entry, region)
+            return await self._workers.run_read(render, grid, heavy=_heavy(grid.spec)), grid, _hand_over(turn)
 
-    async def risk_npy(self, name: str,
-                       layer: Literal["risk", "observed"] = "risk") -> tuple[bytes, GridSnapshot, Sent]:
+    async def risk_npy(self, name: str, layer: Literal["risk", "observed"] = "risk",
+                       region: GridWindow = WHOLE_MAP) -> tuple[bytes, GridSnapshot, Sent]:
         """The risk (float32) or the observed mask (bool) as ``.npy``, of one version (and ``Sent``)."""
         return await self._rendered(await self._current(name),
-                                    lambda grid: exports.npy_bytes(grid.risk if layer == "risk" else grid.observed))
+                                    lambda grid: exports.npy_bytes(grid.risk if layer == "risk" else grid.observed),
+                                    region)
 
-    async def risk_png(self, name: str, *, scale: int, z_min: float | None,
-                       z_max: float | None) -> tuple[bytes, GridSnapshot, Sent]:
+    async def risk_png(self, name: str, *, scale: int, z_min: float | None, z_max: float | None,
+                       region: GridWindow = WHOLE_MAP) -> tuple[bytes, GridSnapshot, Sent]:
         _check_band(z_min, z_max)
         entry = await self._current(name)
-        nx, ny = entry.spec.shape[:2]
+        planned = await self._planned(entry, region)
+        nx, ny = planned.shape[:2]
         if nx * ny * scale * scale > MAX_PNG_PIXELS:
-            raise Invalid(f"scale {scale} would make a {nx * scale} x {ny * scale} image; use a smaller scale")
+            raise Invalid(f"scale {scale} would make a {nx * scale} x {ny * scale} image; use a smaller scale or "
+                          "window (min, max)")
 
         def render(grid: GridSnapshot) -> bytes:
             text = {
@@ -207,11 +256,12 @@ class MapReads:
             risk, observed = grid.planar(z_min, z_max)
             return exports.risk_png(risk, observed, scale=scale, text=text)
 
-        return await self._rendered(entry, render)
+        return await self._rendered(entry, render, region, planned)
 
     async def nav2_zip(
         self, name: str, *, mode: Literal["trinary", "scale", "raw"], image_format: Literal["pgm", "png"],
         free_thresh: float, occupied_thresh: float, z_min: float | None, z_max: float | None,
+        region: GridWindow = WHOLE_MAP,
     ) -> tuple[bytes, GridSnapshot, Sent]:
         """The zip for map_server; its entries are dated by the map's last batch, so one version gives one file."""
         _check_band(z_min, z_max)
@@ -229,12 +279,12 @@ class MapReads:
                 frame_id=grid.frame_id, date_time=messages_out.zip_date_time(grid.updated),
             )
 
-        return await self._rendered(await self._current(name), render)
+        return await self._rendered(await self._current(name), render, region)
 
     async def occupancy_grid(
         self, name: str, *, mode: Literal["trinary", "scale", "probability"], free_thresh: float,
         occupied_thresh: float, z_min: float | None, z_max: float | None,
-        encoding: Literal["json", "cdr", "mcap"] = "json",
+        encoding: Literal["json", "cdr", "mcap"] = "json", region: GridWindow = WHOLE_MAP,
     ) -> tuple[bytes | tuple[bytes, memoryview], GridStamp, Sent]:
         """The map as a ``nav_msgs/OccupancyGrid``: JSON (``OccupancyGrid``), CDR bytes, or an MCAP file.
 
@@ -246,26 +296,32 @@ class MapReads:
         _check_band(z_min, z_max)
         _check_thresholds(free_thresh, occupied_thresh)
         entry = await self._current(name)
+        planned = await self._planned(entry, region)
         if encoding == "json":
-            cells = entry.spec.shape[0] * entry.spec.shape[1]  # the message is the plane, a 3-D map's included
+            cells = planned.shape[0] * planned.shape[1]  # the message is the plane, a 3-D map's included
             if cells > MAX_JSON_CELLS:
                 raise Invalid(
-                    f"the map's OccupancyGrid has {cells:,} cells, too many for JSON (at most {MAX_JSON_CELLS:,}): "
-                    f"ask for GET /maps/{name}/occupancy_grid.cdr or .mcap (the same message as ROS 2 bytes)"
+                    f"the OccupancyGrid has {cells:,} cells, too many for JSON (at most {MAX_JSON_CELLS:,}): "
+                    f"ask for GET /maps/{name}/occupancy_grid.cdr or .mcap (the same message as ROS 2 bytes), or "
+                    "a smaller window (min, max)"
                 )
-        heavy = _heavy(entry.spec)
-        async with self.big_read(entry.spec) as turn:
-            if entry.spec.ndim == 2:
-                # the values straight from the map's risk codes, in one pass (a 16 M-cell map: 45 ms against 160,
-                # without the 80 MB copy of its risk and observed mask)
-                def lookup() -> np.ndarray:  # the table too is built here, not on the event loop (cached)
-                    return entry.map.plane_lookup(exports.occupancy_lut(mode, free_thresh, occupied_thresh), -1)
-
+        heavy = _heavy(planned)
+        async with self.big_read(planned) as turn:
+            if len(planned.shape) == 2:
                 async with entry.apply_lock:
+                    window = await self._resolved(entry, region)
+
+                    # the values straight from the map's risk codes, in one pass (a 16 M-cell map: 45 ms against
+                    # 160, without the 80 MB copy of its risk and observed mask)
+                    def lookup() -> np.ndarray:  # the table too is built here, not on the event loop (cached)
+                        return entry.map.plane_lookup(exports.occupancy_lut(mode, free_thresh, occupied_thresh), -1,
+                                                      window)
+
                     values = await self._workers.run_read(lookup, heavy=heavy)
-                    stamp = entry.stamp()  # the version the values are of: it changes under this lock only
+                    # the version the values are of: it changes under this lock only
+                    stamp = dataclasses.replace(entry.stamp(), spec=_spec_of(entry, window))
             else:
-                grid = await self.read_grid_of(entry)
+                grid = await self.read_grid_of(entry, region)
 
                 def project() -> np.ndarray:
                     risk, observed = grid.planar(z_min, z_max)
@@ -333,5 +389,44 @@ def _check_band(z_min: float | None, z_max: float | None) -> None:
         raise Invalid(f"z_min ({z_min}) must not exceed z_max ({z_max})")
 
 
-def _heavy(spec: GridSpec) -> bool:
-    return spec.num_cells > HEAVY_READ_CELLS
+def _window(entry: MapEntry, region: GridWindow) -> Window:
+    """The cells a read of ``region`` covers (a growing map's: call under its apply lock; a fixed map's box alone
+    says). ``Invalid`` naming min or max when a corner does not fit the map or nothing is left."""
+    dims = entry.map.lattice.ndim
+    for field, corner in (("min", region.min), ("max", region.max)):
+        if corner is not None and len(corner) != dims:
+            raise Invalid(f"{field} has {len(corner)} coordinates; this map is {dims}-D: give {dims}")
+    if region.min is not None and region.max is not None:
+        for axis, (low, high) in enumerate(zip(region.min, region.max)):
+            if low > high:
+                raise Invalid(f"min ({low}) exceeds max ({high}) along {'xyz'[axis]}: the window is empty")
+    window = entry.map.window(region.min, region.max)
+    if window is not None:
+        return window
+    whole = entry.map.window()
+    if whole is None:
+        raise Conflict(f"map {entry.name!r} is a growing map that has observed nothing yet: it has no grid to read "
+                       "until the first scan reaches a cell (its bounds are null)")
+    raise Invalid(f"the window min={_corner(region.min)}, max={_corner(region.max)} meets no cell of the map, "
+                  f"which covers {_corner(whole.origin)} to {_corner(whole.upper)}")
+
+
+def _corner(corner: tuple[float, ...] | None) -> str:
+    return "(none)" if corner is None else ",".join(repr(v) for v in corner)
+
+
+def _spec_of(entry: MapEntry, window: Window) -> GridSpec:
+    """The spec a read of ``window`` states: the map's own for a fixed map's whole box (its origin as made, the
+    bytes of a read before windows), else the window's."""
+    spec = entry.spec
+    if isinstance(spec, GridSpec) and window.shape == spec.shape and not any(window.lo):
+        return spec
+    return window.spec()
+
+
+def _cells(window: GridSpec | Window) -> int:
+    return math.prod(window.shape)
+
+
+def _heavy(window: GridSpec | Window) -> bool:
+    return _cells(window) > HEAVY_READ_CELLS

@@ -51,16 +51,16 @@ Vector = Annotated[list[FiniteFloat], Field(min_length=2, max_length=3)]
 
 
 class Point(BaseModel):
-    x: float
-    y: float
-    z: float
+    x: FiniteFloat
+    y: FiniteFloat
+    z: FiniteFloat
 
 
 class Quaternion(BaseModel):
-    x: float
-    y: float
-    z: float
-    w: float
+    x: FiniteFloat
+    y: FiniteFloat
+    z: FiniteFloat
+    w: FiniteFloat
 
 
 class PoseMsg(BaseModel):

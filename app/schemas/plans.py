@@ -1,5 +1,6 @@
 """A plan: the query (``PlanRequest``), the answer (``PlanResult``, a ``nav_msgs/Path`` with the plan's measures),
-and what a query may name (``Planners``).
+and what a query may name (``Planners``); a path checked under a plan's rules (``PathCheckRequest``,
+``PathCheckResult``). ``PathRules`` are what both are held to.
 """
 
 from __future__ import annotations
@@ -9,7 +10,7 @@ import math
 import typing
 from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, FiniteFloat, create_model
+from pydantic import BaseModel, ConfigDict, Field, FiniteFloat, create_model, model_validator
 
 from app.schemas.common import Header, PoseStamped, Vector
 from planning.budget import SEEDED_CLOCK_FACTOR
@@ -29,7 +30,7 @@ from planning.parameters import (
     TURNING_RADIUS,
     Number,
 )
-from planning.result import RESULT_ERROR_CODES
+from planning.result import RESULT_ERROR_CODES, PathCheck
 from planning.result import PlanResult as PlannerResult
 
 EXAMPLE_PLAN = {
@@ -54,7 +55,25 @@ def _within(number: Number) -> Any:
     return Field(allow_inf_nan=False, **bounds)
 
 
-class PlanRequest(BaseModel):
+class PathRules(BaseModel):
+    """What a path is held to and how it is costed, a plan's and a path check's alike: the robot's footprint, the risk
+    bound, unknown space, the weight of risk in the cost, and the state space its points are in."""
+
+    state_space: str | None = Field(None, description="R2 (default on 2-D maps), SE2, Dubins, ReedsShepp, R3 (3-D)")
+    robot_radius: Annotated[float, _within(ROBOT_RADIUS)] = Field(
+        DEFAULT_ROBOT_RADIUS, description="metres: the robot is a disk (a ball in 3-D)")
+    max_risk: Annotated[float, _within(MAX_RISK), Field(
+        description=f"the most risk an observed cell under the robot may have; default {DEFAULT_MAX_RISK:g} (the "
+        "exports' free threshold): cells with net free evidence. An observed cell at 0.5 (a surface hit, then seen "
+        "through as often) is not free")] = DEFAULT_MAX_RISK
+    risk_weight: Annotated[float, _within(RISK_WEIGHT)] = Field(
+        DEFAULT_RISK_WEIGHT, description="cost = length + risk_weight x the integral of risk along the path "
+        "(never-observed cells count 0.5)")
+    allow_unknown: bool = Field(DEFAULT_ALLOW_UNKNOWN, description="the robot may overlap never-observed cells (and "
+                                "leave the map), whatever max_risk; false: it may not")
+
+
+class PlanRequest(PathRules):
     """A path query on the map's risk; valid: no observed cell under the robot above ``max_risk``, and never-observed
     cells under it only with ``allow_unknown``."""
 
@@ -62,20 +81,11 @@ class PlanRequest(BaseModel):
 
     start: Vector = Field(description="[x, y] in R2, [x, y, theta] in SE2/Dubins/ReedsShepp, [x, y, z] in R3")
     goal: Vector
-    state_space: str | None = Field(None, description="R2 (default on 2-D maps), SE2, Dubins, ReedsShepp, R3 (3-D)")
     planner: str = DEFAULT_PLANNER
     time_limit: Annotated[float, _within(TIME_LIMIT)] = Field(
         DEFAULT_TIME_LIMIT, description="seconds; at most FUZZYRISK_MAX_PLAN_TIME_S. A seeded plan is ended by an "
         "iteration budget that fits this on an idle machine, so that it repeats; its clock bound is "
         f"{SEEDED_CLOCK_FACTOR:g} x time_limit")
-    robot_radius: Annotated[float, _within(ROBOT_RADIUS)] = DEFAULT_ROBOT_RADIUS
-    max_risk: Annotated[float, _within(MAX_RISK), Field(
-        description=f"the most risk an observed cell under the robot may have; default {DEFAULT_MAX_RISK:g} (the "
-        "exports' free threshold): cells with net free evidence. An observed cell at 0.5 (a surface hit, then seen "
-        "through as often) is not free")] = DEFAULT_MAX_RISK
-    risk_weight: Annotated[float, _within(RISK_WEIGHT)] = DEFAULT_RISK_WEIGHT
-    allow_unknown: bool = Field(DEFAULT_ALLOW_UNKNOWN, description="the robot may overlap never-observed cells (and "
-                                "leave the map), whatever max_risk; false: it may not")
     seed: Annotated[int, Field(ge=SEEDS.start, lt=SEEDS.stop)] | None = None
     turning_radius: Annotated[float, _within(TURNING_RADIUS)] | None = Field(
         None, description="metres; required by Dubins and ReedsShepp")
@@ -117,21 +127,21 @@ _AS_ANSWERED: dict[str, tuple[Any, Any]] = {
 }
 
 
-def _planner_fields() -> dict[str, Any]:
-    """The fields of ``planning.PlanResult`` as pydantic field definitions, as ``_AS_ANSWERED`` has them."""
-    types = typing.get_type_hints(PlannerResult)
-    names = [f.name for f in dataclasses.fields(PlannerResult)]
-    if unknown := set(_AS_ANSWERED) - set(names):
-        raise TypeError(f"_AS_ANSWERED names {sorted(unknown)}, which planning.PlanResult does not have")
+def _answer_fields(answer: type, as_answered: dict[str, tuple[Any, Any]]) -> dict[str, Any]:
+    """The fields of the dataclass ``answer`` as pydantic field definitions, as ``as_answered`` has them."""
+    types = typing.get_type_hints(answer)
+    names = [f.name for f in dataclasses.fields(answer)]
+    if unknown := set(as_answered) - set(names):
+        raise TypeError(f"{sorted(unknown)} are not fields of {answer.__module__}.{answer.__qualname__}")
     definitions = {}
     for name in names:
-        wire, field = _AS_ANSWERED.get(name, (None, ...))
+        wire, field = as_answered.get(name, (None, ...))
         definitions[name] = (types[name] if wire is None else wire, field)
     return definitions
 
 
 #: What the planner answered, field by field (``PlanResult.to_json``).
-_PlannerAnswer: type[BaseModel] = create_model("_PlannerAnswer", **_planner_fields())
+_PlannerAnswer: type[BaseModel] = create_model("_PlannerAnswer", **_answer_fields(PlannerResult, _AS_ANSWERED))
 
 
 class PlanResult(_PlannerAnswer):  # type: ignore[misc,valid-type]
@@ -145,6 +155,67 @@ class PlanResult(_PlannerAnswer):  # type: ignore[misc,valid-type]
         "write it in JSON): one per path point, each with the path's header; z = 0 on 2-D maps; orientation a yaw "
         "about +z (REP 103): SE2, Dubins, ReedsShepp the planned yaw; R2 and R3 the heading of the step to the next "
         "point over the ground (no pitch), the last pose that of the step before it, or goal_yaw when given")
+
+
+EXAMPLE_PATH_CHECK = {
+    "path": [[-1.0, 0.0], [0.5, 0.0], [2.0, 0.0]],
+    "robot_radius": 0.2,
+    "max_risk": DEFAULT_MAX_RISK,
+    "allow_unknown": True,
+}
+
+
+class PathCheckRequest(PathRules):
+    """A path to check on the map's current risk, as ``path`` or as a ``nav_msgs/Path``'s ``poses``, under the rules a
+    plan is held to."""
+
+    model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [EXAMPLE_PATH_CHECK]})
+
+    path: Annotated[list[Vector], Field(min_length=1)] | None = Field(
+        None, description="the points, as a plan answers them: [x, y] in R2, [x, y, theta] in SE2/Dubins/ReedsShepp "
+        "(theta is not checked: the robot is a disk), [x, y, z] in R3; joined by straight segments. A curved motion "
+        "is sent as the dense points a plan returns for it. At most FUZZYRISK_MAX_PATH_POINTS")
+    poses: Annotated[list[PoseStamped], Field(min_length=1)] | None = Field(
+        None, description="or the path as a nav_msgs/Path's poses, as a plan answers them: their positions (z only "
+        "on 3-D maps) and, in SE2/Dubins/ReedsShepp, the yaw of their orientations. Every frame_id given must be "
+        "the map's")
+    header: Header | None = Field(
+        None, description="a nav_msgs/Path's header, so that a whole Path may be sent: its frame_id, when given, "
+        "must be the map's")
+
+    @model_validator(mode="after")
+    def _one_path(self) -> PathCheckRequest:
+        if (self.path is None) == (self.poses is None):
+            given = "both were given" if self.path is not None else "neither was given"
+            raise ValueError(f"give the path as 'path' (a list of points) or as 'poses' (a nav_msgs/Path's): {given}")
+        if self.header is not None and self.path is not None:
+            raise ValueError("header goes with poses (a nav_msgs/Path), not with path")
+        return self
+
+
+#: How a path check answers the fields of ``planning.PathCheck``.
+_CHECK_AS_ANSWERED: dict[str, tuple[Any, Any]] = {
+    "valid": (None, Field(description="every cell every segment crosses is valid for the robot, and every point "
+                                      "lies on the map")),
+    "first_invalid_index": (None, Field(
+        description="the index of the first point whose segment to the next point is invalid (or leaves the map), "
+        "or of the point itself when the path is that one point; null when valid")),
+    "max_risk": (None, Field(description="the largest risk under the robot along the path (never-observed cells "
+                                         "count 0.5), as a plan reports it; null when a point lies off the map")),
+    "cost": (None, Field(description="length + risk_weight x the integral of that risk along the path, as a plan "
+                                     "computes its cost; null when a point lies off the map")),
+    "length": (None, Field(description="metres; null when a point lies off the map")),
+}
+
+
+#: What the check answered, field by field (``planning.PathCheck``).
+_PathCheckAnswer: type[BaseModel] = create_model("_PathCheckAnswer", **_answer_fields(PathCheck, _CHECK_AS_ANSWERED))
+
+
+class PathCheckResult(_PathCheckAnswer):  # type: ignore[misc,valid-type]
+    """A path held to a plan's rules on one version of the map (Nav2's IsPathValid), measured as a plan is."""
+
+    version: int = Field(description="the map version checked on")
 
 
 class PlannerInfo(BaseModel):

@@ -6,10 +6,11 @@
 * ``app.maps.writepath``: batches in order through commit, apply and snapshot (its docstring has the
   concurrency and durability rules);
 * ``app.reads.service``: every output of a map, consistent with one version;
-* ``app.plans.service``: plans in the planner worker processes.
+* ``app.plans.service``: plans in the planner worker processes;
+* ``app.plans.path_check``: paths checked under a plan's rules, where reads run.
 
 HTTP handlers call those parts through ``MapService``'s attributes (``maps``, ``writes``, ``reads``,
-``plans``); it is the only bridge from HTTP to ``fuzzyocc`` and ``planning``.
+``plans``, ``path_checks``); it is the only bridge from HTTP to ``fuzzyocc`` and ``planning``.
 """
 
 from __future__ import annotations
@@ -28,6 +29,7 @@ from app.ops.process_setup import give_back_freed_memory
 from app.maps import MapObserver, MapRegistry, PlanGrids, WritePath
 from app.maps.shared_grids import DIRECTORY as PLAN_GRIDS_DIRECTORY
 from app.ops.metrics import Metrics
+from app.plans.path_check import PathChecks
 from app.plans.service import MapPlans
 from app.plans.pool import PlanPool
 from app.reads.service import MapReads
@@ -60,6 +62,7 @@ class MapService:
         self.reads = MapReads(settings, storage, self._workers, self.writes.current)
         self.plans = MapPlans(settings, metrics, self.writes.current, self.reads, self._grids, self._pool,
                               self._notify)
+        self.path_checks = PathChecks(settings, self.reads)
         metrics.batches_in_line.set_function(self.maps.batches_in_line)
         metrics.longest_fusion_job.set_function(self._workers.longest_fusion_job_s)
         self._kernels: asyncio.Task[None] | None = None

@@ -114,11 +114,13 @@ def test_every_documented_example_works_when_pasted(client: TestClient) -> None:
     """Walk the examples of /openapi.json as a user of /docs would: create, scan, query, plan, export."""
     spec = client.get("/openapi.json").json()
     schemas = spec["components"]["schemas"]
-    lab_map, hall_map = schemas["MapCreate"]["examples"]
+    lab_map, hall_map, growing_map = schemas["MapCreate"]["examples"]
     assert client.post("/maps", json=lab_map).status_code == 201
     assert client.post("/maps", json=hall_map).status_code == 201
+    assert client.post("/maps", json=growing_map).json()["extent"] == "growing"
     scan_examples = spec["paths"]["/maps/{name}/scans"]["post"]["requestBody"]["content"]["application/json"]["examples"]
     assert client.post(f"/maps/{lab_map['name']}/scans", json=scan_examples["laser"]["value"]).status_code == 200
+    assert client.post(f"/maps/{growing_map['name']}/scans", json=scan_examples["laser"]["value"]).status_code == 200
     assert client.post(f"/maps/{hall_map['name']}/scans", json=scan_examples["cloud"]["value"]).status_code == 200
     (query,) = schemas["RiskQuery"]["examples"]
     answer = client.post(f"/maps/{lab_map['name']}/risk/query", json=query)

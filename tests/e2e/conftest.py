@@ -8,7 +8,6 @@ vectorized over beams and boxes).
 from __future__ import annotations
 
 import os
-import shutil
 import signal
 import socket
 import subprocess
@@ -23,7 +22,9 @@ import httpx
 import numpy as np
 import psutil
 import pytest
-from playwright.sync_api import Browser, Page, sync_playwright
+from playwright.sync_api import Browser, Page, expect, sync_playwright
+
+import dev
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -43,6 +44,11 @@ POSES = [(x, y, th) for x in (1.5, 3.5, 6.5, 8.5) for y in (1.5, 3.0, 4.5) for t
     (4.2, 3.0, 0.0), (5.8, 3.0, 3.14), (5.0, 3.0, 1.57)]
 BEAMS = 720
 RANGE_MAX = 12.0
+#: The most a test waits for a condition it needs (a server ready, a message, a page's state): a net against
+#: a hang, far beyond what a busy machine takes. Tests wait for the condition, never for this long.
+PATIENCE_S = 240.0
+# Playwright's assertions wait for their condition up to 5 s by default: the page's work shares a busy machine too
+expect.set_options(timeout=PATIENCE_S * 1000)
 
 
 def scan_ranges(x: float, y: float, theta: float, beams: int = BEAMS) -> np.ndarray:
@@ -93,7 +99,7 @@ class Server:
     def url(self) -> str:
         return f"http://127.0.0.1:{self.port}"
 
-    def start(self, timeout_s: float = 90.0) -> Server:
+    def start(self, timeout_s: float = PATIENCE_S) -> Server:
         """Start and wait until ``/ready`` answers 200 (maps loaded, kernels compiled, planner workers up)."""
         self.port = free_port()
         # one planner process, started at the first plan unless a test asks for the warm-up
@@ -204,12 +210,13 @@ def world() -> type[World]:
 
 
 def find_chromium() -> str:
-    """The Chromium to drive: $CHROME, else ``chromium`` or ``chromium-browser`` on the PATH."""
-    named = os.environ.get("CHROME")
-    found = shutil.which(named) if named else shutil.which("chromium") or shutil.which("chromium-browser")
+    """The Chromium to drive: $CHROME, else ``chromium`` or ``chromium-browser`` on the PATH (``dev.find_chromium``)."""
+    found = dev.find_chromium()
     if found is None:
+        named = os.environ.get("CHROME")
         pytest.fail(f"no Chromium found ({'CHROME=' + named if named else 'chromium, chromium-browser'} on the "
-                    "PATH): apt-get install chromium (.ci/run does), or set CHROME to a Chromium executable")
+                    "PATH): `python3 dev.py test` installs Debian's chromium, or set CHROME to a Chromium executable",
+                    pytrace=False)
     return found
 
 

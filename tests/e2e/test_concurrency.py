@@ -1,5 +1,6 @@
 """Concurrency against a real server: batches to one map all land, one at a time in arrival order;
-/health answers in milliseconds while plans (worker processes) and fusion (threads) run."""
+/health answers in milliseconds while plans (worker processes) and fusion (threads) run; a path check does not
+wait for the planner workers."""
 
 from __future__ import annotations
 
@@ -101,3 +102,37 @@ def test_health_answers_in_milliseconds_while_plans_and_fusion_run(start_server:
     # others took 2-24 ms, and such a gap is the scheduler's, not a stalled loop's
     assert statistics.median(latencies) < 0.05, latencies
     assert max(latencies) < 1.0, latencies
+
+
+def _plans_handed_to_workers(http: Any) -> float:
+    """How many plans the server has handed a grid to a worker for (counted just before they go to one)."""
+    text = http.get("/metrics").text
+    return sum(float(line.rsplit(" ", 1)[1]) for line in text.splitlines()
+               if line.startswith("fuzzyrisk_plan_grids_total{"))
+
+
+def test_a_path_check_answers_while_a_long_plan_holds_the_only_planner_worker(start_server: Any, world: Any) -> None:
+    server = start_server(FUZZYRISK_PLAN_WARMUP="true")  # one planner worker (the fixture's), up before /ready
+    rules = {"robot_radius": 0.25, "max_risk": 0.5}
+    with server.client() as http:
+        assert http.post("/maps", json=world.MAP).status_code == 201
+        assert http.post("/maps/hall/scans", json={"scans": [world.laser_json(p) for p in world.POSES]}).status_code == 200
+        quick = http.post("/maps/hall/plan", json={"start": [2.0, 1.5], "goal": [8.0, 4.5], "planner": "grid",
+                                                   **rules}).json()
+        assert quick["status"] == "exact" and _plans_handed_to_workers(http) == 1
+
+    def long_plan() -> int:  # an anytime optimizer, unseeded: it holds the worker for its whole time limit
+        with server.client() as http:
+            return http.post("/maps/hall/plan", json={"start": [2.0, 1.5], "goal": [8.0, 4.5], "planner": "RRTstar",
+                                                      "time_limit": 5.0, **rules}).status_code
+
+    with ThreadPoolExecutor(1) as pool, server.client() as http:
+        running = pool.submit(long_plan)
+        deadline = time.monotonic() + 30
+        while _plans_handed_to_workers(http) < 2:  # the long plan is on its way into the worker
+            assert time.monotonic() < deadline and not running.done()
+            time.sleep(0.01)
+        check = http.post("/maps/hall/paths/check", json={"path": quick["path"], **rules})
+        assert check.status_code == 200 and check.json()["valid"], check.text
+        assert not running.done()  # answered while the plan still held the worker
+        assert running.result() == 200

@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 
 from fuzzyocc import FuzzyMap, GridSpec, LaserScan, SensorModel
+from tests.e2e.conftest import PATIENCE_S
 
 pytestmark = pytest.mark.slow
 
@@ -63,7 +64,7 @@ def test_kill_9_mid_stream_loses_no_acknowledged_batch(start_server: Any, world:
 
     sender = threading.Thread(target=stream)
     sender.start()
-    deadline = time.monotonic() + 60
+    deadline = time.monotonic() + PATIENCE_S
     while len(acked) < 10 and time.monotonic() < deadline:
         time.sleep(0.01)
     time.sleep(random.Random(11).uniform(0.0, 0.05))  # somewhere inside a request
@@ -96,7 +97,12 @@ def test_sigterm_finishes_the_batch_in_flight(start_server: Any, world: Any) -> 
 
     sender = threading.Thread(target=send)
     sender.start()
-    time.sleep(0.3)  # the body is sent; fusion is under way
+    with server.client() as http:  # SIGTERM once the batch is in the service's hands (arriving, or in its line)
+        deadline = time.monotonic() + PATIENCE_S
+        while http.get("/ready").json()["batches_in_line"] == 0:
+            assert not answers, "the batch was done before it was seen in line: the test needs a bigger one"
+            assert time.monotonic() < deadline, "the batch never reached the service"
+            time.sleep(0.01)
     server.terminate()
     sender.join(timeout=60)
     assert answers and answers[0].status_code == 200 and answers[0].json()["version"] == 1

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import os
 import re
-import shutil
 import signal
 import subprocess
 import time
@@ -19,8 +18,10 @@ from pathlib import Path
 from typing import Any
 
 import httpx
+import numpy as np
 import pytest
 
+import dev
 from bench._client import ServerProcess, free_port
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(240)]
@@ -32,9 +33,9 @@ NAMES = [f"bay-{k}" for k in range(8)]
 
 
 def _nginx() -> str:
-    found = shutil.which("nginx") or ("/usr/sbin/nginx" if Path("/usr/sbin/nginx").exists() else None)
+    found = dev.find_nginx()
     if found is None:
-        pytest.fail("nginx is needed (apt-get install nginx; .ci/run installs it)", pytrace=False)
+        pytest.fail("nginx is needed: `python3 dev.py test` installs Debian's nginx", pytrace=False)
     return found
 
 
@@ -109,3 +110,22 @@ def test_each_map_is_fused_on_one_replica_and_served_by_the_other_once_it_is_kil
             assert client.get(f"/maps/{name}/risk", params={"format": "npy"}).content == before[name]
             assert client.post(f"/maps/{name}/scans", json={"scans": [_scan(7)]}).json()["version"] == 4
     assert httpx.get(f"{replicas[1].url}/ready", timeout=10).json()["maps_loaded"] == len(NAMES)
+
+
+def test_an_imported_map_is_loaded_by_the_replica_its_name_goes_to_and_by_no_other(
+        fleet: tuple[str, list[ServerProcess]]) -> None:
+    from tests.app.formats.test_saved_maps import nav2_yaml, pgm, zipped
+
+    url, replicas = fleet
+    grey = np.full((40, 40), 254, dtype=np.uint8)
+    grey[:, 30] = 0
+    saved = zipped({"map.yaml": nav2_yaml(origin=[-2.0, -2.0, 0.0], resolution=0.1), "map.pgm": pgm(grey)})
+    with httpx.Client(base_url=url, timeout=60) as client:
+        for name in NAMES:
+            made = client.post("/maps/import", params={"name": name}, content=saved,
+                               headers={"content-type": "application/zip"})
+            assert made.status_code == 201 and made.json()["version"] == 1, made.text
+            assert client.post(f"/maps/{name}/scans", json={"scans": [_scan(1)]}).json()["version"] == 2
+    # the import was sent where the map's own requests go: each map is held by one replica, and both hold some
+    loaded = [httpx.get(f"{r.url}/ready", timeout=10).json()["maps_loaded"] for r in replicas]
+    assert sum(loaded) == len(NAMES) and min(loaded) > 0, loaded

@@ -160,8 +160,19 @@ def test_the_generated_client_drives_every_operation(generated: tuple[ModuleType
                                                         client=client).payload.read()
     (entry,) = list(make_reader(io.BytesIO(mcap_bytes)).iter_messages())
     assert entry[1].topic == "/map" and entry[2].data == cdr
-    nav2 = op("risk", "export_nav2").sync("hall", client=client, mode=m.ExportNav2Mode.TRINARY)
-    assert {"map.yaml", "map.pgm"} <= set(zipfile.ZipFile(io.BytesIO(nav2.payload.read())).namelist())
+    nav2 = op("risk", "export_nav2").sync("hall", client=client, mode=m.ExportNav2Mode.TRINARY).payload.read()
+    assert {"map.yaml", "map.pgm"} <= set(zipfile.ZipFile(io.BytesIO(nav2)).namelist())
+    # the export back in as a new map, its two files as a form (the generator's form of the operation's bodies):
+    # its first batch, the same grid
+    with zipfile.ZipFile(io.BytesIO(nav2)) as files:
+        saved = m.ImportMapFilesBody(
+            yaml=package.types.File(payload=io.BytesIO(files.read("map.yaml")), file_name="map.yaml"),
+            image=package.types.File(payload=io.BytesIO(files.read("map.pgm")), file_name="map.pgm"))
+    copy = op("maps", "import_map").sync(client=client, body=saved, name="hall_copy")
+    assert isinstance(copy, m.MapInfo) and copy.version == 1 and copy.shape == [risk.shape[0], risk.shape[1]]
+    again = op("risk", "export_nav2").sync("hall_copy", client=client, mode=m.ExportNav2Mode.TRINARY).payload.read()
+    assert zipfile.ZipFile(io.BytesIO(again)).read("map.pgm") == zipfile.ZipFile(io.BytesIO(nav2)).read("map.pgm")
+    assert op("maps", "delete_map").sync_detailed("hall_copy", client=client).status_code == 204
     # the recording for offline viewing: the same grid on /map, every scan on /scan (no snapshot yet), the
     # binary scan's float32 ranges as sent
     recorded = op("recordings", "export_mcap").sync("hall", client=client).payload.read()
@@ -173,7 +184,7 @@ def test_the_generated_client_drives_every_operation(generated: tuple[ModuleType
     last_scan = jazzy_typestore().deserialize_cdr(scans[-1], "sensor_msgs/msg/LaserScan")
     assert last_scan.ranges.astype("<f4").tobytes() == raw
 
-    # plans, and a start the planner cannot use: Nav2's code in the one error body
+    # plans, a start the planner cannot use (Nav2's code in the one error body), and a path checked
     names = [p.name for p in op("plans", "planners").sync(client=client).planners]
     assert "grid" in names and "RRTstar" in names
     request = {"start": [1.5, 1.5], "goal": [8.5, 4.5], "planner": "grid", "time_limit": 5.0}
@@ -182,6 +193,12 @@ def test_the_generated_client_drives_every_operation(generated: tuple[ModuleType
     outside = op("plans", "plan").sync("hall", client=client,
                                        body=m.PlanRequest.from_dict({**request, "start": [-1.0, 1.0]}))
     assert isinstance(outside, m.ErrorBody) and outside.code == "START_OUTSIDE_MAP"
+    # the plan's own nav_msgs/Path, checked on its version, as the generated models carry it
+    check = m.PathCheckRequest.from_dict({"poses": [p.to_dict() for p in result.poses],
+                                          "header": result.header.to_dict()})
+    checked = op("plans", "check_path").sync("hall", client=client, body=check)
+    assert isinstance(checked, m.PathCheckResult) and checked.valid and checked.version == result.version
+    assert checked.cost == result.cost
 
     # the key, and a deletion
     anonymous = package.Client(base_url=server.url)

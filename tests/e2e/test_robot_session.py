@@ -96,3 +96,36 @@ def test_the_server_log_stays_one_json_object_a_line_through_a_dubins_rrtstar_pl
     assert len(lines) > 5
     for line in lines:
         assert isinstance(json.loads(line), dict), line
+
+
+def _door_blocked(world: Any) -> dict[str, Any]:
+    """A LaserScan from (4.2, 3.0) facing the door: a person standing in it, 0.7 m ahead, 0.76 m wide."""
+    angles = np.linspace(-0.5, 0.5, 41)
+    return {"pose": {"x": 4.2, "y": 3.0, "theta": 0.0}, "angle_min": -0.5, "angle_increment": 0.025,
+            "ranges": (0.7 / np.cos(angles)).round(6).tolist(), "range_min": 0.05, "range_max": world.RANGE_MAX}
+
+
+def test_a_robot_checks_its_path_until_someone_stands_in_the_door(start_server: Any, world: Any) -> None:
+    """Nav2's IsPathValid against a real server: the planned path holds on its version, and is invalid from the
+    point before the door once someone stands in it."""
+    server = start_server()
+    rules = {"robot_radius": ROBOT_RADIUS, "max_risk": 0.5, "allow_unknown": False}
+    with server.client() as http:
+        _map_the_hall(http, world)
+        plan = http.post("/maps/hall/plan", json={"start": [2.0, 1.5], "goal": [8.0, 4.5], "planner": "grid",
+                                                  **rules}).json()
+        assert plan["status"] == "exact", plan
+        path = {"poses": plan["poses"], "header": plan["header"], **rules}  # the nav_msgs/Path as it came
+        before = http.post("/maps/hall/paths/check", json=path).json()
+        assert before == {"valid": True, "first_invalid_index": None, "max_risk": plan["max_risk"],
+                          "cost": plan["cost"], "length": plan["length"], "version": plan["version"]}
+        # seen for a moment: five scans outweigh the free space the mapping saw there
+        assert http.post("/maps/hall/scans", json={"scans": [_door_blocked(world)] * 5}).status_code == 200
+        response = http.post("/maps/hall/paths/check", json=path)
+        after = response.json()
+        assert not after["valid"] and after["version"] == plan["version"] + 1 == int(response.headers["X-Map-Version"])
+        first = after["first_invalid_index"]
+        points = np.asarray(plan["path"])
+        assert points[first, 0] < 4.9 <= points[first + 1:, 0].max()  # before the door, which the path still crosses
+        ahead = http.post("/maps/hall/paths/check", json={**path, "poses": plan["poses"][: first + 1]}).json()
+        assert ahead["valid"]  # the robot may drive up to that point

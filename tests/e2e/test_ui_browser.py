@@ -14,6 +14,7 @@ import shutil
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
+from urllib.parse import urlsplit
 
 import httpx
 import numpy as np
@@ -22,7 +23,7 @@ from playwright.sync_api import Browser, Page, expect
 
 from app.formats.exports import RISK_LUT, UNKNOWN_RGB
 from planning import available_planners
-from tests.e2e.conftest import BEAMS, POSES, ROOT, WORLD_MAP, Server, laser_json
+from tests.e2e.conftest import BEAMS, PATIENCE_S, POSES, ROOT, WORLD_MAP, Server, laser_json
 
 pytestmark = pytest.mark.slow
 
@@ -52,7 +53,7 @@ def api_client(server: Server, key: str | None = None) -> httpx.Client:
 
 @pytest.fixture(scope="module")
 def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Server]:
-    srv = Server(tmp_path_factory.mktemp("ui") / "data")
+    srv = Server(tmp_path_factory.mktemp("ui") / "data", env={"FUZZYRISK_PLAN_WARMUP": "true"})  # ready to plan
     try:
         srv.start()
         with api_client(srv) as client:
@@ -65,7 +66,7 @@ def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Server]:
 def open_map(page: Page, url: str, name: str) -> None:
     page.goto(url + "/")
     page.get_by_role("button", name=f"Show map {name}").click()
-    expect(page.locator("#map-canvas")).to_have_attribute("data-version", re.compile(r"^\d+$"), timeout=10_000)
+    expect(page.locator("#map-canvas")).to_have_attribute("data-version", re.compile(r"^\d+$"))
 
 
 def cell_centre(x: float, y: float) -> tuple[float, float]:
@@ -155,15 +156,19 @@ def test_risk_image_is_drawn_and_reloaded_only_when_the_map_changes(server: Serv
     # never-observed cells outside the hall and free cells inside it must not look alike
     assert canvas_rgb(page, -0.3, 6.3) == list(UNKNOWN_RGB)
     assert canvas_rgb(page, 2.5, 4.0) != list(UNKNOWN_RGB)
-    # the page polls every second but fetches the PNG again only for a new version
+    # the page polls the map list every second but fetches the PNG again only for a new version: two polls
+    # that began after this count have run to their end (the PNG fetched or not) once a third one asks
     loads = len(png_requests)
-    page.wait_for_timeout(2500)
+    for _ in range(3):
+        with page.expect_request(lambda r: r.method == "GET" and urlsplit(r.url).path == "/maps",
+                                 timeout=PATIENCE_S * 1000):
+            pass
     assert len(png_requests) == loads
     with api_client(server) as client:
         # the batch's last scan again, so that the hall looks the same to the tests after this one
         new_version = client.post("/maps/hall/scans", json={"scans": [laser_json(POSES[-1])]})
     assert new_version.status_code == 200
-    expect(canvas).to_have_attribute("data-version", str(new_version.json()["version"]), timeout=5000)
+    expect(canvas).to_have_attribute("data-version", str(new_version.json()["version"]))
     assert len(png_requests) == loads + 1
     expect(page.locator('#maps-body tr[data-name="hall"] td').nth(4)).to_have_text(
         str(new_version.json()["version"])
@@ -199,7 +204,7 @@ def test_clicked_start_and_goal_give_a_drawn_path(server: Server, page: Page, tm
     page.get_by_label("Planner").select_option("grid")
     page.get_by_role("button", name="Plan").click()
     result = page.locator("#plan-result")
-    expect(result).not_to_have_attribute("data-state", "busy", timeout=30_000)
+    expect(result).not_to_have_attribute("data-state", "busy")
     assert result.get_attribute("data-state") == "path", result.inner_text()
     expect(result).to_contain_text(re.compile(r"length \d+\.\d\d m, max risk 0\.\d\d"))
     assert int(result.get_attribute("data-path-points") or 0) > 1
@@ -223,7 +228,7 @@ def test_typed_goal_inside_a_wall_is_refused_in_words(server: Server, page: Page
         page.keyboard.type(str(value))
     page.keyboard.press("Enter")
     result = page.locator("#plan-result")
-    expect(result).not_to_have_attribute("data-state", "busy", timeout=30_000)
+    expect(result).not_to_have_attribute("data-state", "busy")
     assert result.get_attribute("data-state") == "error", result.inner_text()
     expect(result).to_contain_text("GOAL_OCCUPIED")
     expect(result).to_contain_text("The goal is in an obstacle or too close to one")
@@ -286,7 +291,7 @@ def test_page_asks_for_the_api_key_once_and_then_works(tmp_path: Path, browser: 
         open_map_row = page.get_by_role("button", name="Show map secure")
         expect(open_map_row).to_be_visible()
         open_map_row.click()
-        expect(page.locator("#map-canvas")).to_have_attribute("data-version", re.compile(r"^\d+$"), timeout=10_000)
+        expect(page.locator("#map-canvas")).to_have_attribute("data-version", re.compile(r"^\d+$"))
         # kept for the tab: a reload does not ask again
         page.reload()
         expect(page.get_by_role("button", name="Show map secure")).to_be_visible()
@@ -309,10 +314,48 @@ def test_the_api_docs_render_with_no_network_beyond_the_service(server: Server, 
 
     page.route("**/*", only_the_service)
     page.goto(server.url + "/docs")
-    expect(page.locator(".opblock-summary-path", has_text="/maps/{name}/plan")).to_be_visible(timeout=20_000)
+    expect(page.locator(".opblock-summary-path", has_text="/maps/{name}/plan")).to_be_visible()
     assert outside == []
     page.goto(server.url + "/redoc")
-    expect(page.get_by_role("heading", name="fuzzyrisk (0.1.0)")).to_be_visible(timeout=20_000)
+    expect(page.get_by_role("heading", name="fuzzyrisk (0.1.0)")).to_be_visible()
     expect(page.get_by_text("Post Scans").first).to_be_attached()
     # ReDoc's footer links its maker's logo from their CDN: cosmetic, the only thing allowed to miss
     assert [kind for kind, _ in outside] in ([], ["image"]), outside
+
+
+def test_a_growing_map_is_drawn_within_its_bounds_and_follows_them(server: Server, page: Page) -> None:
+    with api_client(server) as client:
+        made = client.post("/maps", json={"name": "roam", "resolution": RES})
+        assert made.status_code == 201, made.text
+        page.goto(server.url + "/")
+        row = page.locator('#maps-body tr[data-name="roam"] td').first
+        expect(row).to_have_text("growing, nothing observed yet (2-D)")
+        page.get_by_role("button", name="Show map roam").click()
+        expect(page.locator("#map-summary")).to_have_text(re.compile("nothing observed yet"))
+        for poses, label in ((POSES[:1], "first"), (POSES, "all")):
+            fused = client.post("/maps/roam/scans", json={"scans": [laser_json(p) for p in poses]})
+            assert fused.status_code == 200, fused.text
+            info = client.get("/maps/roam").json()
+            expect(page.locator("#map-canvas")).to_have_attribute("data-version", str(info["version"]),
+                                                                 timeout=PATIENCE_S * 1000)
+            width, height = info["shape"]
+            # the image is the map's bounds, one pixel a cell, and the page says where they are
+            expect(page.locator("#map-summary")).to_contain_text(f"({width} × {height} cells shown)")
+            expect(row).to_contain_text("growing")
+            if label == "first":
+                first_shape = (width, height)
+        assert (width, height) != first_shape  # the bounds grew with the scans, and the page followed
+    page.get_by_label("Show the last scan's beams").uncheck()
+
+    def rgb(x: float, y: float) -> list[int]:  # the canvas at a world point, the image placed at the bounds
+        u = (x - info["origin"][0]) / RES / width
+        v = 1.0 - (y - info["origin"][1]) / RES / height
+        return page.evaluate("""([u, v]) => {
+            const c = document.getElementById('map-canvas');
+            return Array.from(c.getContext('2d').getImageData(Math.floor(u * c.width), Math.floor(v * c.height), 1, 1)
+                .data.slice(0, 3));
+        }""", [u, v])
+
+    wall, free = rgb(4.92, 1.0), rgb(2.5, 3.0)  # the face of the hall's middle wall, and the floor before it
+    assert wall != list(UNKNOWN_RGB) and free != list(UNKNOWN_RGB)
+    assert wall[1] < free[1]  # crimson where the wall is, pale where the floor is

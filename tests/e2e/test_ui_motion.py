@@ -45,7 +45,7 @@ FAKE_RESULT = {"status": "exact", "path": [[*START, 0.0], [*GOAL, 0.0]], "length
 
 @pytest.fixture(scope="module")
 def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Server]:
-    srv = Server(tmp_path_factory.mktemp("ui-motion") / "data")
+    srv = Server(tmp_path_factory.mktemp("ui-motion") / "data", env={"FUZZYRISK_PLAN_WARMUP": "true"})  # ready to plan
     try:
         srv.start()
         with httpx.Client(base_url=srv.url, timeout=60.0) as client:
@@ -65,7 +65,7 @@ def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Server]:
 def open_map(page: Page, url: str, name: str) -> None:
     page.goto(url + "/ui/")
     page.get_by_role("button", name=f"Show map {name}").click()
-    expect(page.locator("#map-canvas")).to_have_attribute("data-version", re.compile(r"^\d+$"), timeout=10_000)
+    expect(page.locator("#map-canvas")).to_have_attribute("data-version", re.compile(r"^\d+$"))
     # the motion models come from GET /planners, asked after the first poll of the map list
     expect(page.locator("#planner option")).not_to_have_count(1)
 
@@ -82,12 +82,12 @@ def type_poses(page: Page, start: tuple[float, ...], goal: tuple[float, ...]) ->
             page.locator(f"#{which}-{axis}").fill(str(value))
 
 
-def plan_and_wait(page: Page, timeout_ms: float = 60_000) -> dict[str, Any]:
+def plan_and_wait(page: Page) -> dict[str, Any]:
     """Press Plan; the JSON body the page sent. Waits for the answer to be shown."""
     with page.expect_request(lambda r: r.method == "POST" and r.url.endswith("/maps/hall/plan")) as sent:
         page.get_by_role("button", name="Plan").click()
     result = page.locator("#plan-result")
-    expect(result).not_to_have_attribute("data-state", "busy", timeout=timeout_ms)
+    expect(result).not_to_have_attribute("data-state", "busy")
     body = sent.value.post_data_json
     assert isinstance(body, dict)
     return body

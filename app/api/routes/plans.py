@@ -1,4 +1,4 @@
-"""Plans on a map's risk."""
+"""Plans on a map's risk, and paths checked under a plan's rules."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ from planning.planners import PLANNERS
 
 from app.formats import etags
 from app.api.deps import MapNamePath, ServiceDep
-from app.schemas import PlannerInfo, Planners, PlanRequest, PlanResult
+from app.schemas import PathCheckRequest, PathCheckResult, PlannerInfo, Planners, PlanRequest, PlanResult
 
 router = APIRouter(tags=["plans"])
 
@@ -44,5 +44,30 @@ async def plan(name: MapNamePath, body: PlanRequest, service: ServiceDep, respon
     Runs in a worker process.
     """
     result = await service.plans.plan(name, body)
+    response.headers[etags.VERSION_HEADER] = str(result.version)
+    return result
+
+
+@router.post(
+    "/maps/{name}/paths/check",
+    responses={
+        404: {"description": "no map of that name"},
+        413: {"description": "more points than FUZZYRISK_MAX_PATH_POINTS, or segments crossing more than "
+                             "10,000,000 cells in all"},
+        422: {"description": "invalid parameters: NaN, a point of the wrong size for the state space, a frame_id "
+                             "that is not the map's, both or neither of path and poses"},
+    },
+)
+async def check_path(name: MapNamePath, body: PathCheckRequest, service: ServiceDep,
+                     response: Response) -> PathCheckResult:
+    """Whether a path still holds on the map's current risk (Nav2's IsPathValid), under the rules a plan with the same
+    ``robot_radius``, ``max_risk``, ``allow_unknown`` and ``state_space`` is held to, and its cost as a plan computes
+    it.
+
+    The points are joined by straight segments and every cell each crosses is checked, as the planner checks every
+    path it returns: a path a plan just returned is valid on the same version. A point off the map makes its segment
+    invalid. Runs where reads run, not in the planner workers.
+    """
+    result = await service.path_checks.check(name, body)
     response.headers[etags.VERSION_HEADER] = str(result.version)
     return result

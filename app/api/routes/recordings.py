@@ -16,6 +16,7 @@ from app.api.routes.risk import (
     _NOT_FOUND,
     Accept,
     IfNoneMatch,
+    WindowQuery,
     _binary_200,
     _grid_headers,
     _media_type,
@@ -42,8 +43,8 @@ _RESPONSES = {
 
 
 @router.get("/{name}/export/mcap", response_class=Response, responses=_RESPONSES)
-async def export_mcap(name: MapNamePath, service: ServiceDep, if_none_match: IfNoneMatch = None,
-                      accept: Accept = None) -> Response:
+async def export_mcap(name: MapNamePath, service: ServiceDep, window: WindowQuery,
+                      if_none_match: IfNoneMatch = None, accept: Accept = None) -> Response:
     """The map as an MCAP file for Foxglove, ``ros2 bag play`` or rosbags: its grid and its recent scans.
 
     ``/map``: the ``nav_msgs/msg/OccupancyGrid`` of ``occupancy_grid.cdr`` (latched), logged at
@@ -54,12 +55,13 @@ async def export_mcap(name: MapNamePath, service: ServiceDep, if_none_match: IfN
     scans are recorded (``X-Scans-Since-Version``; a snapshot every ``FUZZYRISK_SNAPSHOT_EVERY``
     batches). Batches keep no robot time: the last scan is stamped with the map's ``updated``
     time, each earlier one 0.1 s before the next, so every read of one version (and snapshot) is
-    the same file. 413 beyond ``FUZZYRISK_MAX_RECORDING_BYTES``.
+    the same file. 413 beyond ``FUZZYRISK_MAX_RECORDING_BYTES``. A window (``min``, ``max``) cuts
+    the grid on ``/map`` to its cells; the scans are recorded whole.
     """
     made = await service.reads.render_log(name, functools.partial(
         recording.export, media_type=_media_type(accept, MCAP), max_bytes=service.settings.max_recording_bytes,
-        if_none_match=if_none_match,
-    ))
+        if_none_match=if_none_match, window=window,
+    ), window)
     since = {recording.SINCE_HEADER: str(made.since_version)}
     if made.data is None:
         unchanged = etags.not_modified(made.etag, made.grid.version)

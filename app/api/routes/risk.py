@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import Annotated, Any, Literal
 
-from fastapi import APIRouter, Header, Path, Query, Response
+from fastapi import APIRouter, Depends, Header, Path, Query, Response
 from pydantic import FiniteFloat
 
 from app.formats import etags
@@ -14,7 +14,7 @@ from app.errors import Invalid
 from app.api.largebody import bytes_response
 from app.formats.exports import NAV2_FREE_THRESH, NAV2_OCCUPIED_THRESH
 from app.formats.mediatypes import MCAP, OCTET_STREAM
-from app.schemas import OccupancyGrid, RiskQuery, RiskValues
+from app.schemas import GridWindow, OccupancyGrid, RiskQuery, RiskValues, WindowCorner
 from app.maps import GridSnapshot, GridStamp
 from app.service.mapservice import MapService
 
@@ -30,11 +30,19 @@ IfNoneMatch = Annotated[
     Header(description="an ETag of an earlier answer of this route and query: 304 with no body while the map is at "
            "that version"),
 ]
+#: The corner of an answer's first cell, and its cells along each axis: what .npy and PNG have no field for.
+ORIGIN_HEADER = "X-Map-Origin"
+SHAPE_HEADER = "X-Map-Shape"
 #: The headers every grid answer carries (on a 200; a 304 carries ETag and X-Map-Version).
 _GRID_HEADERS = {
-    "ETag": {"description": "strong; changes with the map version and with the format and query",
-             "schema": {"type": "string"}},
+    "ETag": {"description": "strong; changes with the map version and with the format and query (the window "
+             "included)", "schema": {"type": "string"}},
     etags.VERSION_HEADER: {"description": "the map version of the answer", "schema": {"type": "integer"}},
+    ORIGIN_HEADER: {"description": "the corner of the answer's first cell (index 0 along each axis), metres, "
+                    "comma-separated x,y[,z] (the window's when one is asked for)",
+                    "schema": {"type": "string"}, "example": "-8.0,-5.0"},
+    SHAPE_HEADER: {"description": "the answer's cells along x,y[,z], comma-separated (the .npy array's shape; a "
+                   "PNG is ny rows of nx pixels, times scale)", "schema": {"type": "string"}, "example": "320,200"},
 }
 _NOT_MODIFIED = {304: {"description": "If-None-Match names the current ETag: the answer would be the same bytes "
                        "(no body)", "headers": _GRID_HEADERS}}
@@ -47,8 +55,24 @@ def _grid_headers(name: str, grid: GridSnapshot | GridStamp, variant: dict[str, 
         etags.VERSION_HEADER: str(grid.version),
         "X-Map-Frame": grid.frame_id,
         "X-Map-Resolution": repr(grid.spec.resolution),
-        "X-Map-Origin": ",".join(repr(v) for v in grid.spec.origin),
+        ORIGIN_HEADER: ",".join(repr(v) for v in grid.spec.origin),
+        SHAPE_HEADER: ",".join(str(n) for n in grid.spec.shape),
     }
+
+
+async def grid_window(
+    low: Annotated[WindowCorner | None, Query(
+        alias="min", description="the window's low corner `x,y` or `x,y,z`, metres: the read covers the cells that "
+        "meet [min, max], cut to the map (left out: the map's own edge)", examples=["-2.0,-1.5"])] = None,
+    high: Annotated[WindowCorner | None, Query(
+        alias="max", description="the window's high corner `x,y` or `x,y,z`, metres (left out: the map's own edge)",
+        examples=["2.0,1.5"])] = None,
+) -> GridWindow:
+    """The window of a grid read, from its query (``?min=x,y[,z]&max=x,y[,z]``)."""
+    return GridWindow(min=low, max=high)
+
+
+WindowQuery = Annotated[GridWindow, Depends(grid_window)]
 
 
 async def _unchanged(
@@ -106,6 +130,7 @@ def _media_type(accept: str | None, native: str) -> str:
 async def get_risk(
     name: MapNamePath,
     service: ServiceDep,
+    window: WindowQuery,
     format: Annotated[
         Literal["json", "npy", "png"],
         Query(description="json; npy and png are shorthands of `GET /maps/{name}/risk.npy` and `.png`, whose "
@@ -118,41 +143,41 @@ async def get_risk(
     if_none_match: IfNoneMatch = None,
 ) -> Response:
     """The defuzzified risk of every cell (0.5 = unknown) as JSON (``RiskGridJSON``: the grid, the
-    observed cells, the map's frame and version)."""
+    observed cells, the map's frame and version), or of the cells of a window (``min``, ``max``)."""
     if layer == "observed" and format != "npy":
         raise Invalid(f"layer=observed is for format=npy; format={format} has the observed cells already "
                       "(json: `observed`, png: grey-blue)")
     if format == "npy":
-        return await _risk_npy(name, service, layer, if_none_match, "application/x-npy")
+        return await _risk_npy(name, service, layer, window, if_none_match, "application/x-npy")
     if format == "png":
-        return await _risk_png(name, service, scale, z_min, z_max, if_none_match, "image/png")
+        return await _risk_png(name, service, scale, z_min, z_max, window, if_none_match, "image/png")
     variant: dict[str, object] = {"read": "risk", "format": format, "layer": layer, "scale": scale, "z_min": z_min,
-                                  "z_max": z_max}
+                                  "z_max": z_max, **window.variant()}
     if (unchanged := await _unchanged(service, name, variant, if_none_match)) is not None:
         return unchanged
-    data, grid = await service.reads.risk_json(name)
+    data, grid = await service.reads.risk_json(name, window)
     return bytes_response(data, media_type="application/json", headers=_grid_headers(name, grid, variant))
 
 
-async def _risk_npy(name: str, service: MapService, layer: str, if_none_match: str | None,
+async def _risk_npy(name: str, service: MapService, layer: str, window: GridWindow, if_none_match: str | None,
                     media_type: str) -> Response:
     variant: dict[str, object] = {"read": "risk", "format": "npy", "layer": layer, "scale": 1, "z_min": None,
-                                  "z_max": None, "media_type": media_type}
+                                  "z_max": None, "media_type": media_type, **window.variant()}
     if (unchanged := await _unchanged(service, name, variant, if_none_match)) is not None:
         return unchanged
-    data, grid, sent = await service.reads.risk_npy(name, layer)
+    data, grid, sent = await service.reads.risk_npy(name, layer, window)
     headers = _grid_headers(name, grid, variant)
     headers["Content-Disposition"] = f'attachment; filename="{name}-{layer}-v{grid.version}.npy"'
     return bytes_response(data, media_type=media_type, headers=headers, on_sent=sent)
 
 
 async def _risk_png(name: str, service: MapService, scale: int, z_min: float | None, z_max: float | None,
-                    if_none_match: str | None, media_type: str) -> Response:
+                    window: GridWindow, if_none_match: str | None, media_type: str) -> Response:
     variant: dict[str, object] = {"read": "risk", "format": "png", "layer": "risk", "scale": scale, "z_min": z_min,
-                                  "z_max": z_max, "media_type": media_type}
+                                  "z_max": z_max, "media_type": media_type, **window.variant()}
     if (unchanged := await _unchanged(service, name, variant, if_none_match)) is not None:
         return unchanged
-    data, grid, sent = await service.reads.risk_png(name, scale=scale, z_min=z_min, z_max=z_max)
+    data, grid, sent = await service.reads.risk_png(name, scale=scale, z_min=z_min, z_max=z_max, region=window)
     return bytes_response(data, media_type=media_type, headers=_grid_headers(name, grid, variant), on_sent=sent)
 
 
@@ -161,33 +186,37 @@ async def _risk_png(name: str, service: MapService, scale: int, z_min: float | N
     response_class=Response,
     responses={**_NOT_FOUND, **_NOT_MODIFIED, **_binary_200(
         "application/x-npy", "a .npy file: float32 risk (layer=risk) or the bool observed mask (layer=observed), "
-        "shape (nx, ny[, nz]), index [i, j(, k)] along x, y(, z)")},
+        "shape (nx, ny[, nz]) as X-Map-Shape says, index [i, j(, k)] along x, y(, z) from X-Map-Origin")},
 )
-async def get_risk_npy(name: MapNamePath, service: ServiceDep, layer: LayerQuery = "risk",
+async def get_risk_npy(name: MapNamePath, service: ServiceDep, window: WindowQuery, layer: LayerQuery = "risk",
                        if_none_match: IfNoneMatch = None, accept: Accept = None) -> Response:
     """The risk grid as a ``.npy`` file (``numpy.load(..., allow_pickle=False)``), or the observed mask.
 
     ``layer=observed``: the observed mask beside the risk, a bool array of the same shape and
-    order: True where a beam ever reached the cell.
+    order: True where a beam ever reached the cell. The file has no field for the grid's place:
+    ``X-Map-Origin`` (the corner of cell ``[0, 0(, 0)]``, metres) and ``X-Map-Shape`` say it.
     """
-    return await _risk_npy(name, service, layer, if_none_match, _media_type(accept, "application/x-npy"))
+    return await _risk_npy(name, service, layer, window, if_none_match, _media_type(accept, "application/x-npy"))
 
 
 @router.get(
     "/{name}/risk.png",
     response_class=Response,
     responses={**_NOT_FOUND, **_NOT_MODIFIED, **_binary_200(
-        "image/png", "one pixel a cell (scale x scale), top row = highest y")},
+        "image/png", "one pixel a cell (scale x scale), top row = highest y; X-Map-Origin is the corner of the "
+        "bottom-left pixel's cell")},
 )
-async def get_risk_png(name: MapNamePath, service: ServiceDep, scale: ScaleQuery = 1, z_min: ZBand = None,
-                       z_max: ZBand = None, if_none_match: IfNoneMatch = None, accept: Accept = None) -> Response:
+async def get_risk_png(name: MapNamePath, service: ServiceDep, window: WindowQuery, scale: ScaleQuery = 1,
+                       z_min: ZBand = None, z_max: ZBand = None, if_none_match: IfNoneMatch = None,
+                       accept: Accept = None) -> Response:
     """The risk grid as a picture a person can read.
 
     Colours: white (risk 0) through yellow, orange and red to dark crimson (risk 1); cells no
     beam ever reached are grey-blue, hatched at ``scale >= 4``. A 3-D map is drawn as the
     largest risk of the observed cells of each column within ``[z_min, z_max]``.
     """
-    return await _risk_png(name, service, scale, z_min, z_max, if_none_match, _media_type(accept, "image/png"))
+    return await _risk_png(name, service, scale, z_min, z_max, window, if_none_match,
+                           _media_type(accept, "image/png"))
 
 
 @router.post("/{name}/risk/query", responses=_NOT_FOUND)
@@ -215,16 +244,16 @@ _OGRID_MEDIA = {"json": "application/json", "cdr": messages_out.CDR_MEDIA_TYPE, 
 
 
 async def _occupancy_grid(name: str, service: MapService, format: str, mode: str, free_thresh: float,
-                          occupied_thresh: float, z_min: float | None, z_max: float | None,
+                          occupied_thresh: float, z_min: float | None, z_max: float | None, window: GridWindow,
                           if_none_match: str | None, media_type: str) -> Response:
     variant: dict[str, object] = {"read": "occupancy_grid", "format": format, "mode": mode,
                                   "free_thresh": free_thresh, "occupied_thresh": occupied_thresh, "z_min": z_min,
-                                  "z_max": z_max, "media_type": media_type}
+                                  "z_max": z_max, "media_type": media_type, **window.variant()}
     if (unchanged := await _unchanged(service, name, variant, if_none_match)) is not None:
         return unchanged
     data, grid, sent = await service.reads.occupancy_grid(name, mode=mode, free_thresh=free_thresh,
                                               occupied_thresh=occupied_thresh, z_min=z_min, z_max=z_max,
-                                              encoding=format)
+                                              encoding=format, region=window)
     headers = _grid_headers(name, grid, variant)
     if format == "mcap":
         headers["Content-Disposition"] = f'attachment; filename="{name}-v{grid.version}.mcap"'
@@ -248,6 +277,7 @@ async def _occupancy_grid(name: str, service: MapService, format: str, mode: str
 async def occupancy_grid(
     name: MapNamePath,
     service: ServiceDep,
+    window: WindowQuery,
     mode: GridMode = "trinary",
     format: Annotated[
         Literal["json", "cdr", "mcap"],
@@ -263,8 +293,9 @@ async def occupancy_grid(
 ) -> Response:
     """The map as a ``nav_msgs/OccupancyGrid`` in the map's frame (the message's fields, plus
     ``version``): ``data[j * width + i]``, -1 unknown. JSON up to 4,000,000 cells (422 beyond: the
-    ``.cdr`` and ``.mcap`` forms carry any size)."""
-    return await _occupancy_grid(name, service, format, mode, free_thresh, occupied_thresh, z_min, z_max,
+    ``.cdr`` and ``.mcap`` forms carry any size). A window (``min``, ``max``) gives its cells only,
+    ``info.origin`` its corner."""
+    return await _occupancy_grid(name, service, format, mode, free_thresh, occupied_thresh, z_min, z_max, window,
                                  if_none_match, _OGRID_MEDIA[format])
 
 
@@ -284,6 +315,7 @@ async def occupancy_grid_file(
     name: MapNamePath,
     encoding: Annotated[Literal["cdr", "mcap"], Path(description="cdr or mcap")],
     service: ServiceDep,
+    window: WindowQuery,
     mode: GridMode = "trinary",
     free_thresh: Threshold = NAV2_FREE_THRESH,
     occupied_thresh: Threshold = NAV2_OCCUPIED_THRESH,
@@ -295,7 +327,7 @@ async def occupancy_grid_file(
     """The map's ``nav_msgs/msg/OccupancyGrid`` as ROS 2 bytes: ``cdr``, serialized as ROS 2 does (for
     ``rclpy.serialization.deserialize_message`` or a rosbags typestore), or ``mcap``, a file with
     that one message on ``/map`` (latched QoS as map_server's) for Foxglove or a bag player."""
-    return await _occupancy_grid(name, service, encoding, mode, free_thresh, occupied_thresh, z_min, z_max,
+    return await _occupancy_grid(name, service, encoding, mode, free_thresh, occupied_thresh, z_min, z_max, window,
                                  if_none_match, _media_type(accept, _OGRID_MEDIA[encoding]))
 
 
@@ -311,6 +343,7 @@ occupancy_grid_file.__doc__ = (occupancy_grid_file.__doc__ or "") + _OGRID_DOC
 async def export_nav2(
     name: MapNamePath,
     service: ServiceDep,
+    window: WindowQuery,
     mode: Literal["trinary", "scale", "raw"] = "trinary",
     format: Literal["pgm", "png"] = "pgm",
     free_thresh: Threshold = NAV2_FREE_THRESH,
@@ -330,16 +363,17 @@ async def export_nav2(
     255 (map_server copies 0..100, reads the rest as -1; thresholds are written but unused).
     Nav2's static layer flattens a graded map unless ``trinary_costmap: false``. map_server's YAML
     has no frame: ``map.yaml`` names the map's in a comment, for map_server's ``frame_id`` parameter.
+    A window (``min``, ``max``) exports its cells only, ``origin`` in ``map.yaml`` its corner.
     """
     media_type = _media_type(accept, "application/zip")
     variant: dict[str, object] = {"read": "export/nav2", "format": format, "mode": mode, "free_thresh": free_thresh,
                                   "occupied_thresh": occupied_thresh, "z_min": z_min, "z_max": z_max,
-                                  "media_type": media_type}
+                                  "media_type": media_type, **window.variant()}
     if (unchanged := await _unchanged(service, name, variant, if_none_match)) is not None:
         return unchanged
     data, grid, sent = await service.reads.nav2_zip(
         name, mode=mode, image_format=format, free_thresh=free_thresh, occupied_thresh=occupied_thresh,
-        z_min=z_min, z_max=z_max,
+        z_min=z_min, z_max=z_max, region=window,
     )
     headers = _grid_headers(name, grid, variant)
     headers["Content-Disposition"] = f'attachment; filename="{name}-nav2.zip"'

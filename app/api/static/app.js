@@ -16,6 +16,7 @@
     gen: 0,              // bumped on every map switch: answers for an older map are dropped
     loading: null,       // promise of the image load in flight, so polls do not stack loads
     image: null,         // ImageBitmap of the risk PNG, one pixel per cell
+    imageOrigin: null,   // map-frame corner of the image's first cell (a growing map's moves as it grows)
     shownVersion: null,  // map version the image shows
     scan: null,          // GET /maps/{name}/scans/last, or null before the first scan
     start: null,         // [x, y(, z)] world metres
@@ -108,6 +109,7 @@
       }
       if (!response.ok) throw await ApiError.from(response);
       if (response.status === 204) return null;
+      if (as === "image") return { blob: await response.blob(), headers: response.headers };
       return as === "blob" ? response.blob() : response.json();
     }
   }
@@ -144,7 +146,15 @@
   const fmtPose = (p) => `${fmtPoint(p.slice(0, 2))}, ${fmtHeading(p[2])}`;
 
   function cellsOf(info) {
-    return info.shape || info.size.map((s) => Math.round(s / info.resolution));
+    if (info.shape) return info.shape;
+    return info.size ? info.size.map((s) => Math.round(s / info.resolution)) : [0, 0];
+  }
+
+  // a map's extent in words: a growing map's is its bounds, none until a scan reaches a cell
+  function fmtExtent(m) {
+    if (!m.size) return `growing, nothing observed yet (${m.dimensions}-D)`;
+    const growing = m.extent === "growing" ? ", growing" : "";
+    return `${m.size.map(fmtLength).join(" × ")} m (${m.dimensions}-D${growing})`;
   }
 
   // ---------------------------------------------------------------- map list
@@ -171,8 +181,8 @@
       button.addEventListener("click", () => selectMap(m));
       nameCell.append(button);
       const cells = [
-        `${m.size.map(fmtLength).join(" × ")} m (${m.dimensions}-D)`,
-        `${cellsOf(m).join(" × ")} @ ${m.resolution} m`,
+        fmtExtent(m),
+        `${m.size ? cellsOf(m).join(" × ") : "no cells yet"} @ ${m.resolution} m`,
         m.model,
         String(m.scans_fused),
         String(m.version),
@@ -227,7 +237,7 @@
   function mapGone() {
     const name = state.current.name;
     state.gen += 1;
-    Object.assign(state, { current: null, image: null, shownVersion: null, scan: null, path: null });
+    Object.assign(state, { current: null, image: null, imageOrigin: null, shownVersion: null, scan: null, path: null });
     $("view-title").textContent = "No map selected";
     $("map-summary").textContent = `Map ${name} was deleted.`;
     draw();
@@ -236,7 +246,7 @@
   function selectMap(info) {
     state.gen += 1;
     Object.assign(state, {
-      current: info, image: null, shownVersion: null, scan: null, path: null, start: null, goal: null,
+      current: info, image: null, imageOrigin: null, shownVersion: null, scan: null, path: null, start: null, goal: null,
       loading: null,
     });
     history.replaceState(null, "", `#${enc(info.name)}`);
@@ -248,7 +258,7 @@
     for (const el of document.querySelectorAll(".z-only")) el.hidden = !is3d;
     for (const id of ["start-x", "start-y", "goal-x", "goal-y"]) $(id).value = "";
     if (is3d) {
-      const midZ = info.origin[2] + info.size[2] / 2;
+      const midZ = info.origin ? info.origin[2] + info.size[2] / 2 : 0;
       $("start-z").value = $("goal-z").value = fmt(midZ, coordDigits());
     }
     renderMotionModels();
@@ -264,8 +274,22 @@
     const info = state.current;
     const base = `maps/${enc(info.name)}`;
     const job = (async () => {
-      const blob = await api(`${base}/risk?format=png`, { as: "blob" });
-      const image = await createImageBitmap(blob);
+      let answer;
+      try {
+        answer = await api(`${base}/risk?format=png`, { as: "image" });
+      } catch (error) {
+        // 409: a growing map that has observed nothing yet has no cell to show
+        if (!(error instanceof ApiError && error.status === 409) || gen !== state.gen) throw error;
+        if (state.image) state.image.close();
+        Object.assign(state, { image: null, imageOrigin: null, scan: null, shownVersion: info.version });
+        layout();
+        draw();
+        $("map-summary").textContent = `Growing map ${info.name}: nothing observed yet; it appears with the first scan.`;
+        return;
+      }
+      const image = await createImageBitmap(answer.blob);
+      // the image's own corner: a growing map's bounds move as it grows (the map list may be a version behind)
+      const corner = (answer.headers.get("X-Map-Origin") || "").split(",").map(Number);
       let scan = null;
       try {
         scan = await api(`${base}/scans/last`);
@@ -277,7 +301,8 @@
         return;
       }
       if (state.image) state.image.close();  // free the previous version's pixels now, not at GC
-      Object.assign(state, { image, scan, shownVersion: info.version });
+      const imageOrigin = corner.length >= 2 && corner.every(Number.isFinite) ? corner : info.origin;
+      Object.assign(state, { image, imageOrigin, scan, shownVersion: info.version });
       layout();
       draw();
       describeMap();
@@ -331,7 +356,8 @@
     const px = Math.floor((clientX - rect.left) / rect.width * w);
     const py = Math.floor((clientY - rect.top) / rect.height * h);
     if (px < 0 || py < 0 || px >= w || py >= h) return null;
-    const { origin, resolution } = state.current;
+    const { resolution } = state.current;
+    const origin = state.imageOrigin || state.current.origin;
     return [origin[0] + (px + 0.5) * resolution, origin[1] + (h - py - 0.5) * resolution];
   }
 
@@ -490,8 +516,8 @@
     const [w, h] = gridSize();
     const dims = info.dimensions === 3 ? "3-D map, shown as its maximum risk over z" : "2-D map";
     $("map-summary").textContent =
-      `${dims}, ${info.model} model: ${info.size.map(fmtLength).join(" × ")} m at ${info.resolution} m ` +
-      `(${w} × ${h} cells shown), origin ${fmtPoint(info.origin)}. ` +
+      `${dims}, ${info.model} model: ${fmtExtent(info)} at ${info.resolution} m ` +
+      `(${w} × ${h} cells shown), origin ${fmtPoint(state.imageOrigin || info.origin)}. ` +
       `Version ${info.version}, ${info.scans_fused} scans fused.`;
     const scan = state.scan;
     if (!scan) {

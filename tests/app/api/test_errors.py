@@ -51,6 +51,12 @@ def _declared(client: TestClient, method: str, template: str, status: int) -> No
          "START_OUTSIDE_MAP"),
         ("POST", "/maps/lab/risk/query", "/maps/{name}/risk/query",
          {"content": b"[" * 9_000_000, "headers": {"Content-Type": "application/json"}}, 413, "TOO_LARGE"),
+        ("POST", "/maps/import?name=lab", "/maps/import", {"content": b"PK", "headers": {"Content-Type": "application/zip"}},
+         409, "CONFLICT"),
+        ("POST", "/maps/import?name=new", "/maps/import", {"content": b"PK", "headers": {"Content-Type": "application/zip"}},
+         422, "INVALID"),
+        ("POST", "/maps/import?name=new", "/maps/import", {"content": b"PK", "headers": {"Content-Type": "image/png"}},
+         415, "UNSUPPORTED_MEDIA_TYPE"),
     ],
 )
 def test_every_error_has_the_one_body_and_is_declared(lab: TestClient, method: str, path: str, template: str,

@@ -137,15 +137,31 @@ def test_the_number_of_maps_is_capped_and_the_others_are_unaffected(make_client:
 
 
 def test_the_cells_of_all_maps_together_are_capped_before_any_memory_is_taken(make_client: Any, kit: Any) -> None:
-    client = make_client(max_total_cells=25_000)  # kit.MAP_2D is 100 x 100 = 10,000 cells
+    client = make_client(max_total_cells=25_000)  # a bayes kit.MAP_2D holds its 100 x 100 = 10,000 cells
+    bayes = {**kit.MAP_2D, "model": "bayes"}
     for name in ("a", "b"):
-        assert client.post("/maps", json={**kit.MAP_2D, "name": name}).status_code == 201
-    third = client.post("/maps", json={**kit.MAP_2D, "name": "c"})
+        assert client.post("/maps", json={**bayes, "name": name}).status_code == 201
+    third = client.post("/maps", json={**bayes, "name": "c"})
     assert third.status_code == 507
     assert "FUZZYRISK_MAX_TOTAL_CELLS" in error_message(third) and "20,000 of the service's 25,000" in error_message(third)
     assert [m["name"] for m in client.get("/maps").json()] == ["a", "b"]
-    small = client.post("/maps", json={**kit.MAP_2D, "name": "c", "size": [5.0, 5.0]})  # 2,500 cells fit
+    small = client.post("/maps", json={**bayes, "name": "c", "size": [5.0, 5.0]})  # 2,500 cells fit
     assert small.status_code == 201
+
+
+def test_the_cells_fuzzy_maps_hold_count_against_the_total_once_their_scans_take_them(make_client: Any,
+                                                                                      kit: Any) -> None:
+    client = make_client(max_total_cells=1_500)
+    for name in ("a", "b"):  # a fuzzy map holds no cell until a scan reaches one: both are made
+        assert client.post("/maps", json={**kit.MAP_2D, "name": name}).status_code == 201
+    assert client.post("/maps/a/scans", json={"scans": [kit.laser(x=-4.0, wall=8.0, beams=300)]}).status_code == 200
+    held = client.get("/maps/a").json()["held_cells"]
+    assert held >= 1_500
+    refused = client.post("/maps/b/scans", json={"scans": [kit.laser()]})
+    assert refused.status_code == 507 and "FUZZYRISK_MAX_TOTAL_CELLS" in error_message(refused)
+    assert client.get("/maps/b").json()["version"] == 0
+    assert client.post("/maps/a/clear", json={"min": [-5.0, -5.0], "max": [5.0, 5.0]}).status_code == 200
+    assert client.post("/maps/b/scans", json={"scans": [kit.laser()]}).status_code == 200
 
 
 # ---------------------------------------------------------------- bodies in flight

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import gc
+import importlib.metadata
 import os
 import re
 import signal
@@ -36,6 +37,11 @@ def _wait_ready(client: TestClient, timeout_s: float = 120.0) -> dict[str, Any]:
         time.sleep(0.05)
 
 
+def _distribution(requirement: str) -> str:
+    """The normalised distribution name a requirement (or a ``constraints.txt`` line) is about."""
+    return re.sub(r"[-_.]+", "-", re.match(r"[A-Za-z0-9._-]+", requirement).group(0)).lower()  # type: ignore[union-attr]
+
+
 # ---------------------------------------------------------------- the start
 
 
@@ -53,6 +59,73 @@ def test_a_port_in_use_stops_the_start_at_once_with_exit_1_and_a_message(tmp_pat
     assert f"port {port} on 127.0.0.1 is already in use" in result.stderr and "FUZZYRISK_PORT" in result.stderr
     assert time.monotonic() - started < 10  # before the maps, the kernels or the workers
     assert not (tmp_path / "data").exists()  # nothing created
+
+
+#: ``sitecustomize.py`` of a Python as without an extra: the path finder finds none of the ``HIDDEN`` modules, so
+#: ``importlib.util.find_spec`` answers None for them, as where they were never installed.
+WITHOUT_MODULES = """
+import importlib.machinery
+import sys
+
+HIDDEN = {hidden!r}
+
+
+class WithoutHidden(importlib.machinery.PathFinder):
+    @classmethod
+    def find_spec(cls, name, path=None, target=None):
+        return None if name.partition(".")[0] in HIDDEN else super().find_spec(name, path, target)
+
+
+sys.meta_path[:] = [WithoutHidden if finder is importlib.machinery.PathFinder else finder for finder in sys.meta_path]
+"""
+
+
+@pytest.mark.parametrize(("variable", "value", "hidden", "extra"), [
+    ("FUZZYRISK_DATABASE_URL", "postgresql://fleet@127.0.0.1:5432/maps", "psycopg", "postgres"),
+    ("FUZZYRISK_DATABASE_URL", "postgresql://fleet@127.0.0.1:5432/maps", "psycopg_pool", "postgres"),
+    ("FUZZYRISK_FOXGLOVE_PORT", "8765", "foxglove", "foxglove"),
+])
+def test_a_setting_whose_extra_is_not_installed_stops_the_start_before_anything_with_exit_2_and_one_line(
+    tmp_path: Path, variable: str, value: str, hidden: str, extra: str,
+) -> None:
+    site = tmp_path / "site"  # on PYTHONPATH: its sitecustomize runs as the interpreter starts
+    site.mkdir()
+    (site / "sitecustomize.py").write_text(WITHOUT_MODULES.format(hidden={hidden}))
+    env = {**os.environ, "PYTHONPATH": str(site), variable: value}
+    look_up = f"import importlib.util; print(importlib.util.find_spec({hidden!r}))"
+    hides = subprocess.run([sys.executable, "-c", look_up], check=False, env=env, capture_output=True, text=True,
+                           timeout=60)
+    assert hides.stdout == "None\n", hides.stderr  # the module is out of sight, and nothing else
+    with socket.socket() as taken:  # the service's port, held here: a start that got as far as binding says so
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        result = subprocess.run(
+            [sys.executable, "-m", "app", "--port", str(port), "--data-dir", str(tmp_path / "data")],
+            check=False, cwd=ROOT, env=env, capture_output=True, text=True, timeout=60,
+        )
+    assert result.returncode == 2, result.stderr
+    said = (f"python -m app: {variable} needs {hidden}, which is not installed: pip install 'fuzzyrisk[{extra}]' "
+            f"(an image: docker build --build-arg EXTRAS={extra}), or unset {variable}")
+    assert result.stderr.splitlines() == [said]
+    assert result.stdout == "" and not (tmp_path / "data").exists()  # nothing bound, logged or created
+
+
+def test_with_its_extra_installed_a_setting_starts_no_such_check() -> None:
+    settings = Settings(database_url="postgresql://fleet@127.0.0.1:5432/maps", foxglove_port=8765)
+    assert process_setup.missing_extra(settings) is None  # this environment has every extra (the test one)
+    assert process_setup.missing_extra(Settings()) is None
+
+
+def test_each_setting_that_needs_an_extra_names_one_of_pyproject_that_installs_its_modules() -> None:
+    extras = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["optional-dependencies"]
+    installed_by = importlib.metadata.packages_distributions()  # import name -> distributions
+
+    assert {extra.setting for extra in process_setup.EXTRAS} <= set(Settings.model_fields)
+    for extra in process_setup.EXTRAS:
+        wanted = {_distribution(requirement) for requirement in extras[extra.name]}
+        for module in extra.modules:
+            assert {_distribution(d) for d in installed_by[module]} & wanted, (extra.name, module)
 
 
 def test_the_listening_socket_says_it_is_tcp_so_that_answers_are_not_delayed() -> None:
@@ -203,13 +276,10 @@ def test_constraints_pin_every_dependency_of_every_extra() -> None:
     for extra in project["optional-dependencies"].values():
         wanted += extra
 
-    def name(requirement: str) -> str:
-        return re.sub(r"[-_.]+", "-", re.match(r"[A-Za-z0-9._-]+", requirement).group(0)).lower()  # type: ignore[union-attr]
-
-    pinned = {name(line): line for line in (ROOT / "constraints.txt").read_text().splitlines()
+    pinned = {_distribution(line): line for line in (ROOT / "constraints.txt").read_text().splitlines()
               if line and not line.startswith("#")}
     assert all("==" in line for line in pinned.values())
-    assert sorted({name(r) for r in wanted} - set(pinned)) == []
+    assert sorted({_distribution(r) for r in wanted} - set(pinned)) == []
 
 
 def test_a_lower_priority_is_lower_than_where_the_thread_ran_started_niced_or_not() -> None:

@@ -77,8 +77,9 @@ def test_a_slow_clients_backlog_is_bounded_in_bytes() -> None:
         Settings(foxglove_max_cells=4_000_001)
 
 
-def test_the_missing_sdk_is_said_once_for_both_places() -> None:
+def test_the_missing_sdk_is_said_in_the_words_of_the_start_check() -> None:
     error: Any = foxglove_sdk_missing(ImportError("No module named 'foxglove'"))
     assert isinstance(error, StartupError)
-    assert str(error).startswith("FUZZYRISK_FOXGLOVE_PORT is set but the Foxglove SDK is not installed")
-    assert "pip install 'fuzzyrisk[foxglove]'" in str(error)
+    assert str(error).startswith("FUZZYRISK_FOXGLOVE_PORT needs the Foxglove SDK (No module named 'foxglove')")
+    install = "pip install 'fuzzyrisk[foxglove]' (an image: docker build --build-arg EXTRAS=foxglove)"
+    assert str(error).endswith(f"{install}, or unset FUZZYRISK_FOXGLOVE_PORT")

@@ -175,7 +175,10 @@ def test_a_replica_lists_a_map_it_does_not_hold_with_settings_that_make_the_same
     assert a.post("/maps", json=body).status_code == 201
     shown = a.get("/maps/lab").json()
     (listed,) = b.get("/maps").json()  # from the stored row: b holds no map
-    assert b.get("/ready").json()["maps_loaded"] == 0 and listed == shown
+    assert b.get("/ready").json()["maps_loaded"] == 0
+    # what only the holder knows (the cells held, the bounds of what was observed) is null in b's list
+    assert listed["held_cells"] is None and listed["bounds"] is None
+    assert {**listed, "held_cells": shown["held_cells"], "bounds": shown["bounds"]} == shown
     assert b.post("/maps", json={**settings_of(listed), "name": "copy"}).status_code == 201
     assert settings_of(a.get("/maps/copy").json()) == settings_of(shown)
 
@@ -332,9 +335,9 @@ def test_a_bag_import_keeps_its_map_in_memory_while_another_map_is_asked_for(
         replicas: Replicas, kit: Any, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     # review: once its body was spooled, a bag upload did not count as a use of its map: a load of another map
     # dropped it to make room, and the import's first batch found another copy and answered 409
-    _, b = replicas(max_total_cells=15_000)  # room for one 100 x 100 map
+    _, b = replicas(max_total_cells=15_000)  # room for one 100 x 100 bayes map (it holds its whole box)
     for name in ("bag", "other"):
-        assert b.post("/maps", json={**kit.MAP_2D, "name": name}).status_code == 201
+        assert b.post("/maps", json={**kit.MAP_2D, "model": "bayes", "name": name}).status_code == 201
     bag = write_bag(laser_scenario(), tmp_path / "drive", "ros1")
     decompressed_bytes, meanwhile = bagsize.decompressed_bytes, []
 
@@ -356,9 +359,9 @@ def test_maps_loading_at_once_count_in_the_memory_limit(replicas: Replicas, kit:
                                                         monkeypatch: pytest.MonkeyPatch) -> None:
     # review: the room for a map was checked before its load's awaits: maps loading at once all passed the
     # check and together held more than FUZZYRISK_MAX_TOTAL_CELLS
-    a, b = replicas(max_total_cells=15_000)  # room for one 100 x 100 map
+    a, b = replicas(max_total_cells=15_000)  # room for one 100 x 100 bayes map (it holds its whole box)
     for name in ("one", "two"):
-        assert a.post("/maps", json={**kit.MAP_2D, "name": name}).status_code == 201
+        assert a.post("/maps", json={**kit.MAP_2D, "model": "bayes", "name": name}).status_code == 201
     storage = b.app.state.service.storage  # type: ignore[attr-defined]
     load_map, loading, gate = storage.load_map, threading.Event(), threading.Event()
 
@@ -447,10 +450,11 @@ def test_a_map_no_replica_could_load_is_refused_at_creation(replicas: Replicas, 
     # review: with a shared database POST /maps skipped FUZZYRISK_MAX_TOTAL_CELLS: a map larger than a replica's
     # memory was created (201), then every request for it answered 507 on every replica
     a, b = replicas(max_total_cells=5_000)
-    refused = a.post("/maps", json=kit.MAP_2D)  # 100 x 100 cells
+    bayes = {**kit.MAP_2D, "model": "bayes"}  # a bayes map holds its whole box from the start
+    refused = a.post("/maps", json=bayes)  # 100 x 100 cells
     assert refused.status_code == 507 and "FUZZYRISK_MAX_TOTAL_CELLS" in error_message(refused)
     assert b.get("/maps").json() == [] and b.get("/maps/lab").status_code == 404
-    assert a.post("/maps", json={**kit.MAP_2D, "resolution": 0.2}).status_code == 201  # 50 x 50 fits
+    assert a.post("/maps", json={**bayes, "resolution": 0.2}).status_code == 201  # 50 x 50 fits
     assert kit.version(b, "lab") == 0
 
 
@@ -499,3 +503,30 @@ def test_the_list_and_a_maps_own_route_agree_after_a_discarded_batch(
             assert (listed["version"], listed["updated"], listed["scans_fused"]) == \
                 (got["version"], got["updated"], got["scans_fused"])
             assert (got["version"], got["scans_fused"]) == (3, 2)
+
+
+def test_a_map_imported_through_one_replica_is_served_and_scanned_through_the_other(replicas: Replicas,
+                                                                                    kit: Any) -> None:
+    from tests.app.formats.test_saved_maps import nav2_yaml, pgm, zipped
+
+    a, b = replicas()
+    grey = np.full((50, 60), 205, dtype=np.uint8)
+    grey[5:45, 5:55] = 254
+    grey[5, 5:55] = 0
+    saved = zipped({"map.yaml": nav2_yaml(origin=[-3.0, -2.5, 0.0], resolution=0.1, free_thresh=0.196),
+                    "map.pgm": pgm(grey)})
+    zip_type = {"content-type": "application/zip"}
+    made = a.post("/maps/import", params={"name": "floor"}, content=saved, headers=zip_type)
+    assert made.status_code == 201, made.text
+    assert made.json()["version"] == 1
+    assert b.get("/maps/floor").json()["version"] == 1  # loaded by b from the database: its first batch replayed
+    np.testing.assert_array_equal(kit.risk_npy(a, "floor"), kit.risk_npy(b, "floor"))
+    assert b.post("/maps/floor/scans", json={"scans": [kit.laser(wall=1.0)]}).json()["version"] == 2
+    assert kit.version(a, "floor") == 2
+    np.testing.assert_array_equal(kit.risk_npy(a, "floor"), kit.risk_npy(b, "floor"))
+    # the name is taken on every replica; a refused import makes nothing on any
+    assert b.post("/maps/import", params={"name": "floor"}, content=saved, headers=zip_type).status_code == 409
+    bad = b.post("/maps/import", params={"name": "other"}, content=zipped({"map.yaml": b"- not a map\n"}),
+                 headers=zip_type)
+    assert bad.status_code == 422
+    assert [m["name"] for m in a.get("/maps").json()] == ["floor"]

@@ -108,12 +108,32 @@ def test_non_finite_geometry_is_refused(client: TestClient, token: str) -> None:
     assert "origin" in str(response.json())
 
 
-def test_a_map_above_the_cell_limit_is_refused_with_the_setting_named(make_client: Any, kit: Any) -> None:
+def test_a_bayes_map_above_the_cell_limit_is_refused_with_the_setting_named(make_client: Any, kit: Any) -> None:
     client = make_client(max_map_cells=5_000)
-    response = client.post("/maps", json=kit.MAP_2D)  # 10 000 cells
+    response = client.post("/maps", json={**kit.MAP_2D, "model": "bayes", "engine": None})  # 10 000 cells, all held
     assert response.status_code == 422
     assert "FUZZYRISK_MAX_MAP_CELLS" in error_message(response)
     assert client.get("/maps").json() == []
+
+
+def test_a_fuzzy_map_counts_the_cells_it_holds_and_refuses_scans_once_full(make_client: Any, kit: Any) -> None:
+    client = make_client(max_map_cells=2_000)
+    made = client.post("/maps", json=kit.MAP_2D)  # a box of 10 000 cells: a fuzzy map holds none of them yet
+    assert made.status_code == 201 and made.json()["held_cells"] == 0
+    assert client.post("/maps/lab/scans", json={"scans": [kit.laser(wall=3.0)]}).status_code == 200
+    held = client.get("/maps/lab").json()["held_cells"]
+    assert 0 < held < 10_000
+    full = client.post("/maps/lab/scans", json={"scans": [kit.laser(x=-3.0, wall=6.0, beams=400)]})
+    if full.status_code == 200:  # under the limit still: one more batch fills it
+        full = client.post("/maps/lab/scans", json={"scans": [kit.laser(x=-3.0, y=-2.0, wall=6.0, beams=400)]})
+    assert client.get("/maps/lab").json()["held_cells"] >= 2_000
+    refused = client.post("/maps/lab/scans", json={"scans": [kit.laser(wall=3.0)]})
+    assert refused.status_code == 507 and "FUZZYRISK_MAX_MAP_CELLS" in error_message(refused)
+    version = client.get("/maps/lab").json()["version"]
+    cleared = client.post("/maps/lab/clear", json={"min": [-5.0, -5.0], "max": [5.0, 5.0]})  # an edit is never refused
+    assert cleared.status_code == 200 and cleared.json()["version"] == version + 1
+    assert client.get("/maps/lab").json()["held_cells"] == 0
+    assert client.post("/maps/lab/scans", json={"scans": [kit.laser(wall=3.0)]}).status_code == 200
 
 
 def test_a_bad_name_in_the_path_answers_422(client: TestClient) -> None:
@@ -146,7 +166,7 @@ def test_a_deleted_maps_memory_is_freed_at_the_delete(lab: TestClient, kit: Any)
 
 # ---------------------------------------------------------------- what GET shows, POST takes
 #: The read-only facts of a map (docs/api.md): GET /maps/{name} shows them, POST /maps refuses them.
-FACTS = ("shape", "scans_fused", "version", "created", "updated")
+FACTS = ("shape", "bounds", "held_cells", "scans_fused", "version", "created", "updated")
 
 
 def settings_of(info: dict[str, Any]) -> dict[str, Any]:
