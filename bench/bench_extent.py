@@ -16,15 +16,16 @@ memory  A growing map's state (``state_nbytes()``) against OctoMap's tree (``OcT
         same scans at the same resolution, with no box on either side: every CARMEN log of the data
         directory (OctoMap gets each scan's beams at z = 0.025 m, no-returns free up to ``range_max``, as
         ``bench maps`` feeds it), the 3-D scene of ``bench fusion`` and the Ouster frames (below).
-ouster  The three frames of an Ouster OS-1-128 in ``ouster/`` of the data directory (``../shared/data``), at
-        0.1 m with ``range_max`` 30 m and every height, into one growing map: its held cells and state
-        bytes against the service's default ``FUZZYRISK_MAX_MAP_CELLS``, and the cells of a fixed box over
-        the same cells.
+ouster  The three frames of an Ouster OS-1-128 in ``ouster/`` of the data directory (``../shared/data`` or
+        the repository's ``tests/data``), at 0.1 m with ``range_max`` 30 m and every height, into one
+        growing map: its held cells and state bytes against the service's default
+        ``FUZZYRISK_MAX_MAP_CELLS``, and the cells of a fixed box over the same cells.
 """
 
 from __future__ import annotations
 
 import argparse
+import gzip
 import math
 import os
 import time
@@ -186,12 +187,18 @@ def octomap_nbytes_of_clouds(clouds: list[PointCloud], resolution: float) -> tup
 
 
 def ouster_clouds(folder: Path) -> list[PointCloud]:
-    """The Ouster frames (``README.md`` there) as clouds in the first frame's frame, rows at (0, 0, 0) (no return)
-    dropped, ``range_max`` ``OUSTER_RANGE_MAX``."""
+    """The Ouster frames of ``folder`` as clouds in the first frame's frame, rows at (0, 0, 0) (no return) dropped,
+    ``range_max`` ``OUSTER_RANGE_MAX``.
+
+    Either layout of the frames: ``velodyne/NNNNNN.bin`` (``../shared/data/ouster``) or ``NNNNNN.bin.gz``
+    (``tests/data/ouster``), float32 rows ``x y z reflectivity`` in the sensor frame, beside ``poses.txt``
+    (KITTI: ``[R | t]`` a line, a point in the map frame is ``R @ p + t``)."""
     poses = np.loadtxt(folder / "poses.txt").reshape(-1, 3, 4)
     clouds = []
     for i, pose in enumerate(poses):
-        raw = np.fromfile(folder / "velodyne" / f"{i:06d}.bin", dtype=np.float32).reshape(-1, 4)[:, :3]
+        plain, packed = folder / "velodyne" / f"{i:06d}.bin", folder / f"{i:06d}.bin.gz"
+        data = plain.read_bytes() if plain.is_file() else gzip.decompress(packed.read_bytes())
+        raw = np.frombuffer(data, dtype=np.float32).reshape(-1, 4)[:, :3]
         points = raw[np.any(raw != 0.0, axis=1)].astype(np.float64)
         rotation, translation = pose[:, :3], pose[:, 3]
         clouds.append(PointCloud(points=points @ rotation.T + translation, origin=tuple(translation),

@@ -4,6 +4,7 @@ as their README says."""
 
 from __future__ import annotations
 
+import gzip
 from pathlib import Path
 
 import numpy as np
@@ -12,7 +13,7 @@ import pytest
 from bench import _logmaps, bench_extent
 from fuzzyocc import FuzzyMap
 from fuzzyocc.maps import Window
-from tests.conftest import carmen_log
+from tests.conftest import DATA_DIR, carmen_log, ouster_frames
 
 SCANS = 60  # orebro's first scans: a few seconds
 
@@ -58,13 +59,18 @@ def test_no_wide_box_around_bounds_wider_than_it() -> None:
     assert bench_extent.box_around(Window(lo=(0, 0), hi=(8000, 10), resolution=0.05, lower=(0.0, 0.0))) is not None
 
 
-def test_ouster_frames_are_placed_by_their_poses(tmp_path: Path) -> None:
-    """Two frames in the KITTI layout of ``../shared/data/ouster``: rows at the origin are dropped, the others
-    are ``R @ p + t`` with the frame's sensor position as origin."""
-    (tmp_path / "velodyne").mkdir()
+@pytest.mark.parametrize("packed", [False, True], ids=["velodyne-bin", "bin-gz"])
+def test_ouster_frames_are_placed_by_their_poses(tmp_path: Path, packed: bool) -> None:
+    """Two frames in either KITTI layout (``../shared/data/ouster``'s, ``tests/data/ouster``'s): rows at the origin
+    are dropped, the others are ``R @ p + t`` with the frame's sensor position as origin."""
     rows = np.array([[1.0, 2.0, 3.0, 7.0], [0.0, 0.0, 0.0, 0.0], [-4.0, 0.5, 1.0, 9.0]], dtype=np.float32)
+    if not packed:
+        (tmp_path / "velodyne").mkdir()
     for i in range(2):
-        rows.tofile(tmp_path / "velodyne" / f"{i:06d}.bin")
+        if packed:
+            (tmp_path / f"{i:06d}.bin.gz").write_bytes(gzip.compress(rows.tobytes()))
+        else:
+            rows.tofile(tmp_path / "velodyne" / f"{i:06d}.bin")
     quarter = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])  # 90 degrees about z
     poses = [np.hstack([np.eye(3), np.zeros((3, 1))]), np.hstack([quarter, [[10.0], [20.0], [1.0]]])]
     np.savetxt(tmp_path / "poses.txt", np.array([p.reshape(-1) for p in poses]))
@@ -74,3 +80,13 @@ def test_ouster_frames_are_placed_by_their_poses(tmp_path: Path) -> None:
     np.testing.assert_allclose(clouds[1].points, [[8.0, 21.0, 4.0], [9.5, 16.0, 2.0]])
     assert clouds[1].origin == (10.0, 20.0, 1.0)
     assert clouds[1].range_max == bench_extent.OUSTER_RANGE_MAX
+
+
+def test_the_repositorys_ouster_frames_are_the_shared_ones() -> None:
+    """``tests/data/ouster`` (gzipped) reads as the frames ``tests/conftest.py`` hands the service tests."""
+    clouds = bench_extent.ouster_clouds(DATA_DIR / "ouster")
+    frames = ouster_frames()
+    assert len(clouds) == len(frames) == 3
+    for cloud, (points, rotation, translation) in zip(clouds, frames):
+        np.testing.assert_allclose(cloud.points, points @ rotation.T + translation)
+        assert cloud.origin == tuple(translation)
