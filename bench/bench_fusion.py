@@ -12,7 +12,10 @@ Gaussian range noise (the maps' ``range_sigma``):
     (an Ouster OS1-64 pattern), fused at 0.1 m into 3-D maps and into an OcTree at 0.1 m.
 
 Each scan is one integrate call (``integrate_scan`` / ``integrate_points`` /
-``OcTree.insertPointCloud``), as a robot streams them. Numba compile time is excluded: every
+``OcTree.insertPointCloud``), as a robot streams them. ``Fuzzy/growing`` is the default engine's
+``FuzzyMap`` on a growing map (``LatticeSpec``: no box, cells on the lattice of the frame's origin,
+blocks allocated as rays reach them) fed the same scans; its cells are those of the fixed box,
+checked by comparing the two maps' risk over the growing map's bounds. Numba compile time is excluded: every
 model is warmed up on a tiny map first. OctoMap's "cells traversed" are counted with our
 exact traversal over the same segments (sensor to end point) since it does not report them.
 """
@@ -24,10 +27,11 @@ import os
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import cast
 
 import numpy as np
 
-from fuzzyocc import BayesMap, FuzzyEngine, FuzzyMap, GridSpec, SensorModel, presets
+from fuzzyocc import BayesMap, FuzzyEngine, FuzzyMap, GridSpec, LatticeSpec, SensorModel, presets
 from fuzzyocc.engine import _defuzzify_tables
 from fuzzyocc.raycast import cast_rays
 
@@ -140,10 +144,13 @@ class Run:
     nbytes: int  # persistent state (OctoMap: the tree)
     resident: int  # everything held between calls (OctoMap: the tree)
     traversed: int = 0
+    held_cells: int = 0  # cells held in memory (OctoMap: none counted)
 
 
-class _Clock:
-    def __enter__(self) -> _Clock:
+class Clock:
+    """Wall and process CPU seconds of a ``with`` block (``wall``, ``cpu`` once it ends)."""
+
+    def __enter__(self) -> Clock:
         self.wall, self.cpu = time.perf_counter(), time.process_time()
         return self
 
@@ -151,10 +158,11 @@ class _Clock:
         self.wall, self.cpu = time.perf_counter() - self.wall, time.process_time() - self.cpu
 
 
-def _integrate(factory: Callable[[GridSpec, SensorModel], FuzzyMap | BayesMap], scene: Scene) -> Run:
+def _integrate(factory: Callable[[GridSpec, SensorModel], FuzzyMap | BayesMap], scene: Scene,
+               kept: dict[str, FuzzyMap | BayesMap] | None = None, label: str = "") -> Run:
     m = factory(scene.spec, SensorModel(range_sigma=RANGE_NOISE_M))
     rays = traversed = 0
-    with _Clock() as clock:
+    with Clock() as clock:
         for s in range(len(scene.origins)):
             if scene.angles is not None:
                 x, y, theta = scene.origins[s]
@@ -166,7 +174,10 @@ def _integrate(factory: Callable[[GridSpec, SensorModel], FuzzyMap | BayesMap], 
             rays += st.rays
             traversed += st.cells_traversed
         m.risk()  # a reader pays for the defuzzification of what changed: count it
-    return Run(clock.wall, clock.cpu, rays, m.state_nbytes(), m.resident_nbytes(), traversed)
+    if kept is not None:
+        kept[label] = m
+    return Run(clock.wall, clock.cpu, rays, m.state_nbytes(), m.resident_nbytes(), traversed,
+               m.held_cells() if isinstance(m, FuzzyMap) else m.spec.num_cells)
 
 
 def _octomap(scene: Scene) -> Run:
@@ -182,7 +193,7 @@ def _octomap(scene: Scene) -> Run:
             org = np.append(org, 0.0)
         pts3.append(np.ascontiguousarray(pts, dtype=np.float64))
         org3.append(np.asarray(org, dtype=np.float64))
-    with _Clock() as clock:
+    with Clock() as clock:
         for pts, org in zip(pts3, org3):
             tree.insertPointCloud(pts, org, maxrange=RANGE_MAX_M)
     usage = int(tree.memoryUsage())
@@ -213,46 +224,75 @@ def _paper_map(spec: GridSpec, sensor: SensorModel) -> FuzzyMap:
     return FuzzyMap(spec, sensor, FuzzyEngine.paper())
 
 
+def _growing_map(spec: GridSpec, sensor: SensorModel) -> FuzzyMap:
+    """The default engine's map with no box, at ``spec``'s resolution (its cells are ``spec``'s: the box's origin
+    lies on the lattice)."""
+    return FuzzyMap(LatticeSpec(spec.ndim, spec.resolution), sensor)
+
+
+def _same_cells(fixed: FuzzyMap, growing: FuzzyMap) -> bool:
+    """Whether the fixed map's risk and observed cells over the growing map's bounds are the growing map's."""
+    bounds = growing.bounds()
+    if bounds is None:
+        return False
+    half = 0.5 * bounds.resolution
+    window = fixed.window([o + half for o in bounds.origin], [u - half for u in bounds.upper])
+    return (window is not None and window.shape == bounds.shape
+            and np.array_equal(fixed.risk(window), growing.risk())
+            and np.array_equal(fixed.observed(window), growing.observed()))
+
+
 def _warm_up() -> None:
     for spec in (GridSpec(origin=(0.0, 0.0), size=(1.0, 1.0), resolution=0.1),
                  GridSpec(origin=(0.0, 0.0, 0.0), size=(1.0, 1.0, 1.0), resolution=0.1)):
-        for m in (FuzzyMap(spec, SensorModel()), BayesMap(spec, SensorModel())):
+        for m in (FuzzyMap(spec, SensorModel()), BayesMap(spec, SensorModel()), _growing_map(spec, SensorModel())):
             pts = np.full((4, spec.ndim), 0.8)
             m.integrate_points(pts, origin=np.full(spec.ndim, 0.15), range_max=0.5)
             m.integrate_points(pts, origin=np.full(spec.ndim, 0.15), range_max=5.0)
+            if spec.ndim == 2:
+                m.integrate_scan(pose=(0.5, 0.5, 0.0), angle_min=0.0, angle_increment=0.1, ranges=[0.3, np.inf],
+                                 range_min=0.0, range_max=1.0)
             m.risk()
-        if spec.ndim == 2:
-            m.integrate_scan(pose=(0.5, 0.5, 0.0), angle_min=0.0, angle_increment=0.1, ranges=[0.3, np.inf],
-                             range_min=0.0, range_max=1.0)
 
 
 def run(scene: Scene, repeat: int) -> None:
     print(f"\n{scene.name}: {len(scene.origins)} scans, {sum(len(p) for p in scene.points)} rays, "
           f"grid {scene.spec.shape} at {scene.spec.resolution} m")
+    kept: dict[str, FuzzyMap | BayesMap] = {}  # the last map of each model, to compare their cells
     models = {
-        "FuzzyMap": lambda: _integrate(FuzzyMap, scene),
+        "FuzzyMap": lambda: _integrate(FuzzyMap, scene, kept, "FuzzyMap"),
+        "Fuzzy/growing": lambda: _integrate(_growing_map, scene, kept, "Fuzzy/growing"),
         "Fuzzy/paper": lambda: _integrate(_paper_map, scene),
         "BayesMap": lambda: _integrate(BayesMap, scene),
         "OctoMap": lambda: _octomap(scene),
     }
-    # Rounds interleave the models so that a burst of other work on the machine hits them alike.
+    # Rounds interleave the models, each round starting one model later, so that a burst of other work on the
+    # machine, or what one model leaves behind for the next (freed memory, a cold cache), hits them alike.
     runs: dict[str, list[Run]] = {label: [] for label in models}
-    for _ in range(repeat):
-        for label, measure in models.items():
-            runs[label].append(measure())
+    labels = list(models)
+    for r in range(repeat):
+        for label in labels[r % len(labels):] + labels[: r % len(labels)]:
+            runs[label].append(models[label]())
     best = {label: min(r, key=lambda x: x.wall_s) for label, r in runs.items()}
     cpu = {label: min(x.cpu_s for x in r) for label, r in runs.items()}
     best["OctoMap"].traversed = _segment_cells(scene)
     octo = best["OctoMap"]
     cells = scene.spec.num_cells
-    print(f"  {'model':11s} {'wall s':>7s} {'cpu s':>7s} {'rays/s':>10s} {'cells/s':>12s} "
+    print(f"  {'model':13s} {'wall s':>7s} {'cpu s':>7s} {'rays/s':>10s} {'cells/s':>12s} "
           f"{'rays/s vs OctoMap':>18s} {'(by cpu s)':>11s} {'state MB':>9s} {'B/cell':>6s} {'vs OctoMap':>10s} "
           f"{'resident MB':>11s} {'B/cell':>6s} {'vs OctoMap':>10s}")
     for label, r in best.items():
-        print(f"  {label:11s} {r.wall_s:7.3f} {cpu[label]:7.3f} {r.rays / r.wall_s:10,.0f} "
+        print(f"  {label:13s} {r.wall_s:7.3f} {cpu[label]:7.3f} {r.rays / r.wall_s:10,.0f} "
               f"{r.traversed / r.wall_s:12,.0f} {octo.wall_s / r.wall_s:17.2f}x {cpu['OctoMap'] / cpu[label]:10.2f}x "
               f"{r.nbytes / 1e6:9.2f} {r.nbytes / cells:6.2f} {r.nbytes / octo.nbytes:9.2f}x "
               f"{r.resident / 1e6:11.2f} {r.resident / cells:6.2f} {r.resident / octo.resident:9.2f}x")
+    fixed, growing = best["FuzzyMap"], best["Fuzzy/growing"]
+    same = _same_cells(cast(FuzzyMap, kept["FuzzyMap"]), cast(FuzzyMap, kept["Fuzzy/growing"]))
+    print(f"  growing map: rays/s {fixed.wall_s / growing.wall_s:.2f}x the fixed FuzzyMap's (target >= 0.9x; by cpu "
+          f"s {cpu['FuzzyMap'] / cpu['Fuzzy/growing']:.2f}x), {octo.wall_s / growing.wall_s:.2f}x OctoMap's (target >= "
+          f"5x); held cells {growing.held_cells:,} (fixed: {fixed.held_cells:,} of the box's {cells:,}), state "
+          f"{growing.nbytes:,} B = {growing.nbytes / octo.nbytes:.2f}x OctoMap's tree (target <= 1x); "
+          f"cells equal to the fixed map's over its bounds: {'yes' if same else 'NO'}")
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -273,8 +313,9 @@ def main(argv: list[str] | None = None) -> None:
           "OctoMap: tree.memoryUsage() for both; B/cell: per cell of our dense grid; FuzzyMap keeps a block of "
           "cells in one state (4x4x4 in 3-D, 4x4 in 2-D) once, so its B/cell is below its L bytes of state")
     default = presets.preset(presets.DEFAULT_PRESET)
-    print(f"FuzzyMap: the default engine ({presets.DEFAULT_PRESET!r}, {default.num_labels} labels); Fuzzy/paper: "
-          "the paper's engine (FuzzyEngine.paper(), 7 labels)")
+    print(f"FuzzyMap: the default engine ({presets.DEFAULT_PRESET!r}, {default.num_labels} labels) in the scene's box; "
+          "Fuzzy/growing: the same on a growing map (LatticeSpec, no box); Fuzzy/paper: the paper's engine "
+          "(FuzzyEngine.paper(), 7 labels)")
     print(f"not in any row: the engines' defuzzification tables, {_lut_nbytes(default) / 1e6:.1f} MB "
           f"({presets.DEFAULT_PRESET}) and {_lut_nbytes(FuzzyEngine.paper()) / 1e6:.1f} MB (paper) once per process "
           "(shared by every FuzzyMap of that engine); arrays an integrate call allocates and frees")
