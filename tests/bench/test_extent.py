@@ -36,7 +36,9 @@ def test_the_three_maps_of_a_log_hold_the_same_cells(orebro: list) -> None:  # t
     assert np.allclose(corner, np.round(corner), atol=1e-6)
     assert all(o <= b for o, b in zip(wide.origin, bounds.origin))
     assert all(u >= b for u, b in zip(wide.upper, bounds.upper))
-    for spec in (bounds.spec(), wide):
+    own = bench_extent.own_box(bounds)
+    assert own.origin == bounds.origin and own.shape == bounds.shape
+    for spec in (own, wide):
         fixed = FuzzyMap(spec)
         fused = bench_extent.fuse(fixed, orebro)
         assert fused.updated == grown.updated
