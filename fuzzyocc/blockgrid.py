@@ -28,7 +28,7 @@ from collections.abc import Callable
 import numpy as np
 from numba import njit
 
-from fuzzyocc._block_table import BlockIndex, find, rebuild
+from fuzzyocc._block_table import BlockIndex, find, insert, rebuild
 from fuzzyocc._engine_kernels import SLOPED, evidence_class, fuse_row, fuzzify_into
 from fuzzyocc.engine import Fuzzifier
 from fuzzyocc.grid import _STALE, RISK_STEP, RiskFn, RowFusion, _check_lut, dequantize_risk, quantize_risk
@@ -711,7 +711,7 @@ def _fill_blocks(state, observed, shape, shift, nblk, kind, keys, slots, coords)
         for by in range(nblk[1]):
             for bz in range(nblk[2]):
                 if kind[b] >= 0:
-                    _insert(keys, slots, bx, by, bz, n)
+                    insert(keys, slots, bx, by, bz, n)
                     coords[n, 0] = bx
                     coords[n, 1] = by
                     coords[n, 2] = bz
@@ -729,25 +729,13 @@ def _enter_blocks(blocks, keys, slots, coords, n):  # pragma: no cover - compile
         s = find(keys, slots, bx, by, bz)
         if s < 0:
             s = n
-            _insert(keys, slots, bx, by, bz, s)
+            insert(keys, slots, bx, by, bz, s)
             coords[s, 0] = bx
             coords[s, 1] = by
             coords[s, 2] = bz
             n += 1
         out[q] = s
     return n, out
-
-
-@njit(cache=True, nogil=True)
-def _insert(keys, slots, bx, by, bz, slot):  # pragma: no cover - compiled
-    mask = slots.shape[0] - 1
-    h = ((np.int64(bx) * 73856093) ^ (np.int64(by) * 19349663) ^ (np.int64(bz) * 83492791)) & mask
-    while slots[h] != -1:
-        h = (h + 1) & mask
-    keys[h, 0] = bx
-    keys[h, 1] = by
-    keys[h, 2] = bz
-    slots[h] = slot
 
 
 @njit(cache=True, nogil=True)
