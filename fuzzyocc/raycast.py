@@ -84,9 +84,47 @@ def _axis_setup(o, d, t0, lower, n, res):  # pragma: no cover - compiled
     return k, -1, (lower + k * res - o) / d, -res / d, (lower + (k + 1) * res - o) / d
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _clipped(origins, dirs, t_end, r, lower, shape, res, bounded):  # pragma: no cover - compiled
+    """``[t0, t1]`` of ray ``r`` within the box (``bounded`` True) or as it is; empty when ``t1 <= t0``."""
+    t0 = 0.0
+    t1 = t_end[r]
+    if bounded is not None:
+        # slab method
+        for a in range(3):
+            o = origins[r, a]
+            d = dirs[r, a]
+            hi = lower[a] + shape[a] * res
+            if d == 0.0:
+                if o < lower[a] or o >= hi:
+                    return 0.0, -1.0
+            else:
+                ta = (lower[a] - o) / d
+                tb = (hi - o) / d
+                if ta > tb:
+                    ta, tb = tb, ta
+                t0 = max(t0, ta)
+                t1 = min(t1, tb)
+    return t0, t1
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _block_at(o, d, t, lower, n, res, h):  # pragma: no cover - compiled
+    """Block coordinate, along one axis, of the cell holding the point at ``t`` (clamped to ``[0, n)`` if ``n``)."""
+    k = np.int64(np.floor((o + t * d - lower) / res))
+    if n > 0:
+        k = min(max(k, 0), n - 1)
+    return k >> h
+
+
+#: Most entries of a scan's window of blocks (int32 each, 8 MiB): a scan whose rays span more blocks finds each block
+#: in the hash alone.
+WINDOW_LIMIT = 1 << 21
+
+
 @njit(cache=True, nogil=True)
 def _cast_kernel(origins, dirs, t_end, slope, offset, ray_offsets, lower, shape, res, unknown_from,
-                 shift, tkeys, tslots, coords, n_slots, touch, planar, bounded):  # pragma: no cover - compiled
+                 shift, tkeys, tslots, coords, n_slots, touch, window_limit, planar, bounded):  # pragma: no cover - compiled
     # ``planar`` is True for a 2-D map (one layer, rays in its plane), None for a 3-D one: numba
     # prunes the ``planar is None`` branches at compile time, so the 2-D traversal is compiled
     # without the z axis (a sixth less time on the bench's 2-D scene). ``bounded`` True clips
@@ -98,6 +136,10 @@ def _cast_kernel(origins, dirs, t_end, slope, offset, ray_offsets, lower, shape,
     # never the map's extent. A block not yet in the index is added; a full index is doubled here
     # (a cast stopped and started over from its scan cost the Ouster frame 6.1 s against 2.4)
     # and returned with the cells.
+    # A ray enters a new block every two cells or so: a dense window over the blocks the scan's
+    # rays span (``window``, -1 between scans) gives a block's scratch row in one read, and the
+    # hash is asked on the block's first touch in the scan only (asking it at every block made
+    # the 3-D bench scene's cast 1.3x slower).
     n_scans = ray_offsets.shape[0] - 1
     nx, ny, nz = shape[0], shape[1], shape[2]
     hx, hy, hz = shift[0], shift[1], shift[2]
@@ -106,6 +148,8 @@ def _cast_kernel(origins, dirs, t_end, slope, offset, ray_offsets, lower, shape,
     block_cells = 1 << bits
     scratch = np.full((64, block_cells), np.nan, np.float32)
     order = np.empty(64, np.int64)  # slot of each block the scan reached, in the order reached
+    entry = np.empty(64, np.int64)  # its window entry, -1 if outside the window
+    window = np.full(0, -1, np.int32)  # per entry: the block's scratch row in this scan, -1 before its first touch
     cells = np.empty(1024, np.int64)
     dist = np.empty(1024, np.float32)
     scan_offsets = np.zeros(n_scans + 1, np.int64)
@@ -114,121 +158,155 @@ def _cast_kernel(origins, dirs, t_end, slope, offset, ray_offsets, lower, shape,
     n_out = 0
     for s in range(n_scans):
         scan_offsets[s] = n_out
+        # The scan's window: the blocks of its segments' ends, one block more on each side (rounding).
+        lo_x, lo_y, lo_z = np.int64(1) << 62, np.int64(1) << 62, np.int64(1) << 62
+        hi_x, hi_y, hi_z = -lo_x, -lo_y, -lo_z
+        for r in range(ray_offsets[s], ray_offsets[s + 1]):
+            t0, t1 = _clipped(origins, dirs, t_end, r, lower, shape, res, bounded)
+            if not t0 < t1:
+                continue
+            for t in (t0, t1):
+                bx = _block_at(origins[r, 0], dirs[r, 0], t, lower[0], nx, res, hx)
+                by = _block_at(origins[r, 1], dirs[r, 1], t, lower[1], ny, res, hy)
+                bz = _block_at(origins[r, 2], dirs[r, 2], t, lower[2], nz, res, hz)
+                lo_x, lo_y, lo_z = min(lo_x, bx), min(lo_y, by), min(lo_z, bz)
+                hi_x, hi_y, hi_z = max(hi_x, bx), max(hi_y, by), max(hi_z, bz)
+        wx0, wy0, wz0 = lo_x - 1, lo_y - 1, lo_z - 1
+        wnx, wny, wnz = hi_x - lo_x + 3, hi_y - lo_y + 3, hi_z - lo_z + 3
+        if planar is not None:
+            wz0, wnz = 0, 1
+        if wnx < 3 or wnx > window_limit or wny > window_limit or wnz > window_limit \
+                or wnx * wny > window_limit or wnx * wny * wnz > window_limit:
+            wnx = wny = wnz = 0  # no ray, or too wide: the hash alone
+        elif wnx * wny * wnz > window.shape[0]:
+            window = np.full(wnx * wny * wnz, -1, np.int32)
         n = 0
         nt = 0
         visits = 0
         last_x, last_y, last_z = np.int64(-1) << 62, np.int64(0), np.int64(0)
         row = 0
         for r in range(ray_offsets[s], ray_offsets[s + 1]):
-            ox, oy, oz = origins[r, 0], origins[r, 1], origins[r, 2]
-            dx, dy, dz = dirs[r, 0], dirs[r, 1], dirs[r, 2]
-            t0 = 0.0
-            t1 = t_end[r]
-            if bounded is not None:
-                # Clip [0, t_end] to the box (slab method).
-                inside = True
-                for a in range(3):
-                    o = origins[r, a]
-                    d = dirs[r, a]
-                    hi = lower[a] + shape[a] * res
-                    if d == 0.0:
-                        if o < lower[a] or o >= hi:
-                            inside = False
-                    else:
-                        ta = (lower[a] - o) / d
-                        tb = (hi - o) / d
-                        if ta > tb:
-                            ta, tb = tb, ta
-                        t0 = max(t0, ta)
-                        t1 = min(t1, tb)
-                if not inside:
-                    continue
+            t0, t1 = _clipped(origins, dirs, t_end, r, lower, shape, res, bounded)
             if not t0 < t1:
                 continue
-            ix, sx, tmx, tdx, px = _axis_setup(ox, dx, t0, lower[0], nx, res)
-            iy, sy, tmy, tdy, py = _axis_setup(oy, dy, t0, lower[1], ny, res)
-            if planar is None:
-                iz, sz, tmz, tdz, pz = _axis_setup(oz, dz, t0, lower[2], nz, res)
-                t_in = max(px, max(py, pz))  # where the line enters the first cell
-            else:
-                iz, sz, tmz, tdz = 0, 0, np.inf, np.inf
-                t_in = max(px, py)
-            a_ = slope[r]
-            b_ = offset[r]
+            # Growing an array inside the walk below would make numba count references at every cell: when
+            # the index or the scratch is full, the walk stops, they grow here, and the ray is walked again
+            # (a cell's evidence is a maximum: walking a ray twice writes what once does).
+            start_visits = visits
             while True:
-                # Leave through the nearest face; ties step x, then y, then z.
+                full = 0
+                visits = start_visits
+                last_x = np.int64(-1) << 62
+                ox, oy, oz = origins[r, 0], origins[r, 1], origins[r, 2]
+                dx, dy, dz = dirs[r, 0], dirs[r, 1], dirs[r, 2]
+                ix, sx, tmx, tdx, px = _axis_setup(ox, dx, t0, lower[0], nx, res)
+                iy, sy, tmy, tdy, py = _axis_setup(oy, dy, t0, lower[1], ny, res)
                 if planar is None:
-                    if tmx <= tmy and tmx <= tmz:
-                        t_out = tmx
-                        ax = 0
-                    elif tmy <= tmz:
-                        t_out = tmy
-                        ax = 1
+                    iz, sz, tmz, tdz, pz = _axis_setup(oz, dz, t0, lower[2], nz, res)
+                    t_in = max(px, max(py, pz))  # where the line enters the first cell
+                else:
+                    iz, sz, tmz, tdz = 0, 0, np.inf, np.inf
+                    t_in = max(px, py)
+                a_ = slope[r]
+                b_ = offset[r]
+                while True:
+                    # Leave through the nearest face; ties step x, then y, then z.
+                    if planar is None:
+                        if tmx <= tmy and tmx <= tmz:
+                            t_out = tmx
+                            ax = 0
+                        elif tmy <= tmz:
+                            t_out = tmy
+                            ax = 1
+                        else:
+                            t_out = tmz
+                            ax = 2
                     else:
-                        t_out = tmz
-                        ax = 2
-                else:
-                    ax = 0 if tmx <= tmy else 1
-                    t_out = tmx if ax == 0 else tmy
-                bx, by, bz = ix >> hx, iy >> hy, iz >> hz
-                if bx != last_x or by != last_y or bz != last_z:
-                    # A ray crosses a few cells of a block in a row: the index is asked once per block.
-                    slot = find(tkeys, tslots, bx, by, bz)
-                    if slot < 0:
-                        if n_slots == coords.shape[0] or n_slots >= table_room:
-                            coords, touch, tkeys, tslots = _doubled(coords, touch, n_slots)
-                            table_room = tslots.shape[0] // 2
-                        slot = n_slots
-                        insert(tkeys, tslots, bx, by, bz, slot)
-                        coords[slot, 0] = bx
-                        coords[slot, 1] = by
-                        coords[slot, 2] = bz
-                        n_slots += 1
-                    row = touch[slot]
+                        ax = 0 if tmx <= tmy else 1
+                        t_out = tmx if ax == 0 else tmy
+                    bx, by, bz = ix >> hx, iy >> hy, iz >> hz
+                    qx, qy, qz = bx - wx0, by - wy0, bz - wz0
+                    w = -1
+                    if 0 <= qx < wnx and 0 <= qy < wny and 0 <= qz < wnz:
+                        # In the window: one read, and no branch on the block changing (it does every two cells).
+                        w = (qx * wny + qy) * wnz + qz
+                        row = window[w]
+                        last_x = np.int64(-1) << 62
+                    elif bx != last_x or by != last_y or bz != last_z:
+                        row = -1
                     if row < 0:
-                        if nt == order.shape[0]:
-                            grown = np.full((2 * nt, block_cells), np.nan, np.float32)
-                            grown_order = np.empty(2 * nt, np.int64)
-                            for q in range(nt):
-                                grown_order[q] = order[q]
-                                for o in range(block_cells):
-                                    grown[q, o] = scratch[q, o]
-                            scratch = grown
-                            order = grown_order
-                        row = nt
-                        touch[slot] = nt
-                        order[nt] = slot
-                        nt += 1
-                    last_x, last_y, last_z = bx, by, bz
-                off = ((ix & mx) << hy | (iy & my)) << hz | (iz & mz)
-                visits += 1
-                v = a_ * (0.5 * (t_in + t_out)) + b_
-                if v >= unknown_from:
-                    v = -np.inf
-                b = scratch[row, off]
-                if b != b:
-                    n += 1
-                    scratch[row, off] = v
-                elif v > b:
-                    scratch[row, off] = v
-                if t_out >= t1:
+                        # The block's first touch in this scan (or one outside the window): the hash.
+                        slot = find(tkeys, tslots, bx, by, bz)
+                        if slot < 0:
+                            if n_slots == coords.shape[0] or n_slots >= table_room:
+                                full = 1
+                                break
+                            slot = n_slots
+                            insert(tkeys, tslots, bx, by, bz, slot)
+                            coords[slot, 0] = bx
+                            coords[slot, 1] = by
+                            coords[slot, 2] = bz
+                            n_slots += 1
+                        row = touch[slot]
+                        if row < 0:
+                            if nt == order.shape[0]:
+                                full = 2
+                                break
+                            row = nt
+                            touch[slot] = nt
+                            order[nt] = slot
+                            entry[nt] = w
+                            nt += 1
+                        if w >= 0:
+                            window[w] = row
+                            entry[row] = w
+                        last_x, last_y, last_z = bx, by, bz
+                    off = ((ix & mx) << hy | (iy & my)) << hz | (iz & mz)
+                    visits += 1
+                    v = a_ * (0.5 * (t_in + t_out)) + b_
+                    if v >= unknown_from:
+                        v = -np.inf
+                    b = scratch[row, off]
+                    if b != b:
+                        n += 1
+                        scratch[row, off] = v
+                    elif v > b:
+                        scratch[row, off] = v
+                    if t_out >= t1:
+                        break
+                    t_in = t_out
+                    if ax == 0:
+                        ix += sx
+                        if bounded is not None and (ix < 0 or ix >= nx):
+                            break
+                        tmx += tdx
+                    elif ax == 1:
+                        iy += sy
+                        if bounded is not None and (iy < 0 or iy >= ny):
+                            break
+                        tmy += tdy
+                    else:
+                        iz += sz
+                        if bounded is not None and (iz < 0 or iz >= nz):
+                            break
+                        tmz += tdz
+                if full == 0:
                     break
-                t_in = t_out
-                if ax == 0:
-                    ix += sx
-                    if bounded is not None and (ix < 0 or ix >= nx):
-                        break
-                    tmx += tdx
-                elif ax == 1:
-                    iy += sy
-                    if bounded is not None and (iy < 0 or iy >= ny):
-                        break
-                    tmy += tdy
+                if full == 1:
+                    coords, touch, tkeys, tslots = _doubled(coords, touch, n_slots)
+                    table_room = tslots.shape[0] // 2
                 else:
-                    iz += sz
-                    if bounded is not None and (iz < 0 or iz >= nz):
-                        break
-                    tmz += tdz
+                    grown = np.full((2 * nt, block_cells), np.nan, np.float32)
+                    grown_order = np.empty(2 * nt, np.int64)
+                    grown_entry = np.empty(2 * nt, np.int64)
+                    for q in range(nt):
+                        grown_order[q] = order[q]
+                        grown_entry[q] = entry[q]
+                        for o in range(block_cells):
+                            grown[q, o] = scratch[q, o]
+                    scratch = grown
+                    order = grown_order
+                    entry = grown_entry
         if n_out + n > cells.shape[0]:
             cap = max(2 * cells.shape[0], n_out + n)
             grown_c = np.empty(cap, np.int64)
@@ -245,6 +323,8 @@ def _cast_kernel(origins, dirs, t_end, slope, offset, ray_offsets, lower, shape,
         for q in range(nt):
             slot = order[q]
             touch[slot] = -1
+            if entry[q] >= 0:
+                window[entry[q]] = -1
             base = slot << bits
             for o in range(block_cells):
                 b = scratch[q, o]
@@ -310,6 +390,7 @@ def cast_into(
     ray_offsets: np.ndarray,
     *,
     unknown_from: float,
+    window_limit: int = WINDOW_LIMIT,
 ) -> CastResult:
     """Traverse the cells of every ray of a batch of scans and keep one evidence per (scan, cell).
 
@@ -328,6 +409,9 @@ def cast_into(
         Block size, as powers of two (a 2-D lattice has one z layer: shift z 0).
     origins, directions, t_end, measured, sigma, ray_offsets, unknown_from
         As :func:`cast_rays`.
+    window_limit : int
+        Most blocks of a scan's dense window (the blocks its rays span); a wider scan finds its blocks in the index's
+        hash alone. The cells are the same either way.
     """
     d = lattice.ndim
     origins = np.asarray(origins, dtype=np.float64)
@@ -367,7 +451,7 @@ def cast_into(
             np.where(no_return, NO_RETURN_DISTANCE, -measured * slope), offsets)
     (cells, dist, scan_offsets, traversed, index.n, index.coords, index.touch, index.keys,
      index.slots) = _cast_kernel(*args, lower, shape, float(lattice.resolution), float(unknown_from), shifts,
-                                 index.keys, index.slots, index.coords, index.n, index.touch,
+                                 index.keys, index.slots, index.coords, index.n, index.touch, int(window_limit),
                                  True if d == 2 else None, True if lattice.shape is not None else None)
     return CastResult(cells=cells, distance_sigmas=dist, scan_offsets=scan_offsets, cells_traversed=traversed)
 

@@ -248,6 +248,10 @@ def test_block_keys_reach_the_same_cells_with_the_same_evidence(spec: GridSpec, 
         runs = np.count_nonzero(np.diff(slot[part]) != 0) + 1
         assert runs == np.unique(slot[part]).size
     assert index.n == np.unique(slot).size  # the index holds the blocks reached, no other
+    # A scan too wide for a dense window of its blocks finds them in the hash alone: the same keys.
+    hashed = cast_into(Lattice.of(spec), BlockIndex(capacity=2), block_shift, *args, unknown_from=1.5, window_limit=0)
+    np.testing.assert_array_equal(hashed.cells, blocks.cells)
+    np.testing.assert_array_equal(hashed.distance_sigmas, blocks.distance_sigmas)
     with pytest.raises(ValueError, match="shift"):
         cast_into(Lattice.of(spec), index, (1, 1), *args, unknown_from=1.5)
 
@@ -275,6 +279,9 @@ def test_the_unbounded_lattice_reaches_what_a_box_at_the_origin_reaches(ndim: in
     shift = (2, 2, 2 if ndim == 3 else 0)
     index = BlockIndex()
     grown = cast_into(Lattice((0.0,) * ndim, 0.1, None), index, shift, *args, unknown_from=1.5)
+    hashed = cast_into(Lattice((0.0,) * ndim, 0.1, None), BlockIndex(), shift, *args, unknown_from=1.5, window_limit=0)
+    np.testing.assert_array_equal(hashed.cells, grown.cells)
+    np.testing.assert_array_equal(hashed.distance_sigmas, grown.distance_sigmas)
     box = GridSpec(origin=(0.0,) * ndim, size=(16.0,) * ndim, resolution=0.1)
     fixed = cast_rays(box, *args, unknown_from=1.5)
     got = np.ravel_multi_index(tuple(_lattice_cells(index, grown.cells, shift)[:, :ndim].T), box.shape)
