@@ -117,6 +117,8 @@ def _block_at(o, d, t, lower, n, res, h):  # pragma: no cover - compiled
     return k >> h
 
 
+_u = np.uint64
+
 #: Most entries of a scan's window of blocks (int32 each, 8 MiB): a scan whose rays span more blocks finds each block
 #: in the hash alone.
 WINDOW_LIMIT = 1 << 21
@@ -192,10 +194,8 @@ def _cast_kernel(origins, dirs, t_end, slope, offset, ray_offsets, lower, shape,
             # Growing an array inside the walk below would make numba count references at every cell: when
             # the index or the scratch is full, the walk stops, they grow here, and the ray is walked again
             # (a cell's evidence is a maximum: walking a ray twice writes what once does).
-            start_visits = visits
             while True:
                 full = 0
-                visits = start_visits
                 last_x = np.int64(-1) << 62
                 ox, oy, oz = origins[r, 0], origins[r, 1], origins[r, 2]
                 dx, dy, dz = dirs[r, 0], dirs[r, 1], dirs[r, 2]
@@ -207,6 +207,7 @@ def _cast_kernel(origins, dirs, t_end, slope, offset, ray_offsets, lower, shape,
                 else:
                     iz, sz, tmz, tdz = 0, 0, np.inf, np.inf
                     t_in = max(px, py)
+                ix0, iy0, iz0 = ix, iy, iz
                 a_ = slope[r]
                 b_ = offset[r]
                 while True:
@@ -226,11 +227,17 @@ def _cast_kernel(origins, dirs, t_end, slope, offset, ray_offsets, lower, shape,
                         t_out = tmx if ax == 0 else tmy
                     bx, by, bz = ix >> hx, iy >> hy, iz >> hz
                     qx, qy, qz = bx - wx0, by - wy0, bz - wz0
+                    # Unsigned: one compare per axis for the window's two bounds, and numba indexes by an unsigned
+                    # integer without its negative-index wraparound (a sixth of the 2-D walk's time, with both).
                     w = -1
-                    if 0 <= qx < wnx and 0 <= qy < wny and 0 <= qz < wnz:
+                    if planar is None:
+                        inside = _u(qx) < _u(wnx) and _u(qy) < _u(wny) and _u(qz) < _u(wnz)
+                    else:
+                        inside = _u(qx) < _u(wnx) and _u(qy) < _u(wny)
+                    if inside:
                         # In the window: one read, and no branch on the block changing (it does every two cells).
-                        w = (qx * wny + qy) * wnz + qz
-                        row = window[w]
+                        w = (qx * wny + qy) * wnz + qz if planar is None else qx * wny + qy
+                        row = window[_u(w)]
                         last_x = np.int64(-1) << 62
                     elif bx != last_x or by != last_y or bz != last_z:
                         row = -1
@@ -262,35 +269,40 @@ def _cast_kernel(origins, dirs, t_end, slope, offset, ray_offsets, lower, shape,
                             entry[row] = w
                         last_x, last_y, last_z = bx, by, bz
                     off = ((ix & mx) << hy | (iy & my)) << hz | (iz & mz)
-                    visits += 1
                     v = a_ * (0.5 * (t_in + t_out)) + b_
                     if v >= unknown_from:
                         v = -np.inf
-                    b = scratch[row, off]
+                    ur, uo = _u(row), _u(off)
+                    b = scratch[ur, uo]
                     if b != b:
                         n += 1
-                        scratch[row, off] = v
+                        scratch[ur, uo] = v
                     elif v > b:
-                        scratch[row, off] = v
+                        scratch[ur, uo] = v
                     if t_out >= t1:
                         break
                     t_in = t_out
                     if ax == 0:
                         ix += sx
                         if bounded is not None and (ix < 0 or ix >= nx):
+                            ix -= sx
                             break
                         tmx += tdx
                     elif ax == 1:
                         iy += sy
                         if bounded is not None and (iy < 0 or iy >= ny):
+                            iy -= sy
                             break
                         tmy += tdy
                     else:
                         iz += sz
                         if bounded is not None and (iz < 0 or iz >= nz):
+                            iz -= sz
                             break
                         tmz += tdz
                 if full == 0:
+                    # every step moves one index by one: the cells visited, without a count in the walk
+                    visits += 1 + abs(ix - ix0) + abs(iy - iy0) + abs(iz - iz0)
                     break
                 if full == 1:
                     coords, touch, tkeys, tslots = _doubled(coords, touch, n_slots)
@@ -326,12 +338,13 @@ def _cast_kernel(origins, dirs, t_end, slope, offset, ray_offsets, lower, shape,
             if entry[q] >= 0:
                 window[entry[q]] = -1
             base = slot << bits
+            uq = _u(q)
             for o in range(block_cells):
-                b = scratch[q, o]
+                b = scratch[uq, _u(o)]
                 if b == b:
-                    cells[n_out] = base | o
-                    dist[n_out] = b
-                    scratch[q, o] = np.nan
+                    cells[_u(n_out)] = base | o
+                    dist[_u(n_out)] = b
+                    scratch[uq, _u(o)] = np.nan
                     n_out += 1
         traversed[s] = visits
     scan_offsets[n_scans] = n_out
