@@ -40,7 +40,7 @@ from fuzzyocc._block_table import BlockIndex
 from fuzzyocc.blockgrid import BLOCK_SHIFT_2D, BLOCK_SHIFT_3D, BlockGrid, block_shift_for
 from fuzzyocc.grid import CellGrid
 from fuzzyocc.keys import coords_to_keys, keys_to_flat
-from fuzzyocc.raycast import CastResult, Lattice, cast_into, traversal_cells
+from fuzzyocc.raycast import CastResult, Lattice, cast_into, flat_ids, traversal_cells
 from fuzzyocc.scans import LaserScan, PointCloud, Rays
 
 Scan = LaserScan | PointCloud
@@ -937,15 +937,7 @@ class BayesMap(OccupancyMap):
         return self._index, self._shift
 
     def _stored_cells(self, keys: np.ndarray) -> np.ndarray:
-        shift = np.asarray(self._shift, dtype=np.int64)
-        bits = int(shift.sum())
-        offsets = keys & ((1 << bits) - 1)
-        cells = self._index.coords[keys >> bits].astype(np.int64) << shift
-        cells[:, 0] += offsets >> (shift[1] + shift[2])
-        cells[:, 1] += (offsets >> shift[2]) & ((1 << shift[1]) - 1)
-        cells[:, 2] += offsets & ((1 << shift[2]) - 1)
-        shape = (*self.spec.shape, 1, 1)[:3]
-        return np.ravel_multi_index((cells[:, 0], cells[:, 1], cells[:, 2]), shape)
+        return flat_ids(keys, self._index, self._shift, self.spec.shape)
 
     def _initial_state(self) -> np.ndarray:
         return np.zeros(self.spec.num_cells, dtype=np.float32)

@@ -469,6 +469,29 @@ def cast_into(
     return CastResult(cells=cells, distance_sigmas=dist, scan_offsets=scan_offsets, cells_traversed=traversed)
 
 
+def flat_ids(keys: np.ndarray, index: BlockIndex, shift: tuple[int, int, int], shape: tuple[int, ...]) -> np.ndarray:
+    """The flat ids (C order over a fixed box of ``shape`` cells) of the cells of :func:`cast_into`'s ``keys``."""
+    full = np.ones(3, dtype=np.int64)
+    full[: len(shape)] = shape
+    return _flat_ids(np.ascontiguousarray(keys, dtype=np.int64), index.coords, np.asarray(shift, dtype=np.int64), full)
+
+
+@njit(cache=True, nogil=True)
+def _flat_ids(keys, coords, shift, shape):  # pragma: no cover - compiled
+    # one pass: the same in numpy took a quarter of a BayesMap's 2-D integrate (five temporaries of the batch's size)
+    hx, hy, hz = shift[0], shift[1], shift[2]
+    bits = hx + hy + hz
+    out = np.empty(keys.shape[0], np.int64)
+    for n in range(keys.shape[0]):
+        slot = keys[n] >> bits
+        o = keys[n] & ((1 << bits) - 1)
+        i = (np.int64(coords[slot, 0]) << hx) + (o >> (hy + hz))
+        j = (np.int64(coords[slot, 1]) << hy) + ((o >> hz) & ((1 << hy) - 1))
+        k = (np.int64(coords[slot, 2]) << hz) + (o & ((1 << hz) - 1))
+        out[n] = (i * shape[1] + j) * shape[2] + k
+    return out
+
+
 def cast_rays(
     spec: GridSpec,
     origins: np.ndarray,
@@ -512,10 +535,7 @@ def cast_rays(
     index = BlockIndex()
     cast = cast_into(Lattice.of(spec), index, (0, 0, 0), origins, directions, t_end, measured, sigma, ray_offsets,
                      unknown_from=unknown_from)
-    block = index.coords[cast.cells].astype(np.int64)  # blocks of one cell: the block is the cell
-    cells = block[:, 0]
-    for a in range(1, spec.ndim):
-        cells = cells * spec.shape[a] + block[:, a]
+    cells = flat_ids(cast.cells, index, (0, 0, 0), spec.shape)
     # by scan, then by id
     scan = np.repeat(np.arange(cast.scan_offsets.size - 1), np.diff(cast.scan_offsets))
     order = np.lexsort((cells, scan))

@@ -5,15 +5,21 @@ The command runs as a user runs it, in its own process, on stores written by ``S
 
 from __future__ import annotations
 
+import fcntl
+import os
 import re
 import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 from app.storage import INLINE_BYTES, BatchRecord, SqliteStorage
 from app.storage.backup import DATABASE
 from tests.conftest import ROOT
+
+#: ``fcntl``'s F_SETPIPE_SZ (Linux; Python's ``fcntl`` names it from 3.10 on some builds only)
+F_SETPIPE_SZ = getattr(fcntl, "F_SETPIPE_SZ", 1031)
 
 
 def _store(data_dir: Path, *, inline_mib: int = 0, files: int = 0) -> Path:
@@ -56,25 +62,55 @@ def test_progress_lines_give_each_stage_with_its_total_and_rate(tmp_path: Path) 
     assert len(lines) == 4
 
 
+def _full_pipe() -> tuple[int, int, bytes]:
+    """A pipe (read end, write end) whose buffer is full: a process writing to it blocks until it is read."""
+    read_end, write_end = os.pipe()
+    fcntl.fcntl(write_end, F_SETPIPE_SZ, 4096)  # the smallest a pipe holds: one page
+    os.set_blocking(write_end, False)
+    junk = b""
+    try:
+        while True:
+            junk += b"x" * os.write(write_end, b"x" * 512)
+    except BlockingIOError:
+        pass
+    os.set_blocking(write_end, True)
+    return read_end, write_end, junk
+
+
 def test_ctrl_c_stops_the_copy_with_exit_130_one_line_and_nothing_at_the_destination(tmp_path: Path) -> None:
-    data = _store(tmp_path / "data", inline_mib=256)  # half a second of copying or more, in steps of 4 MiB
+    # Interrupted in the middle of the copy, whatever the machine's load: its stderr is a full pipe, so the command
+    # blocks at its first progress line, which it writes once the copy has begun; the Ctrl-C lands there. (Sent after
+    # reading that line instead, it lost the race against the copy's end on a busy machine.)
+    data = _store(tmp_path / "data", inline_mib=32)
     out_dir = tmp_path / "copies"
     out_dir.mkdir()
     copy = out_dir / "copy.sqlite3"
-    process = _backup(str(copy), "--data-dir", str(data))
+    read_end, write_end, junk = _full_pipe()
+    process = subprocess.Popen([sys.executable, "-m", "app.backup", str(copy), "--data-dir", str(data)], cwd=ROOT,
+                               stdout=subprocess.PIPE, stderr=write_end)
+    os.close(write_end)
     try:
-        assert process.stderr is not None
-        started = process.stderr.readline()  # said as the copy of the pages begins
-        assert started.startswith("fuzzyrisk-backup: copying the database: "), started + process.stderr.read()
+        deadline = time.monotonic() + 240.0  # a net against a hang: the wait ends on its condition
+        wchan = Path(f"/proc/{process.pid}/wchan")
+        while "pipe" not in wchan.read_text() and process.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert process.poll() is None, "the command ended before it wrote its first progress line"
+        assert (out_dir / "copy.sqlite3.partial").exists()  # blocked in the middle of the copy
         process.send_signal(signal.SIGINT)
-        out, rest = process.communicate(timeout=120)
+        with os.fdopen(read_end, "rb") as err_pipe:
+            err = err_pipe.read()  # to the end: the command's last lines, then its exit closes the pipe
+        out, _ = process.communicate(timeout=120)
     finally:
         if process.poll() is None:
             process.kill()
             process.wait()
+    assert err.startswith(junk)
+    rest = err[len(junk):].decode()
     assert process.returncode == 130, rest
-    assert out == ""
-    assert rest.splitlines()[-1] == f"fuzzyrisk-backup: interrupted; nothing was written to {copy}"
+    assert out == b""
+    # the last line (the progress line the Ctrl-C cut may precede it without its newline: its text waited in
+    # stderr's buffer, and went out with this one)
+    assert rest.endswith(f"fuzzyrisk-backup: interrupted; nothing was written to {copy}\n"), rest
     assert "Traceback" not in rest and "KeyboardInterrupt" not in rest
     assert list(out_dir.iterdir()) == []  # no copy, no .partial, no journal
 
