@@ -123,13 +123,14 @@ class SqliteStorage:
             self._db.executescript(_SCHEMA)
             # an old database: its rows keep NULL there (a crc: not verifiable; a version: not checked until
             # the next write; an incarnation: matched by None), new ones get a value
+            counted = "history_bytes" in {row[1] for row in self._db.execute("PRAGMA table_info(maps)")}
             for table, added in _ADDED_COLUMNS.items():
                 columns = {row[1] for row in self._db.execute(f"PRAGMA table_info({table})")}
                 for column, declaration in added.items():
                     if column not in columns:
                         self._db.execute(f"ALTER TABLE {table} ADD COLUMN {column} {declaration}")
-                        if column == "history_bytes":  # the history so far: the batches after the snapshot
-                            self._db.execute(f"UPDATE maps SET (history_bytes, history_scans) = {HISTORY_OF_ROWS}")
+            if not counted:  # a database from before the history: it holds the batches after the snapshot
+                self._db.execute(f"UPDATE maps SET (history_bytes, history_scans) = {HISTORY_OF_ROWS}")
             # files of writes that never committed, or whose rows went before them, go (if no other store is open)
             self._files.attach(lambda: {file for (file,) in self._db.execute(
                 "SELECT file FROM batches WHERE file IS NOT NULL UNION SELECT file FROM snapshots WHERE file IS NOT NULL")})
