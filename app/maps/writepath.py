@@ -545,7 +545,7 @@ class WritePath:
 
     async def _catch_up_locked(self, entry: MapEntry, target: int) -> None:
         """Bring the map to ``target`` from the store: the batches after its version, or a newer snapshot and the
-        batches after that (another replica snapshotted and dropped the ones in between).
+        batches after that (another replica snapshotted, maybe folded the ones in between).
 
         The caller holds the map's apply turn and its apply lock.
         """

@@ -180,7 +180,7 @@ class MapReads:
                     heavy=_heavy(window))
                 grid = GridSnapshot(_spec_of(entry, window), entry.version, risk, observed, entry.frame_id,
                                     entry.updated, entry.etag_seed)
-            # another replica's snapshot newer than this grid dropped the batches up to it: catch up, again
+            # another replica's snapshot newer than this grid: the log read starts after it; catch up, again
             if stored is None or stored.snapshot_version <= grid.version:
                 break
         if stored is None or stored.incarnation != entry.incarnation \
