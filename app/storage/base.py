@@ -220,6 +220,29 @@ def start_of(snapshot_row: int | None, base_row: int | None, *, from_base: bool)
     return 0, None
 
 
+def may_fold(base_version: int, restart_version: int | None, version: int, *, moving: bool) -> bool:
+    """Whether ``write_base`` may fold the history up to ``version``: not done already (by another replica), never
+    past the restart snapshot (a restart replays the batches after it), and the restart snapshot made the base
+    (``moving``) only at its own version."""
+    return base_version < version <= (restart_version or 0) and (not moving or restart_version == version)
+
+
+def fold_rows(execute: Callable[[str, tuple[Any, ...]], Any], name: str, version: int,
+              base: tuple[str, tuple[Any, ...]] | None, columns: str) -> None:
+    """``write_base``'s statements once it may fold, run by ``execute`` (``?`` placeholders) in its transaction: the
+    base replaced by ``base`` (its INSERT and arguments; None: the restart snapshot's row, its ``columns``, moves),
+    the batches it covers deleted, the history counted again."""
+    execute("DELETE FROM bases WHERE map = ?", (name,))
+    if base is None:
+        execute(f"INSERT INTO bases ({columns}) SELECT {columns} FROM snapshots WHERE map = ?", (name,))
+        execute("DELETE FROM snapshots WHERE map = ?", (name,))
+    else:
+        execute(*base)
+    execute("DELETE FROM batches WHERE map = ? AND seq <= ?", (name, version))
+    execute(f"UPDATE maps SET base_version = ?, (history_bytes, history_scans) = {HISTORY_OF_ROWS} WHERE name = ?",
+            (version, name))
+
+
 def fold_point_of(sizes: Iterable[Sequence[Any]], keep_bytes: int, restart_version: int) -> int:
     """``Storage.fold_point`` from the history's (version, bytes) rows, newest first."""
     kept = 0

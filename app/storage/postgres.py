@@ -23,7 +23,6 @@ from psycopg_pool import ConnectionPool
 
 from app.storage.base import (
     BATCH_BYTES,
-    HISTORY_OF_ROWS,
     TOMBSTONE,
     BatchRecord,
     CommitUncertain,
@@ -34,7 +33,9 @@ from app.storage.base import (
     StoredMap,
     checksum,
     fold_point_of,
+    fold_rows,
     head_of,
+    may_fold,
     read_map,
 )
 
@@ -68,20 +69,13 @@ _SCHEMA = (
         PRIMARY KEY (map, seq)
     )""",
     "ALTER TABLE batches ADD COLUMN IF NOT EXISTS bytes BIGINT",
-    """CREATE TABLE IF NOT EXISTS snapshots (
+    *(f"""CREATE TABLE IF NOT EXISTS {table} (
         map TEXT PRIMARY KEY REFERENCES maps(name) ON DELETE CASCADE,
         version BIGINT NOT NULL,
         payload BYTEA NOT NULL,
         crc BIGINT,
         updated TEXT
-    )""",
-    """CREATE TABLE IF NOT EXISTS bases (
-        map TEXT PRIMARY KEY REFERENCES maps(name) ON DELETE CASCADE,
-        version BIGINT NOT NULL,
-        payload BYTEA NOT NULL,
-        crc BIGINT,
-        updated TEXT
-    )""",
+    )""" for table in ("snapshots", "bases")),  # a map's restart snapshot and its base snapshot
 )
 
 _HEAD = ("SELECT name, meta, updated, version, snapshot_version, scans, incarnation, base_version, history_bytes, "
@@ -274,21 +268,14 @@ class PostgresStorage:
             row = conn.execute("SELECT base_version, (SELECT version FROM snapshots WHERE map = maps.name) FROM maps "
                                "WHERE name = %s AND (%s::text IS NULL OR incarnation = %s) FOR UPDATE",
                                (name, incarnation, incarnation)).fetchone()
-            # done by another replica already, or the restart snapshot still needs batches up to ``version``
-            if row is None or row[0] >= version or (row[1] or 0) < version or (payload is None and row[1] != version):
+            if row is None or not may_fold(row[0], row[1], version, moving=payload is None):
                 return False
-            conn.execute("DELETE FROM bases WHERE map = %s", (name,))
-            if payload is None:  # the restart snapshot is the map at ``version``: it becomes the base
-                conn.execute("INSERT INTO bases (map, version, payload, crc, updated) "
-                             "SELECT map, version, payload, crc, updated FROM snapshots WHERE map = %s", (name,))
-                conn.execute("DELETE FROM snapshots WHERE map = %s", (name,))
-            else:
-                conn.execute("INSERT INTO bases (map, version, payload, crc, updated) VALUES (%s, %s, %b, %s, "
-                             "(SELECT updated FROM batches WHERE map = %s AND seq = %s))",
-                             (name, version, payload, checksum(payload), name, version))
-            conn.execute("DELETE FROM batches WHERE map = %s AND seq <= %s", (name, version))
-            conn.execute(f"UPDATE maps SET base_version = %s, (history_bytes, history_scans) = {HISTORY_OF_ROWS} "
-                         "WHERE name = %s", (version, name))
+            base = None if payload is None else (
+                "INSERT INTO bases (map, version, payload, crc, updated) VALUES (?, ?, ?, ?, "
+                "(SELECT updated FROM batches WHERE map = ? AND seq = ?))",
+                (name, version, payload, checksum(payload), name, version))
+            fold_rows(lambda sql, args: conn.execute(sql.replace("?", "%s"), args), name, version, base,
+                      "map, version, payload, crc, updated")
             return True
 
     def close(self) -> None:

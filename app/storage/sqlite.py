@@ -25,7 +25,9 @@ from app.storage.base import (
     StoredMap,
     checksum,
     fold_point_of,
+    fold_rows,
     head_of,
+    may_fold,
     read_map,
     start_of,
 )
@@ -57,23 +59,15 @@ CREATE TABLE IF NOT EXISTS batches (
     bytes INTEGER,
     PRIMARY KEY (map, seq)
 );
-CREATE TABLE IF NOT EXISTS snapshots (
+""" + "".join(f"""
+CREATE TABLE IF NOT EXISTS {table} (
     map TEXT PRIMARY KEY REFERENCES maps(name) ON DELETE CASCADE,
     version INTEGER NOT NULL,
     payload BLOB NOT NULL,
     crc INTEGER,
     updated TEXT,
     file TEXT
-);
-CREATE TABLE IF NOT EXISTS bases (
-    map TEXT PRIMARY KEY REFERENCES maps(name) ON DELETE CASCADE,
-    version INTEGER NOT NULL,
-    payload BLOB NOT NULL,
-    crc INTEGER,
-    updated TEXT,
-    file TEXT
-);
-"""
+);""" for table in ("snapshots", "bases"))  # a map's restart snapshot and its base snapshot
 
 #: Columns added since the first schema: an old database gets them (NULL, or the default) at open.
 _ADDED_COLUMNS = {
@@ -360,24 +354,17 @@ class SqliteStorage:
         def fold(db: sqlite3.Connection) -> tuple[bool, list[str]]:
             row = db.execute("SELECT base_version, (SELECT version FROM snapshots WHERE map = maps.name) FROM maps "
                              "WHERE name = ? AND (? IS NULL OR incarnation = ?)", (name, incarnation, incarnation)).fetchone()
-            # done by another writer already, or the restart snapshot still needs batches up to ``version``
-            if row is None or row[0] >= version or (row[1] or 0) < version or (payload is None and row[1] != version):
+            if row is None or not may_fold(row[0], row[1], version, moving=payload is None):
                 return False, staged
             dropped = [f for (f,) in db.execute("SELECT file FROM bases WHERE map = ? AND file IS NOT NULL UNION ALL "
                                                 "SELECT file FROM batches WHERE map = ? AND seq <= ? AND file IS NOT NULL",
                                                 (name, name, version))]
-            db.execute("DELETE FROM bases WHERE map = ?", (name,))
-            if payload is None:  # the restart snapshot is the map at ``version``: it becomes the base, file and all
-                db.execute("INSERT INTO bases (map, version, payload, crc, updated, file) "
-                           "SELECT map, version, payload, crc, updated, file FROM snapshots WHERE map = ?", (name,))
-                db.execute("DELETE FROM snapshots WHERE map = ?", (name,))
-            else:
-                db.execute("INSERT INTO bases (map, version, payload, crc, updated, file) VALUES (?, ?, ?, ?, "
-                           "(SELECT updated FROM batches WHERE map = ? AND seq = ?), ?)",
-                           (name, version, payload if file is None else b"", crc, name, version, file))
-            db.execute("DELETE FROM batches WHERE map = ? AND seq <= ?", (name, version))
-            db.execute(f"UPDATE maps SET base_version = ?, (history_bytes, history_scans) = {HISTORY_OF_ROWS} "
-                       "WHERE name = ?", (version, name))
+            # a moved restart snapshot keeps its file
+            base = None if payload is None else (
+                "INSERT INTO bases (map, version, payload, crc, updated, file) VALUES (?, ?, ?, ?, "
+                "(SELECT updated FROM batches WHERE map = ? AND seq = ?), ?)",
+                (name, version, payload if file is None else b"", crc, name, version, file))
+            fold_rows(db.execute, name, version, base, "map, version, payload, crc, updated, file")
             return True, dropped
 
         return self._with_files(staged, fold)
