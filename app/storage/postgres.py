@@ -23,6 +23,7 @@ from psycopg_pool import ConnectionPool
 
 from app.storage.base import (
     BATCH_BYTES,
+    HISTORY_OF_ROWS,
     TOMBSTONE,
     BatchRecord,
     CommitUncertain,
@@ -55,7 +56,7 @@ _SCHEMA = (
         incarnation TEXT,
         scans BIGINT NOT NULL DEFAULT 0
     )""",
-    # added since the first schema (a database from before gets them; its history is counted at the next fold)
+    # added since the first schema (a database from before gets them, its history counted from its rows)
     "ALTER TABLE maps ADD COLUMN IF NOT EXISTS base_version BIGINT NOT NULL DEFAULT 0",
     "ALTER TABLE maps ADD COLUMN IF NOT EXISTS history_bytes BIGINT NOT NULL DEFAULT 0",
     "ALTER TABLE maps ADD COLUMN IF NOT EXISTS history_scans BIGINT NOT NULL DEFAULT 0",
@@ -113,8 +114,12 @@ class PostgresStorage:
                 raise StorageUnavailable(f"{exc} (PostgreSQL connection)") from exc
             with self._connection() as conn, conn.transaction():
                 conn.execute("SELECT pg_advisory_xact_lock(%s)", (SCHEMA_LOCK,))
+                counted = conn.execute("SELECT 1 FROM information_schema.columns WHERE table_schema = current_schema() "
+                                       "AND table_name = 'maps' AND column_name = 'history_bytes'").fetchone()
                 for statement in _SCHEMA:
                     conn.execute(statement)
+                if counted is None:  # a database from before the history: it holds the batches after the snapshots
+                    conn.execute(f"UPDATE maps SET (history_bytes, history_scans) = {HISTORY_OF_ROWS}")
         except BaseException:
             self._pool.close()
             raise

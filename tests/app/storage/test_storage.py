@@ -854,6 +854,28 @@ def test_postgres_replicas_creating_the_schema_at_once_all_start(postgres: Backe
     assert all(store.map_names() == ["m"] for store in stores)
 
 
+def test_a_database_from_before_the_history_counts_its_stored_batches_as_the_history(backend: Backend) -> None:
+    store = backend.open()
+    _make(store)
+    for k in range(1, 4):
+        _append(store, str(k).encode() * k, scans=k)
+    store.write_snapshot("m", 3, b"three")
+    store.close()
+    backend.stores.remove(store)
+    for statement in ("DROP TABLE bases", "ALTER TABLE batches DROP COLUMN bytes",
+                      *(f"ALTER TABLE maps DROP COLUMN {column}" for column in
+                        ("base_version", "history_bytes", "history_scans"))):
+        backend.sql(statement)  # the schema as it was
+    reopened = backend.open()
+    head = reopened.map_head("m")
+    assert head is not None and (head.base_version, head.history_bytes, head.history_scans) == (0, 1 + 2 + 3, 1 + 2 + 3)
+    history = reopened.load_history("m")
+    assert history is not None and history.damage == [] and history.snapshot is None and _versions(history) == [1, 2, 3]
+    assert reopened.fold_point("m", 3) == 2 and reopened.write_base("m", 2, b"two", "i1")
+    head = reopened.map_head("m")
+    assert head is not None and (head.base_version, head.history_bytes, head.history_scans) == (2, 3, 3)
+
+
 def test_an_old_sqlite_database_gets_the_new_columns_and_carries_on_its_versions(tmp_path: Path) -> None:
     path = tmp_path / "old.sqlite3"
     with sqlite3.connect(path) as db:  # the schema as it was: maps without versions, incarnations or scans
