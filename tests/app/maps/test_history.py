@@ -199,7 +199,8 @@ def test_two_replicas_sharing_a_map_see_one_fold_and_serve_the_same_map(make_cli
     seen_by_a, seen_by_b = a.get("/maps/lab").json(), b.get("/maps/lab").json()
     assert seen_by_a == seen_by_b and seen_by_a["version"] == 12 and seen_by_a["history"]["from_version"] > 0
     assert kit.risk_npy(a, "lab").tobytes() == kit.risk_npy(b, "lab").tobytes()
-    # the fold was done once (the base, one row), and the history rebuilds the map both serve
+    # the history (its base, written by whichever replica folded first, and the batches after it) rebuilds the map
+    # both serve
     assert _rebuilt_arrays(_storage(a)) == _live_arrays(a) == _live_arrays(b) == _fused_from_scratch(kit, range(1, 13))
     c = make_client(data_dir=tmp_path / "c", **settings)  # a replica that loads the map after the folds
     assert c.get("/maps/lab").json() == seen_by_a
