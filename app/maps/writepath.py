@@ -141,7 +141,6 @@ class WritePath:
         self._committer.shutdown()
         await asyncio.to_thread(self._parse_process.shutdown)
 
-
     async def _copy(self, entry: MapEntry) -> tuple[int, dict[str, np.ndarray]]:
         """The map's version and a copy of its arrays, taken under the apply lock: one version's map."""
         async with entry.apply_lock:  # batches and readers wait for the copy only, not for deflate and fsync
