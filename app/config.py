@@ -158,6 +158,12 @@ class Settings(BaseSettings):
         description="Snapshot a map once its batches since the last snapshot take this many bytes: a map's disk is "
         "its snapshot plus at most this much log (and one batch).",
     )
+    max_history_bytes: int = Field(
+        2**30, ge=0,
+        description="Most bytes of a map's history (its stored batches, which a rebuild re-fuses): beyond, the oldest "
+        "are folded into the base snapshot a rebuild starts from, down to about 3/4 of this; never those after the "
+        "restart snapshot (FUZZYRISK_SNAPSHOT_LOG_BYTES bounds them). 0: no history beyond what a restart needs.",
+    )
     snapshot_log_cells: int = Field(
         2_000_000_000, ge=1,
         description="Snapshot a map once its batches since the last snapshot walk this many cells in all (their cast "

@@ -23,6 +23,7 @@ if TYPE_CHECKING:
         MapObserver,
         OccupancyMap,
         copy_limit,
+        history_of,
         in_use,
         is_current,
         map_info,
@@ -54,6 +55,7 @@ __all__ = [
     "WritePath",
     "build_map",
     "copy_limit",
+    "history_of",
     "in_use",
     "is_current",
     "map_info",
@@ -67,7 +69,7 @@ __all__ = [
 ]
 
 _LAZY = {
-    **dict.fromkeys(["UNLIMITED_CELLS", "MapEntry", "MapObserver", "OccupancyMap", "copy_limit", "in_use",
+    **dict.fromkeys(["UNLIMITED_CELLS", "MapEntry", "MapObserver", "OccupancyMap", "copy_limit", "history_of", "in_use",
                      "is_current", "map_info", "now", "stored_info"], "app.maps.entry"),
     **dict.fromkeys(["Line", "Turns", "shielded"], "app.maps.line"),
     "MapRegistry": "app.maps.registry",

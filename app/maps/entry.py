@@ -23,7 +23,7 @@ from app.maps import shared_grids
 from app.maps.line import Line
 from app.maps.snapshot import GridStamp
 from app.scans import Scan, ScanView
-from app.schemas import DEFAULT_FRAME_ID, MapCreate, MapInfo, PlanResult
+from app.schemas import DEFAULT_FRAME_ID, MapCreate, MapHistory, MapInfo, PlanResult
 from app.schemas import engine_choice
 from app.storage import MapHead
 from fuzzyocc import BayesMap, FuzzyMap, GridSpec, LatticeSpec
@@ -162,18 +162,30 @@ class MapEntry:
             return None
         return engine_choice.shown(self.map.engine)
 
-    def info(self) -> MapInfo:
+    def info(self, history: MapHistory) -> MapInfo:
+        """What ``GET /maps/{name}`` shows of the map, with its ``history`` as stored (``history_of``)."""
         bounds = self.map.bounds()
         # a PATCH changes forget_beyond after the meta was stored: the map holds the setting as it is now
         meta = {**self.meta, "forget_beyond": self.map.forget_beyond} if isinstance(self.map, FuzzyMap) else self.meta
         return map_info(meta, self.spec, self.engine_shown, scans_fused=self.scans_fused, version=self.version,
                         updated=self.updated, bounds=None if bounds is None else bounds.spec(),
-                        held_cells=self.map.held_cells())
+                        held_cells=self.map.held_cells(), history=history)
+
+
+#: The history of a map just made: nothing stored yet.
+NO_HISTORY = MapHistory(from_version=0, bytes=0, scans=0)
+
+
+def history_of(head: MapHead | None) -> MapHistory:
+    """A map's history as its stored row counts it (``NO_HISTORY`` when there is no row)."""
+    if head is None:
+        return NO_HISTORY
+    return MapHistory(from_version=head.base_version, bytes=head.history_bytes, scans=head.history_scans)
 
 
 def map_info(meta: Mapping[str, Any], spec: GridSpec | LatticeSpec, engine: engine_choice.EngineChoice | None, *,
              scans_fused: int, version: int, updated: str, bounds: GridSpec | None,
-             held_cells: int | None) -> MapInfo:
+             held_cells: int | None, history: MapHistory) -> MapInfo:
     """What ``GET /maps/{name}`` shows of a map, held in memory or only stored.
 
     Its settings as its meta stores them (a setting the map was made before: its default), the grid
@@ -197,6 +209,7 @@ def map_info(meta: Mapping[str, Any], spec: GridSpec | LatticeSpec, engine: engi
         "version": version,
         "created": meta["created"],
         "updated": updated,
+        "history": history,
     })
 
 
@@ -213,7 +226,7 @@ def stored_info(head: MapHead) -> MapInfo:
     spec = spec_of(head.meta, max_cells=UNLIMITED_CELLS)
     engine = engine_choice.shown(engine_choice.from_meta(head.meta)) if head.meta["model"] == "fuzzy" else None
     return map_info(head.meta, spec, engine, scans_fused=head.scans, version=head.version, updated=head.updated,
-                    bounds=None, held_cells=None)
+                    bounds=None, held_cells=None, history=history_of(head))
 
 
 @contextlib.contextmanager

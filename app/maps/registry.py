@@ -13,7 +13,7 @@ from app.config import Settings
 from app.storage.diskreserve import DiskReserve
 from app.errors import Conflict, InsufficientStorage, Invalid, NotFound, Unavailable
 from app.ops.process_setup import give_back_freed_memory
-from app.maps.entry import UNLIMITED_CELLS, MapEntry, copy_limit, now, spec_of, stored_info
+from app.maps.entry import NO_HISTORY, UNLIMITED_CELLS, MapEntry, copy_limit, history_of, now, spec_of, stored_info
 from app.maps.line import shielded
 from app.maps.stored import build_map, restore
 from app.ops.metrics import Metrics
@@ -231,14 +231,16 @@ class MapRegistry:
 
     async def list_maps(self) -> list[MapInfo]:
         """Every stored map; with a shared database, as stored (a map held here is shown as held when current)."""
+        heads = await self._workers.run_read(self.storage.map_heads)
         if not self.settings.shared_storage:
-            return [entry.info() for _, entry in sorted(self._maps.items())]
+            histories = {head.name: history_of(head) for head in heads}
+            return [entry.info(histories.get(name, NO_HISTORY)) for name, entry in sorted(self._maps.items())]
         infos = []
-        for head in await self._workers.run_read(self.storage.map_heads):
+        for head in heads:
             entry = self._maps.get(head.name)
             if entry is not None and entry.incarnation == head.incarnation and \
                     max(entry.version, entry.checked) >= head.version:
-                infos.append(entry.info())  # current (a discarded batch on top is not a version of it)
+                infos.append(entry.info(history_of(head)))  # current (a discarded batch on top is not a version of it)
                 continue
             try:
                 infos.append(stored_info(head))
@@ -289,7 +291,7 @@ class MapRegistry:
 
     async def create_map(self, request: MapCreate) -> MapInfo:
         """Create an empty map; ``Conflict`` if the name is taken, ``Invalid`` if the grid is unusable."""
-        return (await self.create(request)).info()
+        return (await self.create(request)).info(NO_HISTORY)
 
     async def check_new(self, request: MapCreate) -> None:
         """What ``create`` would refuse for the name and the room (409, 507, 422), before costly work for a map to be

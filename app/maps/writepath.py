@@ -70,6 +70,7 @@ from app.errors import (
     UnsupportedMediaType,
 )
 from app.maps.entry import MapEntry, now
+from app.maps.history import plan_fold
 from app.maps.line import shielded
 from app.maps.stored import batch_work, integrate, npz, replay, restore
 from app.ops.metrics import Metrics
@@ -133,26 +134,26 @@ class WritePath:
                 await entry.line.wait_all(ticket)
                 await entry.snapshot_done()
                 if not entry.deleted and entry.version > entry.snapshot_version:
-                    await self.snapshot(entry)
+                    # a fold that re-fuses history would hold the stop: only the cheap one (the budget 0's)
+                    await self._store_snapshot(entry, *await self._copy(entry), replay_fold=False)
             finally:
                 entry.line.done(ticket)
         self._committer.shutdown()
         await asyncio.to_thread(self._parse_process.shutdown)
-
-    async def snapshot(self, entry: MapEntry) -> None:
-        """Store the map's arrays and drop the batches they cover; a failure is logged and counted only.
-
-        Nothing is lost when this fails: the batches since the last snapshot stay in the log and are
-        replayed at start.
-        """
-        await self._store_snapshot(entry, *await self._copy(entry))
 
     async def _copy(self, entry: MapEntry) -> tuple[int, dict[str, np.ndarray]]:
         """The map's version and a copy of its arrays, taken under the apply lock: one version's map."""
         async with entry.apply_lock:  # batches and readers wait for the copy only, not for deflate and fsync
             return entry.version, await self._workers.run(entry.map.to_arrays)
 
-    async def _store_snapshot(self, entry: MapEntry, version: int, arrays: dict[str, np.ndarray]) -> None:
+    async def _store_snapshot(self, entry: MapEntry, version: int, arrays: dict[str, np.ndarray], *,
+                              replay_fold: bool) -> None:
+        """Store the map's arrays as its restart snapshot, then fold its history if it is over the budget (``_fold``);
+        a failure is logged and counted only.
+
+        Nothing is lost when this fails: the batches since the last snapshot stay in the log and are
+        replayed at start.
+        """
         try:
             # in the admin thread: the fusion threads are for batches
             await self._workers.run_admin(
@@ -168,9 +169,35 @@ class WritePath:
             )
             return
         entry.snapshot_version = max(entry.snapshot_version, version)
-        # dropped from the log with the snapshot (later batches, and another replica's caught up, stay)
+        # what a restart replays starts after the snapshot (later batches, and another replica's caught up, stay)
         entry.log = collections.deque(item for item in entry.log if item[0] > version)
         self.metrics.snapshots.inc()
+        await self._fold(entry, replay=replay_fold)
+
+    async def _fold(self, entry: MapEntry, *, replay: bool) -> None:
+        """Fold the oldest batches of the map's history into its base when the history takes more than
+        ``FUZZYRISK_MAX_HISTORY_BYTES`` (``history.plan_fold``), beside the map's line as its snapshot is.
+
+        The history up to the fold is re-fused in a heavy fusion thread (niced: batches come first), the
+        base stored with the batches' removal in the admin thread, in one transaction: a crash leaves the
+        old history or the new one. A failure is logged and counted; the next snapshot tries again.
+        """
+        try:
+            fold = await self._workers.run_heavy(functools.partial(
+                plan_fold, self.storage, entry.name, entry.incarnation, budget=self.settings.max_history_bytes,
+                replay=replay))
+            if fold is None:
+                return
+            done = await self._workers.run_admin(
+                self.storage.write_base, entry.name, fold.version, fold.payload, entry.incarnation)
+        except Exception as exc:
+            self.metrics.history_fold_failures.inc()
+            LOG.warning("the history could not be folded; it stays as it is and the fold is tried again after the "
+                        "next snapshot", extra={"fields": {"map": entry.name, "error": str(exc)}})
+            return
+        if done:  # (not when another replica folded first)
+            self.metrics.history_folds.inc()
+            LOG.info("history folded", extra={"fields": {"map": entry.name, "from_version": fold.version}})
 
     async def _snapshot_beside(self, entry: MapEntry) -> None:
         """Copy the map now, then deflate and store the copy without making anyone wait for it.
@@ -181,7 +208,7 @@ class WritePath:
         slowest scans in ``bench abuse``); the copy alone is 2-3 ms.
         """
         version, arrays = await self._copy(entry)
-        task = asyncio.get_running_loop().create_task(self._store_snapshot(entry, version, arrays))
+        task = asyncio.get_running_loop().create_task(self._store_snapshot(entry, version, arrays, replay_fold=True))
         entry.snapshotting = task
         self._snapshots.add(task)
 
@@ -517,7 +544,7 @@ class WritePath:
 
     async def _catch_up_locked(self, entry: MapEntry, target: int) -> None:
         """Bring the map to ``target`` from the store: the batches after its version, or a newer snapshot and the
-        batches after that (another replica snapshotted and dropped the ones in between).
+        batches after that (another replica snapshotted, maybe folded the ones in between).
 
         The caller holds the map's apply turn and its apply lock.
         """

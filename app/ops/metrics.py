@@ -74,3 +74,10 @@ class Metrics:
         self.snapshot_failures = Counter(
             "fuzzyrisk_snapshot_failures", "Map snapshots that storage refused (retried later)", registry=r
         )
+        self.history_folds = Counter(
+            "fuzzyrisk_history_folds", "Oldest batches of a map's history folded into its base snapshot", registry=r
+        )
+        self.history_fold_failures = Counter(
+            "fuzzyrisk_history_fold_failures", "Folds of a map's history that failed (tried again after the next "
+            "snapshot)", registry=r
+        )

@@ -21,9 +21,9 @@ topic       type                            holds
                                             the map's frame (stored there; z = 0 on 2-D maps)
 ==========  ==============================  =====================================================
 
-Which scans: those of the batches after the map's latest snapshot, up to the grid's version (a
-snapshot drops the batches it covers, so older scans are gone; ``since_version`` says where the
-log starts). An imported map's first batch (a saved map's cells) holds no scan: the grid shows it. At most ``FUZZYRISK_SNAPSHOT_EVERY`` batches, and ``FUZZYRISK_SNAPSHOT_LOG_BYTES``
+Which scans: those of the batches after the map's latest snapshot, up to the grid's version (what a
+restart replays; older scans stay in the map's history but are not exported; ``since_version`` says
+where the log starts). An imported map's first batch (a saved map's cells) holds no scan: the grid shows it. At most ``FUZZYRISK_SNAPSHOT_EVERY`` batches, and ``FUZZYRISK_SNAPSHOT_LOG_BYTES``
 of them (plus one).
 
 Stamps: a batch stores no robot time. Of the N scans, in version order and in order within each

@@ -19,7 +19,7 @@ from app.ros import messages_out
 from app.ros import msgtypes
 from app.config import Settings
 from app.errors import Conflict, Invalid, NotFound, TooLarge, Unavailable
-from app.maps import GridSnapshot, GridStamp, MapEntry, copy_limit
+from app.maps import GridSnapshot, GridStamp, MapEntry, copy_limit, history_of
 from app.reads.lane import ReadLane, Turn
 from app.schemas import WHOLE_MAP, GridWindow, LastScan, MapInfo, OccupancyGrid, RiskGridJSON, RiskValues
 from app.storage import Storage, StoredMap
@@ -65,7 +65,9 @@ class MapReads:
 
     async def map_info(self, name: str) -> MapInfo:
         """What ``GET /maps/{name}`` shows."""
-        return (await self._current(name)).info()
+        entry = await self._current(name)
+        head = await self._workers.run_read(self.storage.map_head, name)  # the history as stored (one indexed row)
+        return entry.info(history_of(head))
 
     async def last_scan(self, name: str) -> LastScan:
         """Beam ends of the last scan fused; the view is built at the first request, not per batch."""
@@ -178,7 +180,7 @@ class MapReads:
                     heavy=_heavy(window))
                 grid = GridSnapshot(_spec_of(entry, window), entry.version, risk, observed, entry.frame_id,
                                     entry.updated, entry.etag_seed)
-            # another replica's snapshot newer than this grid dropped the batches up to it: catch up, again
+            # another replica's snapshot newer than this grid: the log read starts after it; catch up, again
             if stored is None or stored.snapshot_version <= grid.version:
                 break
         if stored is None or stored.incarnation != entry.incarnation \

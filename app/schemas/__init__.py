@@ -56,6 +56,7 @@ from app.schemas.maps import (
     MapChange,
     MapCreate,
     MapImport,
+    MapHistory,
     MapInfo,
     SensorIn,
 )
@@ -138,6 +139,7 @@ __all__ = [
     "MapChange",
     "MapCreate",
     "MapImport",
+    "MapHistory",
     "MapInfo",
     "MapMetaData",
     "MapName",

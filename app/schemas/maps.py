@@ -240,6 +240,16 @@ def _read_only(description: str) -> Any:
     return Field(description=description, json_schema_extra={"readOnly": True})
 
 
+class MapHistory(BaseModel):
+    """Where a map's history starts and what it takes: the stored batches a rebuild re-fuses from its base."""
+
+    # the version is where the history starts; a stamp (the first batch's scan time) belongs beside it
+    from_version: int = Field(description="the version the history starts after: its base snapshot's (0 while no "
+                              "batch has left the history: a rebuild starts from the map's creation)")
+    bytes: int = Field(description="bytes of the history's stored batches (FUZZYRISK_MAX_HISTORY_BYTES bounds them)")
+    scans: int = Field(description="scans in the history's batches")
+
+
 class MapInfo(MapCreate):
     """A map as the service holds it: its name and settings, as ``MapCreate`` takes them, then read-only facts."""
 
@@ -258,6 +268,7 @@ class MapInfo(MapCreate):
                               "inside the service after it was stored (its number is not reused)")
     created: datetime = _read_only("when the map was made, UTC")
     updated: datetime = _read_only("when its last batch was applied, UTC")
+    history: MapHistory = _read_only("the batches kept for a rebuild: from which version, their bytes and scans")
 
     @model_validator(mode="after")
     def _dimensions_agree(self) -> MapInfo:

@@ -73,14 +73,14 @@ async def import_upload(
     # admitted before the body is read (a map with a full line answers at once), and counted against the map's
     # line while it arrives; no longer once it is read: the import's first batch must not wait behind itself
     async with service.writes.receiving(name) as entry:
-        info, uid = entry.info(), entry.uid
+        frame_id, dims, version, uid = entry.frame_id, entry.spec.ndim, entry.version, entry.uid
         media = content_type.split(";")[0].strip().lower()
         if media not in MEDIA_TYPES:
             raise UnsupportedMediaType(f"Content-Type {media!r} is not a bag: send a ROS 1 .bag as {ROSBAG} or a "
                                        f"rosbag2 .mcap file as {MCAP} (or {X_MCAP}; {OCTET_STREAM}: told by its first "
                                        "bytes)")
         path = await _spool(body, media, service.settings.temp_dir)
-    options = BagOptions(map_frame=map_frame or info.frame_id, topics=topics, pose_topic=pose_topic,
+    options = BagOptions(map_frame=map_frame or frame_id, topics=topics, pose_topic=pose_topic,
                          pose_frame=pose_frame, cloud_range_max=range_max)
     # in use until the import ends (no await since the body was read): a replica must not drop the map from
     # memory between its batches, or the next batch would find another copy (another uid) of it
@@ -92,8 +92,8 @@ async def import_upload(
                 raise TooLarge(f"body: the bag's chunks decompress to {declared:,} bytes, more than "
                                f"FUZZYRISK_MAX_BAG_BYTES ({limit:,}): split the bag (ros2 bag convert, "
                                "rosbags-convert)")
-            stream = BagStream(path, options, dims=info.dimensions, limits=service.writes.limits)
-            return await _fuse(service, name, uid, stream, info.version)
+            stream = BagStream(path, options, dims=dims, limits=service.writes.limits)
+            return await _fuse(service, name, uid, stream, version)
     finally:
         await to_thread.run_sync(_remove, path)
 

@@ -1,10 +1,14 @@
 """Durable map storage: a small interface, an embedded SQLite implementation and a PostgreSQL one.
 
-A map on disk is its metadata, at most one snapshot (the map's arrays at some
-version) and the scan batches committed since that snapshot, in order. The
-service commits a batch before it applies it and answers, so a batch that got a
-200 survives ``kill -9``; a restart loads the snapshot and replays the batches
-after it (fusion is deterministic, so the risk is bit for bit the same).
+A map on disk is its metadata, its history (every batch committed after its base
+snapshot, in order), its base snapshot (the map's arrays at the version the history
+starts after; none while no batch has left the history) and its restart snapshot
+(the map's arrays at a newer version). The service commits a batch before it
+applies it and answers, so a batch that got a 200 survives ``kill -9``; a restart
+loads the restart snapshot and replays the batches after it (fusion is
+deterministic, so the risk is bit for bit the same). A snapshot drops nothing: the
+oldest batches leave the history only when folded into a new base
+(``write_base``), which a rebuild from the history starts from.
 
 The store, not the service, gives each batch its version: several replicas of the
 service may write one database (``app.storage.postgres``), and the map's row is what

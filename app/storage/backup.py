@@ -27,7 +27,7 @@ from app.storage.sqlite import payload_directory
 
 #: The database's file in the data directory (as ``Settings.database_path`` names it).
 DATABASE = "fuzzyrisk.sqlite3"
-_TABLES = (("batches", "seq"), ("snapshots", "version"))
+_TABLES = (("batches", "seq"), ("snapshots", "version"), ("bases", "version"))
 #: Pages copied between two progress reports: 4 MiB of the default 4 KiB pages, a few milliseconds of copying.
 PAGES_PER_STEP = 1024
 
@@ -151,7 +151,7 @@ def _allow_open_files(count: int) -> None:
     """Raise this process's limit of open files to hold ``count`` more (up to the hard limit), or say why not.
 
     Every payload file stays open until its bytes are in the copy: a store may hold many thousands
-    (up to ``FUZZYRISK_SNAPSHOT_LOG_BYTES`` / 256 KiB a map), beyond a shell's usual 1,024.
+    (up to ``FUZZYRISK_MAX_HISTORY_BYTES`` / 256 KiB a map), beyond a shell's usual 1,024.
     """
     soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
     needed = count + 64  # the databases, the standard streams and some room

@@ -59,7 +59,11 @@ TOMBSTONE = b""
 
 @dataclass
 class StoredMap:
-    """Everything stored about one map, or the part of it a loader was asked for."""
+    """Everything stored about one map, or the part of it a loader was asked for.
+
+    ``snapshot`` is the state the batches start from: the restart snapshot (or the base, when that is
+    newer) for ``load_map`` and ``load_since``, the base for ``load_history``; None: the map's creation.
+    """
 
     name: str
     meta: dict[str, Any]
@@ -86,6 +90,9 @@ class MapHead:
     snapshot_version: int
     scans: int  # scans of the stored batches (discarded ones excluded)
     incarnation: str | None
+    base_version: int = 0  # the version the history starts after (its base snapshot's; 0: the map's creation)
+    history_bytes: int = 0  # payload bytes of the history's batches (every one after the base)
+    history_scans: int = 0  # scans in them
 
 
 class BatchRecord(NamedTuple):
@@ -116,6 +123,10 @@ class Storage(Protocol):
 
     def load_map(self, name: str) -> StoredMap | None:
         """One map with its snapshot and every batch after it; None when there is none of that name."""
+
+    def load_history(self, name: str, up_to: int | None = None) -> StoredMap | None:
+        """The map's base snapshot (None: none yet, the history starts at the creation) and every batch after it,
+        up to ``up_to`` (None: the newest); None when there is no map of that name."""
 
     def load_since(self, name: str, after: int, up_to: int | None = None) -> StoredMap | None:
         """What a holder of the map at version ``after`` needs to reach ``up_to`` (None: the newest).
@@ -149,9 +160,23 @@ class Storage(Protocol):
         """
 
     def write_snapshot(self, name: str, version: int, payload: bytes, incarnation: str | None = None) -> None:
-        """Store the map's state at ``version`` and drop the batches it covers, atomically.
+        """Store the map's state at ``version`` as its restart snapshot (the batches it covers stay: the history).
 
-        A no-op when the stored snapshot is as new or newer, or the map (of that incarnation) is gone.
+        A no-op when the stored restart snapshot (or the base) is as new or newer, or the map (of that
+        incarnation) is gone.
+        """
+
+    def fold_point(self, name: str, keep_bytes: int) -> int:
+        """The newest version to fold for the history after it to take at most ``keep_bytes`` (0: none to fold).
+
+        Never above the restart snapshot's version (a restart replays the batches after it).
+        """
+
+    def write_base(self, name: str, version: int, payload: bytes | None, incarnation: str | None = None) -> bool:
+        """Fold the history up to ``version``: store ``payload`` (the map at ``version``) as the base snapshot and
+        drop the batches it covers, atomically; ``payload`` None: the restart snapshot, which must be at
+        ``version``, becomes the base. Whether it was done: not when the base is as new or newer (another
+        replica folded first), the restart snapshot is older than ``version``, or the map is gone.
         """
 
     def close(self) -> None:
@@ -161,41 +186,100 @@ class Storage(Protocol):
 #: What the loaders read first, in one query of either dialect (``?`` placeholders).
 _LOAD_HEAD = ("SELECT meta, updated, version, snapshot_version, incarnation,"
              " (SELECT version FROM snapshots WHERE map = maps.name),"
-             " (SELECT MAX(seq) FROM batches WHERE map = maps.name)"
+             " (SELECT MAX(seq) FROM batches WHERE map = maps.name),"
+             " base_version, (SELECT version FROM bases WHERE map = maps.name)"
              " FROM maps WHERE name = ?")
+#: The versions of a map's restart snapshot and base rows (None: none), in either dialect.
+START_ROWS = "SELECT (SELECT version FROM snapshots WHERE map = ?), (SELECT version FROM bases WHERE map = ?)"
+#: A batch row's payload bytes (a row from before the ``bytes`` column: its inline payload's).
+BATCH_BYTES = "COALESCE(bytes, length(payload))"
+#: The history's bytes and scans as its rows hold them, for ``UPDATE maps SET (history_bytes, history_scans) =``.
+HISTORY_OF_ROWS = (f"(SELECT COALESCE(SUM({BATCH_BYTES}), 0), COALESCE(SUM(scans), 0) FROM batches "
+                   "WHERE batches.map = maps.name)")
 #: Above every version: the bound of a range query that has none.
 NO_LIMIT = 2**62
 
 
 def head_of(row: Sequence[Any]) -> MapHead:
-    """A ``MapHead`` from (name, meta, updated, version, snapshot_version, scans, incarnation)."""
-    return MapHead(row[0], json.loads(row[1]), row[2], int(row[3]), int(row[4]), int(row[5]), row[6])
+    """A ``MapHead`` from (name, meta, updated, version, snapshot_version, scans, incarnation, base_version,
+    history_bytes, history_scans)."""
+    return MapHead(row[0], json.loads(row[1]), row[2], int(row[3]), int(row[4]), int(row[5]), row[6],
+                   int(row[7] or 0), int(row[8] or 0), int(row[9] or 0))
+
+
+def start_of(snapshot_row: int | None, base_row: int | None, *, from_base: bool) -> tuple[int, str | None]:
+    """Where a load starts: the version and table of the row it reads first (0 and None: the map's creation).
+
+    A restart starts from the newer of the restart snapshot and the base (a fold may have made the
+    restart snapshot the base); a history, from the base.
+    """
+    if base_row is not None and (from_base or snapshot_row is None or base_row > snapshot_row):
+        return base_row, "bases"
+    if snapshot_row is not None and not from_base:
+        return snapshot_row, "snapshots"
+    return 0, None
+
+
+def may_fold(base_version: int, restart_version: int | None, version: int, *, moving: bool) -> bool:
+    """Whether ``write_base`` may fold the history up to ``version``: not done already (by another replica), never
+    past the restart snapshot (a restart replays the batches after it), and the restart snapshot made the base
+    (``moving``) only at its own version."""
+    return base_version < version <= (restart_version or 0) and (not moving or restart_version == version)
+
+
+def fold_rows(execute: Callable[[str, tuple[Any, ...]], Any], name: str, version: int,
+              base: tuple[str, tuple[Any, ...]] | None, columns: str) -> None:
+    """``write_base``'s statements once it may fold, run by ``execute`` (``?`` placeholders) in its transaction: the
+    base replaced by ``base`` (its INSERT and arguments; None: the restart snapshot's row, its ``columns``, moves),
+    the batches it covers deleted, the history counted again."""
+    execute("DELETE FROM bases WHERE map = ?", (name,))
+    if base is None:
+        execute(f"INSERT INTO bases ({columns}) SELECT {columns} FROM snapshots WHERE map = ?", (name,))
+        execute("DELETE FROM snapshots WHERE map = ?", (name,))
+    else:
+        execute(*base)
+    execute("DELETE FROM batches WHERE map = ? AND seq <= ?", (name, version))
+    execute(f"UPDATE maps SET base_version = ?, (history_bytes, history_scans) = {HISTORY_OF_ROWS} WHERE name = ?",
+            (version, name))
+
+
+def fold_point_of(sizes: Iterable[Sequence[Any]], keep_bytes: int, restart_version: int) -> int:
+    """``Storage.fold_point`` from the history's (version, bytes) rows, newest first."""
+    kept = 0
+    for seq, size in sizes:
+        kept += int(size or 0)
+        if kept > keep_bytes:
+            return min(int(seq), restart_version)
+    return 0
 
 
 def read_map(query: Callable[[str, tuple[Any, ...]], Iterable[Sequence[Any]]], name: str, after: int | None,
-             up_to: int | None, files: PayloadSource | None = None) -> StoredMap | None:
-    """``load_map`` (``after`` None) or ``load_since`` on a consistent view of a store: ``query(sql, args)``
-    runs one statement of either dialect (``?`` placeholders) and yields its rows. ``files``: where the
-    store keeps its big payloads (rows with a ``file`` column), if it does."""
+             up_to: int | None, files: PayloadSource | None = None, *, from_base: bool = False) -> StoredMap | None:
+    """``load_map`` (``after`` None), ``load_since`` or ``load_history`` (``from_base``) on a consistent view of a
+    store: ``query(sql, args)`` runs one statement of either dialect (``?`` placeholders) and yields its rows.
+    ``files``: where the store keeps its big payloads (rows with a ``file`` column), if it does."""
     file_column = "file" if files is not None else "NULL"
     row = next(iter(query(_LOAD_HEAD, (name,))), None)
     if row is None:
         return None
-    meta, updated, version, snapshot_version, incarnation, snapshot_row, newest_seq = row
-    newest = max(snapshot_version or 0, snapshot_row or 0, newest_seq or 0)
-    stored = StoredMap(name, json.loads(meta), updated, snapshot_version=snapshot_row or 0,
+    meta, updated, version, snapshot_version, incarnation, snapshot_row, newest_seq, base_version, base_row = row
+    start, table = start_of(snapshot_row, base_row, from_base=from_base)
+    newest = max(snapshot_version or 0, snapshot_row or 0, base_row or 0, newest_seq or 0)
+    stored = StoredMap(name, json.loads(meta), updated, snapshot_version=start,
                        incarnation=incarnation, version=newest if version is None else version)
-    if snapshot_row is not None and (after is None or snapshot_row > after):
-        for snapshot in query(f"SELECT version, payload, crc, updated, {file_column} FROM snapshots WHERE map = ?",
+    if table is not None and (after is None or start > after):
+        what = "its base snapshot" if table == "bases" else "its snapshot"
+        for snapshot in query(f"SELECT version, payload, crc, updated, {file_column} FROM {table} WHERE map = ?",
                               (name,)):
-            payload = _payload(stored, f"its snapshot (version {snapshot[0]})", snapshot[1], snapshot[4], files)
+            payload = _payload(stored, f"{what} (version {snapshot[0]})", snapshot[1], snapshot[4], files)
             if payload is not None:
-                _take_snapshot(stored, snapshot[0], payload, snapshot[2])
+                _take_snapshot(stored, what, snapshot[0], payload, snapshot[2])
             if snapshot[3] is not None:
                 stored.stamps[snapshot[0]] = snapshot[3]
-    lower = -NO_LIMIT if after is None else max(after, snapshot_row or 0)
-    # (a recorded snapshot whose row is gone is reported as such below, not again as the batches it held)
-    previous = max(after or 0, snapshot_row or 0, snapshot_version or 0)
+    lower = start if after is None else max(after, start)
+    # (a recorded snapshot or base whose row is gone is reported as such below, not again as the batches it held)
+    recorded = (base_version or 0) if from_base else max(snapshot_version or 0, base_version or 0)
+    previous = max(after or 0, start, recorded)
     for seq, stored_payload, crc, stamp, file in query(
             f"SELECT seq, payload, crc, updated, {file_column} FROM batches WHERE map = ? AND seq > ? AND seq <= ? "
             "ORDER BY seq", (name, lower, NO_LIMIT if up_to is None else up_to)):
@@ -210,7 +294,8 @@ def read_map(query: Callable[[str, tuple[Any, ...]], Iterable[Sequence[Any]]], n
         for seq, stamp in query("SELECT seq, updated FROM batches WHERE map = ? AND seq > ? ORDER BY seq LIMIT 1",
                                 (name, previous)):
             _check_gap(stored, previous, seq, stamp)
-    _check_versions(stored, version, snapshot_version, snapshot_row or 0, newest_seq or 0)
+    _check_versions(stored, version, snapshot_version, snapshot_row or 0, newest_seq or 0, base_version or 0,
+                    base_row or 0)
     return stored
 
 
@@ -237,9 +322,9 @@ def _check_gap(stored: StoredMap, previous: int, seq: int, stamp: str | None) ->
                              f"version {previous} to {seq})")
 
 
-def _take_snapshot(stored: StoredMap, version: int, payload: bytes, crc: int | None) -> None:
+def _take_snapshot(stored: StoredMap, what: str, version: int, payload: bytes, crc: int | None) -> None:
     if crc is not None and crc != checksum(payload):
-        stored.damage.append(f"its snapshot (version {version}) fails its checksum")
+        stored.damage.append(f"{what} (version {version}) fails its checksum")
     stored.snapshot_version, stored.snapshot = version, payload
 
 
@@ -252,17 +337,19 @@ def _take_batch(stored: StoredMap, seq: int, payload: bytes, crc: int | None) ->
 
 
 def _check_versions(stored: StoredMap, version: int | None, snapshot_version: int | None, snapshot_row: int,
-                    newest_seq: int) -> None:
+                    newest_seq: int, base_version: int, base_row: int) -> None:
     """Rows deleted behind the service's back: the map's own record of its versions disagrees with its rows.
 
     (A deleted snapshot row left a map without batches 1-10 reporting version 12; a deleted last batch
     went unnoticed.) ``snapshot_row``/``newest_seq``: the stored snapshot's version and the newest
     batch row, tombstones included (0: none). NULL record: a database from before it, not checked
-    until the next write.
+    until the next write. The restart snapshot's row may have become the base (a fold at its version).
     """
-    if snapshot_version and snapshot_row != snapshot_version:
+    if snapshot_version and snapshot_version not in (snapshot_row, base_row):
         stored.damage.append(f"its snapshot (version {snapshot_version}) is missing"
                              + (f"; version {snapshot_row} is stored" if snapshot_row else ""))
-    newest = max(snapshot_row, newest_seq)
+    if base_version and base_row != base_version:
+        stored.damage.append(f"its base snapshot (version {base_version}) is missing")
+    newest = max(snapshot_row, base_row, newest_seq)
     if version is not None and newest < version:
         stored.damage.append(f"its batches up to version {version} are missing (the newest stored is {newest})")

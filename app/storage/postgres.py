@@ -22,6 +22,8 @@ import psycopg.errors
 from psycopg_pool import ConnectionPool
 
 from app.storage.base import (
+    BATCH_BYTES,
+    HISTORY_OF_ROWS,
     TOMBSTONE,
     BatchRecord,
     CommitUncertain,
@@ -31,7 +33,10 @@ from app.storage.base import (
     StorageUnavailable,
     StoredMap,
     checksum,
+    fold_point_of,
+    fold_rows,
     head_of,
+    may_fold,
     read_map,
 )
 
@@ -51,6 +56,10 @@ _SCHEMA = (
         incarnation TEXT,
         scans BIGINT NOT NULL DEFAULT 0
     )""",
+    # added since the first schema (a database from before gets them, its history counted from its rows)
+    "ALTER TABLE maps ADD COLUMN IF NOT EXISTS base_version BIGINT NOT NULL DEFAULT 0",
+    "ALTER TABLE maps ADD COLUMN IF NOT EXISTS history_bytes BIGINT NOT NULL DEFAULT 0",
+    "ALTER TABLE maps ADD COLUMN IF NOT EXISTS history_scans BIGINT NOT NULL DEFAULT 0",
     """CREATE TABLE IF NOT EXISTS batches (
         map TEXT NOT NULL REFERENCES maps(name) ON DELETE CASCADE,
         seq BIGINT NOT NULL,
@@ -60,24 +69,27 @@ _SCHEMA = (
         updated TEXT,
         PRIMARY KEY (map, seq)
     )""",
-    """CREATE TABLE IF NOT EXISTS snapshots (
+    "ALTER TABLE batches ADD COLUMN IF NOT EXISTS bytes BIGINT",
+    *(f"""CREATE TABLE IF NOT EXISTS {table} (
         map TEXT PRIMARY KEY REFERENCES maps(name) ON DELETE CASCADE,
         version BIGINT NOT NULL,
         payload BYTEA NOT NULL,
         crc BIGINT,
         updated TEXT
-    )""",
+    )""" for table in ("snapshots", "bases")),  # a map's restart snapshot and its base snapshot
 )
 
-_HEAD = "SELECT name, meta, updated, version, snapshot_version, scans, incarnation FROM maps"
+_HEAD = ("SELECT name, meta, updated, version, snapshot_version, scans, incarnation, base_version, history_bytes, "
+         "history_scans FROM maps")
 # one round trip per batch: the UPDATE takes the map's row lock and its next version, the INSERT uses it;
 # no row when the map is not stored under that name and incarnation
 _APPEND = """WITH taken AS (
-    UPDATE maps SET version = version + 1, updated = %(updated)s, scans = scans + %(scans)s
+    UPDATE maps SET version = version + 1, updated = %(updated)s, scans = scans + %(scans)s,
+        history_bytes = history_bytes + %(bytes)s, history_scans = history_scans + %(scans)s
     WHERE name = %(name)s AND incarnation IS NOT DISTINCT FROM %(incarnation)s::text
     RETURNING name, version)
-INSERT INTO batches (map, seq, payload, crc, scans, updated)
-SELECT name, version, %(payload)b, %(crc)s, %(scans)s, %(updated)s FROM taken RETURNING seq"""
+INSERT INTO batches (map, seq, payload, crc, scans, updated, bytes)
+SELECT name, version, %(payload)b, %(crc)s, %(scans)s, %(updated)s, %(bytes)s FROM taken RETURNING seq"""
 _LOCK_MAP = "SELECT 1 FROM maps WHERE name = %s AND (%s::text IS NULL OR incarnation = %s) FOR UPDATE"
 
 
@@ -102,8 +114,12 @@ class PostgresStorage:
                 raise StorageUnavailable(f"{exc} (PostgreSQL connection)") from exc
             with self._connection() as conn, conn.transaction():
                 conn.execute("SELECT pg_advisory_xact_lock(%s)", (SCHEMA_LOCK,))
+                counted = conn.execute("SELECT 1 FROM information_schema.columns WHERE table_schema = current_schema() "
+                                       "AND table_name = 'maps' AND column_name = 'history_bytes'").fetchone()
                 for statement in _SCHEMA:
                     conn.execute(statement)
+                if counted is None:  # a database from before the history: it holds the batches after the snapshots
+                    conn.execute(f"UPDATE maps SET (history_bytes, history_scans) = {HISTORY_OF_ROWS}")
         except BaseException:
             self._pool.close()
             raise
@@ -164,6 +180,9 @@ class PostgresStorage:
     def load_since(self, name: str, after: int, up_to: int | None = None) -> StoredMap | None:
         return self._read(lambda conn: _consistent_read(conn, name, after, up_to))
 
+    def load_history(self, name: str, up_to: int | None = None) -> StoredMap | None:
+        return self._read(lambda conn: _consistent_read(conn, name, None, up_to, from_base=True))
+
     def create_map(self, name: str, meta: dict[str, Any], updated: str) -> None:
         try:
             with self._connection() as conn:
@@ -184,7 +203,8 @@ class PostgresStorage:
         # maps locked in name order (a stable sort keeps each map's own order): no deadlock between replicas
         order = sorted(range(len(records)), key=lambda i: records[i].name)
         params = [{"name": records[i].name, "incarnation": records[i].incarnation, "payload": records[i].payload,
-                   "crc": checksum(records[i].payload), "updated": records[i].updated, "scans": records[i].scans}
+                   "crc": checksum(records[i].payload), "updated": records[i].updated, "scans": records[i].scans,
+                   "bytes": len(records[i].payload)}
                   for i in order]
         versions = [0] * len(records)
         committing = False
@@ -209,36 +229,66 @@ class PostgresStorage:
         with self._connection() as conn, conn.transaction():
             if conn.execute(_LOCK_MAP, (name, incarnation, incarnation)).fetchone() is None:
                 return
-            row = conn.execute("SELECT scans FROM batches WHERE map = %s AND seq = %s AND length(payload) > 0",
-                               (name, version)).fetchone()
-            if row is None:  # already a tombstone, or covered by a snapshot since
+            row = conn.execute(f"SELECT scans, {BATCH_BYTES} FROM batches WHERE map = %s AND seq = %s "
+                               "AND length(payload) > 0", (name, version)).fetchone()
+            if row is None:  # already a tombstone, or folded into the base since
                 return
-            conn.execute("UPDATE batches SET payload = %b, crc = %s, scans = 0 WHERE map = %s AND seq = %s",
+            conn.execute("UPDATE batches SET payload = %b, crc = %s, scans = 0, bytes = 0 WHERE map = %s AND seq = %s",
                          (TOMBSTONE, checksum(TOMBSTONE), name, version))
-            conn.execute("UPDATE maps SET scans = scans - %s WHERE name = %s", (row[0] or 0, name))
+            conn.execute("UPDATE maps SET scans = scans - %s, history_bytes = history_bytes - %s, "
+                         "history_scans = history_scans - %s WHERE name = %s", (row[0] or 0, row[1], row[0] or 0, name))
 
     def write_snapshot(self, name: str, version: int, payload: bytes, incarnation: str | None = None) -> None:
         with self._connection() as conn, conn.transaction():
             # the map's row lock first, as every write takes it: two replicas' snapshots of a map go one at a time
-            if conn.execute(_LOCK_MAP, (name, incarnation, incarnation)).fetchone() is None:
-                return
-            # the snapshot keeps its version's ``updated`` (its batch row goes)
-            if conn.execute("INSERT INTO snapshots (map, version, payload, crc, updated) VALUES (%s, %s, %b, %s, "
-                            "(SELECT updated FROM batches WHERE map = %s AND seq = %s)) "
-                            "ON CONFLICT (map) DO UPDATE SET version = excluded.version, "
-                            "payload = excluded.payload, crc = excluded.crc, updated = excluded.updated "
-                            "WHERE snapshots.version < excluded.version RETURNING version",
-                            (name, version, payload, checksum(payload), name, version)).fetchone() is None:
-                return  # as new or newer already stored (another replica's)
-            conn.execute("DELETE FROM batches WHERE map = %s AND seq <= %s", (name, version))
+            row = conn.execute("SELECT GREATEST(snapshot_version, base_version) FROM maps WHERE name = %s "
+                               "AND (%s::text IS NULL OR incarnation = %s) FOR UPDATE",
+                               (name, incarnation, incarnation)).fetchone()
+            if row is None or row[0] >= version:
+                return  # as new or newer already stored (another replica's), or folded into the base
+            # the snapshot keeps its version's ``updated``
+            conn.execute("INSERT INTO snapshots (map, version, payload, crc, updated) VALUES (%s, %s, %b, %s, "
+                         "(SELECT updated FROM batches WHERE map = %s AND seq = %s)) "
+                         "ON CONFLICT (map) DO UPDATE SET version = excluded.version, "
+                         "payload = excluded.payload, crc = excluded.crc, updated = excluded.updated",
+                         (name, version, payload, checksum(payload), name, version))
             conn.execute("UPDATE maps SET snapshot_version = %s WHERE name = %s", (version, name))
+
+    def fold_point(self, name: str, keep_bytes: int) -> int:
+        def point(conn: psycopg.Connection[Any]) -> int:
+            with conn.transaction():
+                conn.execute("SET TRANSACTION ISOLATION LEVEL REPEATABLE READ, READ ONLY")
+                head = conn.execute("SELECT snapshot_version FROM maps WHERE name = %s", (name,)).fetchone()
+                if head is None:
+                    return 0
+                sizes = conn.execute(f"SELECT seq, {BATCH_BYTES} FROM batches WHERE map = %s ORDER BY seq DESC",
+                                     (name,))
+                return fold_point_of(sizes, keep_bytes, head[0])
+
+        return self._read(point)
+
+    def write_base(self, name: str, version: int, payload: bytes | None, incarnation: str | None = None) -> bool:
+        with self._connection() as conn, conn.transaction():
+            # under the map's row lock, as every write: the first replica to fold does it, the others find it done
+            row = conn.execute("SELECT base_version, (SELECT version FROM snapshots WHERE map = maps.name) FROM maps "
+                               "WHERE name = %s AND (%s::text IS NULL OR incarnation = %s) FOR UPDATE",
+                               (name, incarnation, incarnation)).fetchone()
+            if row is None or not may_fold(row[0], row[1], version, moving=payload is None):
+                return False
+            base = None if payload is None else (
+                "INSERT INTO bases (map, version, payload, crc, updated) VALUES (?, ?, ?, ?, "
+                "(SELECT updated FROM batches WHERE map = ? AND seq = ?))",
+                (name, version, payload, checksum(payload), name, version))
+            fold_rows(lambda sql, args: conn.execute(sql.replace("?", "%s"), args), name, version, base,
+                      "map, version, payload, crc, updated")
+            return True
 
     def close(self) -> None:
         self._pool.close()
 
 
 def _consistent_read(conn: psycopg.Connection[Any], name: str, after: int | None,
-                     up_to: int | None) -> StoredMap | None:
+                     up_to: int | None, *, from_base: bool = False) -> StoredMap | None:
     """``read_map`` in a read-only REPEATABLE READ transaction: its queries see one state of the database
     (a snapshot that another replica writes between them must not look like missing batches)."""
     with conn.transaction(), conn.cursor(binary=True) as cur:
@@ -247,4 +297,4 @@ def _consistent_read(conn: psycopg.Connection[Any], name: str, after: int | None
         def query(sql: str, args: tuple[Any, ...]) -> Iterable[Sequence[Any]]:
             return cur.execute(sql.replace("?", "%s"), args).fetchall()  # read_map's placeholders are ``?``
 
-        return read_map(query, name, after, up_to)
+        return read_map(query, name, after, up_to, from_base=from_base)

@@ -10,8 +10,11 @@ from pathlib import Path
 from typing import Any, TypeVar
 
 from app.storage.base import (
+    BATCH_BYTES,
+    HISTORY_OF_ROWS,
     INLINE_BYTES,
     NO_LIMIT,
+    START_ROWS,
     TOMBSTONE,
     BatchRecord,
     CommitUncertain,
@@ -21,8 +24,12 @@ from app.storage.base import (
     StorageUnavailable,
     StoredMap,
     checksum,
+    fold_point_of,
+    fold_rows,
     head_of,
+    may_fold,
     read_map,
+    start_of,
 )
 from app.storage.payloadfiles import PayloadFiles, Prefetched
 
@@ -36,7 +43,10 @@ CREATE TABLE IF NOT EXISTS maps (
     version INTEGER,
     snapshot_version INTEGER,
     incarnation TEXT,
-    scans INTEGER NOT NULL DEFAULT 0
+    scans INTEGER NOT NULL DEFAULT 0,
+    base_version INTEGER NOT NULL DEFAULT 0,
+    history_bytes INTEGER NOT NULL DEFAULT 0,
+    history_scans INTEGER NOT NULL DEFAULT 0
 );
 CREATE TABLE IF NOT EXISTS batches (
     map TEXT NOT NULL REFERENCES maps(name) ON DELETE CASCADE,
@@ -46,23 +56,25 @@ CREATE TABLE IF NOT EXISTS batches (
     scans INTEGER,
     updated TEXT,
     file TEXT,
+    bytes INTEGER,
     PRIMARY KEY (map, seq)
 );
-CREATE TABLE IF NOT EXISTS snapshots (
+""" + "".join(f"""
+CREATE TABLE IF NOT EXISTS {table} (
     map TEXT PRIMARY KEY REFERENCES maps(name) ON DELETE CASCADE,
     version INTEGER NOT NULL,
     payload BLOB NOT NULL,
     crc INTEGER,
     updated TEXT,
     file TEXT
-);
-"""
+);""" for table in ("snapshots", "bases"))  # a map's restart snapshot and its base snapshot
 
 #: Columns added since the first schema: an old database gets them (NULL, or the default) at open.
 _ADDED_COLUMNS = {
     "maps": {"version": "INTEGER", "snapshot_version": "INTEGER", "incarnation": "TEXT",
-             "scans": "INTEGER NOT NULL DEFAULT 0"},
-    "batches": {"crc": "INTEGER", "scans": "INTEGER", "updated": "TEXT", "file": "TEXT"},
+             "scans": "INTEGER NOT NULL DEFAULT 0", "base_version": "INTEGER NOT NULL DEFAULT 0",
+             "history_bytes": "INTEGER NOT NULL DEFAULT 0", "history_scans": "INTEGER NOT NULL DEFAULT 0"},
+    "batches": {"crc": "INTEGER", "scans": "INTEGER", "updated": "TEXT", "file": "TEXT", "bytes": "INTEGER"},
     "snapshots": {"crc": "INTEGER", "updated": "TEXT", "file": "TEXT"},
 }
 
@@ -71,7 +83,8 @@ _SQLITE_NEWEST = ("COALESCE(maps.version, MAX(COALESCE(maps.snapshot_version, 0)
                   " COALESCE((SELECT MAX(seq) FROM batches WHERE map = maps.name), 0),"
                   " COALESCE((SELECT version FROM snapshots WHERE map = maps.name), 0)))")
 _SQLITE_HEAD = ("SELECT name, meta, updated, " + _SQLITE_NEWEST + ", COALESCE(maps.snapshot_version, "
-                "(SELECT version FROM snapshots WHERE map = maps.name), 0), scans, incarnation FROM maps")
+                "(SELECT version FROM snapshots WHERE map = maps.name), 0), scans, incarnation, base_version, history_bytes, "
+                "history_scans FROM maps")
 
 _SQLITE_CREATE = ("INSERT INTO maps (name, meta, updated, version, snapshot_version, incarnation, scans) "
                   "VALUES (?, ?, ?, 0, 0, ?, 0)")
@@ -104,11 +117,14 @@ class SqliteStorage:
             self._db.executescript(_SCHEMA)
             # an old database: its rows keep NULL there (a crc: not verifiable; a version: not checked until
             # the next write; an incarnation: matched by None), new ones get a value
+            counted = "history_bytes" in {row[1] for row in self._db.execute("PRAGMA table_info(maps)")}
             for table, added in _ADDED_COLUMNS.items():
                 columns = {row[1] for row in self._db.execute(f"PRAGMA table_info({table})")}
                 for column, declaration in added.items():
                     if column not in columns:
                         self._db.execute(f"ALTER TABLE {table} ADD COLUMN {column} {declaration}")
+            if not counted:  # a database from before the history: it holds the batches after the snapshot
+                self._db.execute(f"UPDATE maps SET (history_bytes, history_scans) = {HISTORY_OF_ROWS}")
             # files of writes that never committed, or whose rows went before them, go (if no other store is open)
             self._files.attach(lambda: {file for (file,) in self._db.execute(
                 "SELECT file FROM batches WHERE file IS NOT NULL UNION SELECT file FROM snapshots WHERE file IS NOT NULL")})
@@ -205,7 +221,10 @@ class SqliteStorage:
     def load_since(self, name: str, after: int, up_to: int | None = None) -> StoredMap | None:
         return self._load(name, after, up_to)
 
-    def _load(self, name: str, after: int | None, up_to: int | None) -> StoredMap | None:
+    def load_history(self, name: str, up_to: int | None = None) -> StoredMap | None:
+        return self._load(name, None, up_to, from_base=True)
+
+    def _load(self, name: str, after: int | None, up_to: int | None, *, from_base: bool = False) -> StoredMap | None:
         """``read_map`` with the map's payload files read between two holds of the lock, not under it: 256 MiB
         of log read for an MCAP export held every map's commits for as long.
 
@@ -213,15 +232,18 @@ class SqliteStorage:
         view (a file named by a row committed in between is read then; one removed in between belongs
         to no row any more).
         """
-        lower = -NO_LIMIT if after is None else after
         with self._lock:
+            start, table = start_of(*self._db.execute(START_ROWS, (name, name)).fetchone(), from_base=from_base)
+            lower = start if after is None else max(after, start)
             names = [file for (file,) in self._db.execute(
-                "SELECT file FROM batches WHERE map = ? AND seq > ? AND seq <= ? AND file IS NOT NULL UNION ALL "
-                "SELECT file FROM snapshots WHERE map = ? AND version > ? AND file IS NOT NULL",
-                (name, lower, NO_LIMIT if up_to is None else up_to, name, lower))]
+                "SELECT file FROM batches WHERE map = ? AND seq > ? AND seq <= ? AND file IS NOT NULL",
+                (name, lower, NO_LIMIT if up_to is None else up_to))]
+            if table is not None and (after is None or start > after):
+                names += [file for (file,) in self._db.execute(
+                    f"SELECT file FROM {table} WHERE map = ? AND file IS NOT NULL", (name,))]
         files = Prefetched(self._files, names)
         with self._lock:  # one connection, so no write comes between the queries
-            return read_map(self._db.execute, name, after, up_to, files)
+            return read_map(self._db.execute, name, after, up_to, files, from_base=from_base)
 
     def create_map(self, name: str, meta: dict[str, Any], updated: str) -> None:
         try:
@@ -235,9 +257,10 @@ class SqliteStorage:
                               (name, incarnation, incarnation)).fetchall():
                 return None, []
             files = [file for (file,) in db.execute(
-                "SELECT file FROM batches WHERE map = ? AND file IS NOT NULL "
-                "UNION ALL SELECT file FROM snapshots WHERE map = ? AND file IS NOT NULL", (name, name))]
-            db.execute("DELETE FROM maps WHERE name = ?", (name,))  # cascades to its batches and snapshot
+                "SELECT file FROM batches WHERE map = ? AND file IS NOT NULL UNION ALL SELECT file FROM snapshots "
+                "WHERE map = ? AND file IS NOT NULL UNION ALL SELECT file FROM bases WHERE map = ? AND file IS NOT NULL",
+                (name, name, name))]
+            db.execute("DELETE FROM maps WHERE name = ?", (name,))  # cascades to its batches and snapshots
             return None, files
 
         self._with_files([], delete)
@@ -257,14 +280,16 @@ class SqliteStorage:
         def append(db: sqlite3.Connection) -> tuple[list[int], list[str]]:
             versions = []
             for r, crc, file in zip(records, crcs, files, strict=True):
-                taken = db.execute(f"UPDATE maps SET version = {_SQLITE_NEWEST} + 1, updated = ?, scans = scans + ? "
+                taken = db.execute(f"UPDATE maps SET version = {_SQLITE_NEWEST} + 1, updated = ?, scans = scans + ?, "
+                                   "history_bytes = history_bytes + ?, history_scans = history_scans + ? "
                                    "WHERE name = ? AND incarnation IS ? RETURNING version",
-                                   (r.updated, r.scans, r.name, r.incarnation)).fetchall()
+                                   (r.updated, r.scans, len(r.payload), r.scans, r.name, r.incarnation)).fetchall()
                 if not taken:
                     raise MapGone(r.name)
-                db.execute("INSERT INTO batches (map, seq, payload, crc, scans, updated, file) "
-                           "VALUES (?, ?, ?, ?, ?, ?, ?)",
-                           (r.name, taken[0][0], r.payload if file is None else b"", crc, r.scans, r.updated, file))
+                db.execute("INSERT INTO batches (map, seq, payload, crc, scans, updated, file, bytes) "
+                           "VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
+                           (r.name, taken[0][0], r.payload if file is None else b"", crc, r.scans, r.updated, file,
+                            len(r.payload)))
                 versions.append(taken[0][0])
             return versions, []
 
@@ -276,13 +301,14 @@ class SqliteStorage:
             if not db.execute("SELECT 1 FROM maps WHERE name = ? AND (? IS NULL OR incarnation = ?)",
                               (name, incarnation, incarnation)).fetchall():
                 return None, []
-            row = db.execute("SELECT scans, file FROM batches WHERE map = ? AND seq = ? "
+            row = db.execute(f"SELECT scans, file, {BATCH_BYTES} FROM batches WHERE map = ? AND seq = ? "
                              "AND (length(payload) > 0 OR file IS NOT NULL)", (name, version)).fetchone()
-            if row is None:  # already a tombstone, or covered by a snapshot since
+            if row is None:  # already a tombstone, or folded into the base since
                 return None, []
-            db.execute("UPDATE batches SET payload = ?, crc = ?, scans = 0, file = NULL WHERE map = ? AND seq = ?",
-                       (TOMBSTONE, checksum(TOMBSTONE), name, version))
-            db.execute("UPDATE maps SET scans = scans - ? WHERE name = ?", (row[0] or 0, name))
+            db.execute("UPDATE batches SET payload = ?, crc = ?, scans = 0, file = NULL, bytes = 0 "
+                       "WHERE map = ? AND seq = ?", (TOMBSTONE, checksum(TOMBSTONE), name, version))
+            db.execute("UPDATE maps SET scans = scans - ?, history_bytes = history_bytes - ?, "
+                       "history_scans = history_scans - ? WHERE name = ?", (row[0] or 0, row[2], row[0] or 0, name))
             return None, [] if row[1] is None else [row[1]]
 
         self._with_files([], discard)
@@ -293,26 +319,55 @@ class SqliteStorage:
         crc = checksum(payload)
 
         def snapshot(db: sqlite3.Connection) -> tuple[None, list[str]]:
-            if not db.execute("SELECT 1 FROM maps WHERE name = ? AND (? IS NULL OR incarnation = ?)",
-                              (name, incarnation, incarnation)).fetchall():
+            row = db.execute("SELECT MAX(COALESCE(snapshot_version, 0), base_version, COALESCE((SELECT version FROM "
+                             "snapshots WHERE map = maps.name), 0)) FROM maps "
+                             "WHERE name = ? AND (? IS NULL OR incarnation = ?)", (name, incarnation, incarnation)).fetchone()
+            # only forwards: another writer may have stored a newer one meanwhile (or folded it into the base)
+            if row is None or row[0] >= version:
                 return None, staged
             replaced = db.execute("SELECT file FROM snapshots WHERE map = ? AND file IS NOT NULL", (name,)).fetchall()
-            # only forwards: another writer may have stored a newer one meanwhile
-            # the snapshot keeps its version's ``updated`` (its batch row goes)
-            if not db.execute("INSERT INTO snapshots (map, version, payload, crc, updated, file) VALUES (?, ?, ?, ?, "
-                              "(SELECT updated FROM batches WHERE map = ? AND seq = ?), ?) "
-                              "ON CONFLICT(map) DO UPDATE SET version = excluded.version, "
-                              "payload = excluded.payload, crc = excluded.crc, updated = excluded.updated, "
-                              "file = excluded.file WHERE snapshots.version < excluded.version RETURNING version",
-                              (name, version, payload if file is None else b"", crc, name, version, file)).fetchall():
-                return None, staged
-            covered = [f for (f,) in db.execute("SELECT file FROM batches WHERE map = ? AND seq <= ? "
-                                                "AND file IS NOT NULL", (name, version))]
-            db.execute("DELETE FROM batches WHERE map = ? AND seq <= ?", (name, version))
+            # the snapshot keeps its version's ``updated``
+            db.execute("INSERT INTO snapshots (map, version, payload, crc, updated, file) VALUES (?, ?, ?, ?, "
+                       "(SELECT updated FROM batches WHERE map = ? AND seq = ?), ?) "
+                       "ON CONFLICT(map) DO UPDATE SET version = excluded.version, payload = excluded.payload, "
+                       "crc = excluded.crc, updated = excluded.updated, file = excluded.file",
+                       (name, version, payload if file is None else b"", crc, name, version, file))
             db.execute("UPDATE maps SET snapshot_version = ? WHERE name = ?", (version, name))
-            return None, covered + [f for (f,) in replaced]
+            return None, [f for (f,) in replaced]
 
         self._with_files(staged, snapshot)
+
+    def fold_point(self, name: str, keep_bytes: int) -> int:
+        with self._lock:
+            head = self._db.execute("SELECT COALESCE(snapshot_version, 0) FROM maps WHERE name = ?", (name,)).fetchone()
+            if head is None:
+                return 0
+            sizes = self._db.execute(f"SELECT seq, {BATCH_BYTES} FROM batches WHERE map = ? ORDER BY seq DESC",
+                                     (name,))
+            return fold_point_of(sizes, keep_bytes, head[0])
+
+    def write_base(self, name: str, version: int, payload: bytes | None, incarnation: str | None = None) -> bool:
+        file = None if payload is None else self._stage(payload)
+        staged = [] if file is None else [file]
+        crc = None if payload is None else checksum(payload)
+
+        def fold(db: sqlite3.Connection) -> tuple[bool, list[str]]:
+            row = db.execute("SELECT base_version, (SELECT version FROM snapshots WHERE map = maps.name) FROM maps "
+                             "WHERE name = ? AND (? IS NULL OR incarnation = ?)", (name, incarnation, incarnation)).fetchone()
+            if row is None or not may_fold(row[0], row[1], version, moving=payload is None):
+                return False, staged
+            dropped = [f for (f,) in db.execute("SELECT file FROM bases WHERE map = ? AND file IS NOT NULL UNION ALL "
+                                                "SELECT file FROM batches WHERE map = ? AND seq <= ? AND file IS NOT NULL",
+                                                (name, name, version))]
+            # a moved restart snapshot keeps its file
+            base = None if payload is None else (
+                "INSERT INTO bases (map, version, payload, crc, updated, file) VALUES (?, ?, ?, ?, "
+                "(SELECT updated FROM batches WHERE map = ? AND seq = ?), ?)",
+                (name, version, payload if file is None else b"", crc, name, version, file))
+            fold_rows(db.execute, name, version, base, "map, version, payload, crc, updated, file")
+            return True, dropped
+
+        return self._with_files(staged, fold)
 
     def close(self) -> None:
         with self._lock:

@@ -251,7 +251,7 @@ def test_a_request_cancelled_after_parsing_is_still_committed_and_applied(
         stored = storage.load_map("lab")
         storage.close()
         assert stored is not None
-        return (await service.reads.map_info("lab")).version, stored.snapshot_version
+        return service.maps.entry("lab").version, stored.snapshot_version
 
     assert asyncio.run(scenario()) == (1, 1)
 
@@ -442,7 +442,8 @@ def test_batches_stored_as_npz_by_earlier_versions_still_decode_and_replay(make_
         assert kit.version(again, "lab") == 3
         assert kit.risk_npy(again, "lab").tobytes() == _replay(kit, bodies)
         assert again.post("/maps/lab/scans", json=bodies[0]).json()["version"] == 4  # new batches: new format
-    assert _rows(settings.data_dir) == []  # the graceful stop snapshotted all of them
+    # the graceful stop snapshotted all of them; they stay in the history
+    assert _rows(settings.data_dir) == [("lab", version) for version in range(1, 5)]
 
 
 def test_a_stored_batch_keeps_every_bit_of_odd_floats() -> None:

@@ -72,16 +72,21 @@ def test_files_go_with_the_rows_that_name_them(store: SqliteStorage, path: Path)
         _append(store, _payload(BIG, k))
     store.discard_batch("m", 2)
     assert len(_files(path)) == 2
-    store.write_snapshot("m", 2, _payload(BIG, 10))  # covers batches 1 and 2, and is a file itself
-    (snapshot_file,) = _rows(path, "SELECT file FROM snapshots")[0]
+    store.write_snapshot("m", 2, _payload(BIG, 10))  # a file itself; the batches it covers stay (the history)
+    assert len(_files(path)) == 3
+    assert store.write_base("m", 2, None)  # batches 1 and 2 folded: the snapshot becomes the base, file and all
+    (base_file,) = _rows(path, "SELECT file FROM bases")[0]
     (batch_file,) = _rows(path, "SELECT file FROM batches WHERE seq = 3")[0]
-    assert _files(path) == sorted([snapshot_file, batch_file])
-    store.write_snapshot("m", 3, _payload(BIG, 11))  # replaces the snapshot's file
-    assert _files(path) == [_rows(path, "SELECT file FROM snapshots")[0][0]]
+    assert _files(path) == sorted([base_file, batch_file])
+    store.write_snapshot("m", 3, _payload(BIG, 11))
+    assert store.write_base("m", 3, _payload(BIG, 12))  # replaces the base's file; batch 3's goes with its row
+    assert _files(path) == sorted(file for (file,) in _rows(path, "SELECT file FROM snapshots UNION ALL "
+                                                                  "SELECT file FROM bases"))
     stored = store.load_map("m")
     assert stored is not None and (stored.snapshot_version, stored.snapshot) == (3, _payload(BIG, 11))
-    store.write_snapshot("m", 2, _payload(BIG, 12))  # an older snapshot is no write: its file does not stay
-    assert len(_files(path)) == 1
+    store.write_snapshot("m", 2, _payload(BIG, 13))  # an older snapshot is no write: its file does not stay
+    assert not store.write_base("m", 3, _payload(BIG, 14))  # nor a base as old as the stored one
+    assert len(_files(path)) == 2
     store.delete_map("m")
     assert _files(path) == []
 
@@ -188,16 +193,20 @@ def test_a_backup_is_one_self_contained_file(store: SqliteStorage, path: Path, t
     for k in range(3):
         _append(store, _payload(BIG, k))
     store.write_snapshot("m", 2, _payload(BIG, 10))
+    assert store.write_base("m", 1, _payload(BIG, 20))
     copy = tmp_path / "copy" / "fuzzyrisk.sqlite3"
     copy.parent.mkdir()
     assert backup(path.parent, copy) > 0
     assert _rows(copy, "SELECT count(*) FROM batches WHERE file IS NOT NULL UNION ALL "
-                       "SELECT count(*) FROM snapshots WHERE file IS NOT NULL") == [(0,), (0,)]
+                       "SELECT count(*) FROM snapshots WHERE file IS NOT NULL UNION ALL "
+                       "SELECT count(*) FROM bases WHERE file IS NOT NULL") == [(0,), (0,), (0,)]
     restored = SqliteStorage(copy)
-    stored = restored.load_map("m")
+    stored, history = restored.load_map("m"), restored.load_history("m")
     restored.close()
     assert stored is not None and stored.damage == [] and stored.snapshot == _payload(BIG, 10)
     assert stored.batches == [(3, _payload(BIG, 2))]
+    assert history is not None and history.damage == [] and history.snapshot == _payload(BIG, 20)
+    assert history.batches == [(2, _payload(BIG, 1)), (3, _payload(BIG, 2))]
 
 
 def test_a_backup_taken_while_big_batches_commit_and_snapshots_drop_them_is_complete(
@@ -205,13 +214,14 @@ def test_a_backup_taken_while_big_batches_commit_and_snapshots_drop_them_is_comp
     done = threading.Event()
     acknowledged: list[int] = []
 
-    def writer() -> None:  # batches, each one snapshotted over at once: files come and go under the backup
+    def writer() -> None:  # batches, each one folded at once (a budget of 0): files come and go under the backup
         k = 0
         while not done.is_set():
             k += 1
             acknowledged.append(_append(store, _payload(BIG, k)))
             if k % 2 == 0:
                 store.write_snapshot("m", acknowledged[-1] - 1, _payload(BIG, 1000 + k))
+                store.write_base("m", acknowledged[-1] - 1, None)
 
     thread = threading.Thread(target=writer)
     thread.start()
@@ -245,9 +255,10 @@ def test_a_backup_keeps_the_files_a_snapshot_removes_while_it_copies(store: Sqli
         _append(store, _payload(BIG, k))
     real = getattr(app.storage.backup, when)
 
-    def then_snapshot(*args: Any) -> Any:  # the service snapshots over batches 1-3: their files go
+    def then_snapshot(*args: Any) -> Any:  # the service snapshots and folds batches 1-3: their files go
         result = real(*args)
         store.write_snapshot("m", 3, _payload(BIG, 10))
+        store.write_base("m", 3, None)
         _append(store, _payload(BIG, 4))
         return result
 
@@ -255,7 +266,7 @@ def test_a_backup_keeps_the_files_a_snapshot_removes_while_it_copies(store: Sqli
     target = tmp_path / "copy" / "fuzzyrisk.sqlite3"
     target.parent.mkdir()
     backup(path.parent, target)
-    assert len(_files(path)) == 2  # the snapshot's and batch 4's: batches 1-3's files are gone
+    assert len(_files(path)) == 2  # the base's and batch 4's: batches 1-3's files are gone
     restored = SqliteStorage(target)
     stored = restored.load_map("m")
     restored.close()
@@ -275,6 +286,7 @@ def test_a_backup_whose_files_a_snapshot_removes_before_it_opens_them_starts_aga
         if not snapshotted:  # between the backup's read of the rows and its opening of their files
             snapshotted.append(True)
             store.write_snapshot("m", 3, _payload(BIG, 10))
+            store.write_base("m", 3, None)
         return real_open(self, name)
 
     monkeypatch.setattr(PayloadFiles, "open", open_after_a_snapshot)

@@ -106,7 +106,7 @@ def test_a_replica_catches_up_from_a_snapshot_another_replica_wrote(replicas: Re
     a, b = replicas(snapshot_every=4)
     assert a.post("/maps", json=kit.MAP_2D).status_code == 201
     assert b.post("/maps/lab/scans", json={"scans": [_scan(kit, 0)]}).status_code == 200  # b holds version 1
-    for k in range(1, 9):  # a snapshots at 4 and 8: batches 1-8 leave the log
+    for k in range(1, 9):  # a snapshots at 4 and 8: b, at version 1, catches up from the one at 8
         assert a.post("/maps/lab/scans", json={"scans": [_scan(kit, k)]}).status_code == 200
     kit.snapshots_stored(a)
     store = PostgresStorage(replicas.url)  # type: ignore[attr-defined]

@@ -81,16 +81,19 @@ def test_a_restart_serves_the_same_maps_bit_for_bit(make_client: Any, kit: Any, 
     assert kit.risk_npy(second, "lab").tobytes() == risk.tobytes()
 
 
-def test_snapshots_drop_the_batches_they_cover_and_replay_the_rest(make_client: Any, make_settings: Any,
-                                                                   kit: Any) -> None:
+def test_snapshots_keep_the_batches_they_cover_and_a_restart_replays_the_rest(make_client: Any, make_settings: Any,
+                                                                              kit: Any) -> None:
     client = make_client(snapshot_every=3)
     data_dir = make_settings().data_dir
     client.post("/maps", json=kit.MAP_2D)
+    bytes_before = client.get("/maps/lab").json()["history"]["bytes"]
     for body in _scans(kit, 7):
         client.post("/maps/lab/scans", json=body)
     kit.snapshots_stored(client)
     assert _rows(data_dir, "snapshots") == [("lab", 6)]
-    assert _rows(data_dir, "batches") == [("lab", 7)]
+    assert _rows(data_dir, "batches") == [("lab", v) for v in range(1, 8)]  # the history, under its budget
+    history = client.get("/maps/lab").json()["history"]
+    assert history["from_version"] == 0 and history["scans"] == 7 and history["bytes"] > bytes_before == 0
     risk = kit.risk_npy(client, "lab")
 
     # a crash image: the files as they are on disk now, while the service still runs
@@ -100,6 +103,9 @@ def test_snapshots_drop_the_batches_they_cover_and_replay_the_rest(make_client: 
     with replayed:
         assert replayed.get("/maps/lab").json()["version"] == 7
         assert kit.risk_npy(replayed, "lab").tobytes() == risk.tobytes()
+        entry = replayed.app.state.service.maps.entry("lab")  # type: ignore[attr-defined]
+        assert [version for version, _, _ in entry.log] == [7]  # the snapshot, then only the batch after it
+        assert replayed.get("/maps/lab").json()["history"] == history
 
 
 def _hold_snapshot_writes(monkeypatch: pytest.MonkeyPatch) -> tuple[threading.Event, threading.Event]:
@@ -148,7 +154,8 @@ def test_a_snapshot_is_of_the_version_that_made_it_due(make_client: Any, make_se
     risk = kit.risk_npy(client, "lab")
     release.set()
     kit.snapshots_stored(client)
-    assert _rows(data_dir, "snapshots") == [("lab", 2)] and _rows(data_dir, "batches") == [("lab", 3)]
+    assert _rows(data_dir, "snapshots") == [("lab", 2)] and _rows(data_dir, "batches") == [("lab", 1), ("lab", 2),
+                                                                                          ("lab", 3)]
     client.__exit__(None, None, None)
     assert kit.risk_npy(make_client(), "lab").tobytes() == risk.tobytes()
 
@@ -168,15 +175,20 @@ def test_a_crash_image_without_snapshot_replays_every_batch(make_client: Any, ma
         assert replayed.get("/maps/lab/scans/last").json()["version"] == 4
 
 
+@pytest.mark.parametrize("max_history_bytes", [2**30, 0])
 def test_a_graceful_stop_snapshots_every_map(make_client: Any, make_settings: Any, kit: Any,
-                                            on: dict[str, Any]) -> None:
-    client = make_client(**on)
+                                            on: dict[str, Any], max_history_bytes: int) -> None:
+    client = make_client(max_history_bytes=max_history_bytes, **on)
     settings = make_settings(**on)
     client.post("/maps", json=kit.MAP_2D)
     for body in _scans(kit, 2):
         client.post("/maps/lab/scans", json=body)
     client.__exit__(None, None, None)
-    assert _rows(settings, "snapshots") == [("lab", 2)] and _rows(settings, "batches") == []
+    if max_history_bytes:  # the history stays
+        assert _rows(settings, "snapshots") == [("lab", 2)] and _rows(settings, "batches") == [("lab", 1), ("lab", 2)]
+    else:  # no history beyond what a restart needs: the snapshot is the base, the batches it covers are gone
+        assert _rows(settings, "bases") == [("lab", 2)] and _rows(settings, "snapshots") == []
+        assert _rows(settings, "batches") == []
 
 
 def test_deleting_a_map_removes_its_rows_for_good(make_client: Any, make_settings: Any, kit: Any,
@@ -293,14 +305,15 @@ def _keep_the_log_at_shutdown(monkeypatch: pytest.MonkeyPatch) -> None:
 
 def _flip_a_bit(data_dir: Path, table: str, key: str, name: str) -> None:
     with sqlite3.connect(data_dir / "fuzzyrisk.sqlite3") as db:
-        (payload,) = db.execute(f"SELECT payload FROM {table} WHERE map = ? ORDER BY {key} LIMIT 1", (name,)).fetchone()
+        (payload,) = db.execute(f"SELECT payload FROM {table} WHERE map = ? ORDER BY {key} DESC LIMIT 1",
+                                (name,)).fetchone()
         damaged = bytearray(payload)
         damaged[len(damaged) // 2] ^= 0x04
         db.execute(f"UPDATE {table} SET payload = ? WHERE map = ? AND {key} = "
-                   f"(SELECT {key} FROM {table} WHERE map = ? ORDER BY {key} LIMIT 1)", (bytes(damaged), name, name))
+                   f"(SELECT {key} FROM {table} WHERE map = ? ORDER BY {key} DESC LIMIT 1)", (bytes(damaged), name, name))
 
 
-@pytest.mark.parametrize(("table", "key", "what"), [("batches", "seq", "batch 1"), ("snapshots", "version", "snapshot")])
+@pytest.mark.parametrize(("table", "key", "what"), [("batches", "seq", "batch 3"), ("snapshots", "version", "snapshot")])
 def test_a_damaged_row_quarantines_its_map_and_the_others_start(make_settings: Any, kit: Any, table: str,
                                                                  key: str, what: str,
                                                                  monkeypatch: pytest.MonkeyPatch) -> None:
@@ -460,7 +473,7 @@ def test_a_map_is_snapshotted_once_its_log_holds_the_byte_limit(make_client: Any
         if snapshots:
             break
     assert snapshots == [("lab", k)] and 2 <= k <= 4  # the batch that crossed 20,000 bytes of log
-    assert _rows(data_dir, "batches") == []  # dropped with the snapshot
+    assert _rows(data_dir, "batches") == [("lab", v) for v in range(1, k + 1)]  # kept: the history
     risk = kit.risk_npy(client, "lab")
     client.__exit__(None, None, None)
     assert kit.risk_npy(make_client(), "lab").tobytes() == risk.tobytes()
@@ -568,7 +581,7 @@ def test_the_store_gives_each_batch_its_maps_next_version_in_the_callers_order(s
     m, a = store.load_map("m"), store.load_map("a")
     assert m is not None and m.batches == [(1, b"m1"), (2, b"m2")] and m.version == 2 and m.incarnation == "i1"
     assert a is not None and a.batches == [(1, b"a1"), (2, b"a2"), (3, b"a3")] and a.updated == "t5"
-    assert store.map_head("m") == MapHead("m", {"name": "m", "incarnation": "i1"}, "t3", 2, 0, 5, "i1")
+    assert store.map_head("m") == MapHead("m", {"name": "m", "incarnation": "i1"}, "t3", 2, 0, 5, "i1", 0, 4, 5)
     assert store.append_batches([]) == []
 
 
@@ -737,7 +750,7 @@ def test_map_heads_are_the_rows_without_payloads(store: Storage) -> None:
     assert store.map_heads() == [
         MapHead("B", {"name": "B", "incarnation": "iB"}, "t0", 0, 0, 0, "iB"),
         MapHead("a", {"name": "a", "incarnation": None}, "t0", 0, 0, 0, None),
-        MapHead("b", {"name": "b", "incarnation": "ib"}, "t6", 2, 1, 8, "ib"),
+        MapHead("b", {"name": "b", "incarnation": "ib"}, "t6", 2, 1, 8, "ib", 0, 2, 8),
     ]
     assert store.map_names() == ["B", "a", "b"]  # code point order, whatever the database's locale
     assert store.map_head("b") == store.map_heads()[2]
@@ -772,9 +785,10 @@ def test_a_changed_payload_is_damage_for_both_loaders(backend: Backend, table: s
     for k in range(1, 4):
         _append(store, f"batch {k}".encode())
     store.write_snapshot("m", 1, b"snapshot 1")
-    backend.sql(f"UPDATE {table} SET payload = ? WHERE map = 'm' AND {key} = (SELECT MIN({key}) FROM {table})",
+    backend.sql(f"UPDATE {table} SET payload = ? WHERE map = 'm' AND {key} = (SELECT MAX({key}) FROM {table})",
                 (b"flipped",))
-    for stored in (store.load_map("m"), store.load_since("m", 0)):
+    loaded = [store.load_map("m"), store.load_since("m", 0)] + ([store.load_history("m")] if table == "batches" else [])
+    for stored in loaded:
         assert stored is not None and len(stored.damage) == 1 and "fails its checksum" in stored.damage[0]
 
 
@@ -840,6 +854,28 @@ def test_postgres_replicas_creating_the_schema_at_once_all_start(postgres: Backe
     assert all(store.map_names() == ["m"] for store in stores)
 
 
+def test_a_database_from_before_the_history_counts_its_stored_batches_as_the_history(backend: Backend) -> None:
+    store = backend.open()
+    _make(store)
+    for k in range(1, 4):
+        _append(store, str(k).encode() * k, scans=k)
+    store.write_snapshot("m", 3, b"three")
+    store.close()
+    backend.stores.remove(store)
+    for statement in ("DROP TABLE bases", "ALTER TABLE batches DROP COLUMN bytes",
+                      *(f"ALTER TABLE maps DROP COLUMN {column}" for column in
+                        ("base_version", "history_bytes", "history_scans"))):
+        backend.sql(statement)  # the schema as it was
+    reopened = backend.open()
+    head = reopened.map_head("m")
+    assert head is not None and (head.base_version, head.history_bytes, head.history_scans) == (0, 1 + 2 + 3, 1 + 2 + 3)
+    history = reopened.load_history("m")
+    assert history is not None and history.damage == [] and history.snapshot is None and _versions(history) == [1, 2, 3]
+    assert reopened.fold_point("m", 3) == 2 and reopened.write_base("m", 2, b"two", "i1")
+    head = reopened.map_head("m")
+    assert head is not None and (head.base_version, head.history_bytes, head.history_scans) == (2, 3, 3)
+
+
 def test_an_old_sqlite_database_gets_the_new_columns_and_carries_on_its_versions(tmp_path: Path) -> None:
     path = tmp_path / "old.sqlite3"
     with sqlite3.connect(path) as db:  # the schema as it was: maps without versions, incarnations or scans
@@ -852,7 +888,7 @@ def test_an_old_sqlite_database_gets_the_new_columns_and_carries_on_its_versions
     storage = SqliteStorage(path)
     stored = storage.load_map("m")
     assert stored is not None and stored.damage == [] and _versions(stored) == [7] and stored.version == 7
-    assert storage.map_head("m") == MapHead("m", {}, "t0", 7, 0, 0, None)
+    assert storage.map_head("m") == MapHead("m", {}, "t0", 7, 0, 0, None, 0, 1, 0)  # its history: the 1-byte batch
     assert storage.map_head("s") == MapHead("s", {}, "t0", 5, 5, 0, None)
     assert _append(storage, b"y", incarnation=None) == 8  # after its newest row
     assert _append(storage, b"z", name="s", incarnation=None) == 6  # after its snapshot
@@ -1026,7 +1062,9 @@ def test_a_database_from_before_replicas_serves_the_same_maps(make_settings: Any
     with sqlite3.connect(path) as new:  # the same rows, written as the code before replicas wrote them
         maps = [(name, json.dumps({k: v for k, v in json.loads(meta).items() if k != "incarnation"}), *rest)
                 for name, meta, *rest in new.execute("SELECT name, meta, updated, version, snapshot_version FROM maps")]
-        batches = new.execute("SELECT map, seq, payload, crc FROM batches").fetchall()
+        # (the code before replicas kept no history: only the batches after the snapshot)
+        batches = new.execute("SELECT map, seq, payload, crc FROM batches WHERE seq > COALESCE((SELECT version FROM "
+                              "snapshots WHERE map = batches.map), 0)").fetchall()
         snapshots = new.execute("SELECT map, version, payload, crc FROM snapshots").fetchall()
     assert [(m, v) for m, v, *_ in batches] == [("lab", 5), ("two", 1)] and [s[:2] for s in snapshots] == [("lab", 4)]
     for leftover in settings.data_dir.glob("fuzzyrisk.sqlite3*"):
@@ -1076,7 +1114,8 @@ def test_a_map_is_snapshotted_once_its_log_walks_the_cell_limit(make_client: Any
         kit.snapshots_stored(client)
         if _rows(data_dir, "snapshots"):
             break
-    assert _rows(data_dir, "snapshots") == [("lab", 3)] and _rows(data_dir, "batches") == []
+    assert _rows(data_dir, "snapshots") == [("lab", 3)] and _rows(data_dir, "batches") == [("lab", 1), ("lab", 2),
+                                                                                          ("lab", 3)]
     risk = kit.risk_npy(client, "lab")
     client.__exit__(None, None, None)
     assert kit.risk_npy(make_client(), "lab").tobytes() == risk.tobytes()

@@ -166,7 +166,7 @@ def test_a_deleted_maps_memory_is_freed_at_the_delete(lab: TestClient, kit: Any)
 
 # ---------------------------------------------------------------- what GET shows, POST takes
 #: The read-only facts of a map (docs/api.md): GET /maps/{name} shows them, POST /maps refuses them.
-FACTS = ("shape", "bounds", "held_cells", "scans_fused", "version", "created", "updated")
+FACTS = ("shape", "bounds", "held_cells", "scans_fused", "version", "created", "updated", "history")
 
 
 def settings_of(info: dict[str, Any]) -> dict[str, Any]:
