@@ -170,6 +170,11 @@ class Settings(BaseSettings):
         "work, as FUZZYRISK_MAX_BATCH_CELLS counts it): a restart replays at most that much fusion for the map "
         "(and one batch), about 10 s on 2 cores.",
     )
+    max_trajectory_poses: int = Field(
+        1_000_000, ge=1,
+        description="Most poses in a map's trajectory (GET /maps/{name}/trajectory: one per stored scan; 413 "
+        "beyond): about 200 bytes of JSON each.",
+    )
     max_recording_bytes: int = Field(
         256 * 2**20, ge=1024,
         description="Most bytes of messages in one MCAP export of a map (GET /maps/{name}/export/mcap: its grid and "

@@ -102,6 +102,7 @@ from app.schemas.scans import (
     ScanIn,
     ScanQuery,
 )
+from app.schemas.trajectory import Trajectory
 from app.schemas.system import (
     Health,
     Readiness,
@@ -184,6 +185,7 @@ __all__ = [
     "StampIn",
     "Time",
     "TrapezoidIn",
+    "Trajectory",
     "TriangleIn",
     "Vector",
     "WHOLE_MAP",
