@@ -245,9 +245,9 @@ def read_carmen(path: str | Path, max_range: float | None = None,
     stamps = log_stamps_ns([s.stamp for s in raw])
     if stamps.numbered and say is not None:
         distinct = len({s.stamp for s in raw})
-        say(f"{path.name}: the log's stamps do not increase ({distinct} distinct value{'s' * (distinct != 1)}, from "
-            f"{raw[0].stamp:g} s); its scans are numbered at {NUMBERED_RATE_HZ} Hz from "
-            f"{stamps.ns[0] / _NS_PER_S:g} s")
+        say(f"{path.name}: the log's stamps do not increase (the first {raw[0].stamp!r} s, {distinct} distinct "
+            f"value{'s' * (distinct != 1)} in {len(raw)}): its scans are numbered at {NUMBERED_RATE_HZ} Hz from "
+            f"{Decimal(stamps.ns[0]) / _NS_PER_S} s")
     scans = []
     for s, stamp_ns in zip(raw, stamps.ns, strict=True):
         top = max_range if max_range is not None else (s.max_range if s.max_range is not None else log_max)
