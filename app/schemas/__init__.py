@@ -1,8 +1,8 @@
 """Request and response bodies of the HTTP contract (docs/api.md), one module per resource.
 
 ``common`` holds what several share (map names, frame ids, bounded numbers, the nav_msgs parts);
-``engine_definition``, ``maps``, ``scans``, ``bags``, ``risk``, ``plans`` and ``system`` the bodies of
-their routes; ``engine_choice`` a map's engine as taken, stored and shown. Shapes and simple bounds are
+``engine_definition``, ``maps``, ``scans``, ``bags``, ``risk``, ``plans``, ``trajectory`` and ``system`` the
+bodies of their routes; ``engine_choice`` a map's engine as taken, stored and shown. Shapes and simple bounds are
 checked here (finite numbers, lengths, ranges); checks that need a map (dimensions, bounds, limits) live
 in the services (``app.maps``, ``app.plans``, ``app.reads``). The OpenAPI examples are real requests:
 ``tests/app/test_operations.py`` pastes them. Every body is importable from here.
@@ -23,6 +23,7 @@ from app.schemas.common import (
     Header,
     MapName,
     NonNegativeFinite,
+    PathMessage,
     Point,
     PoseMsg,
     PoseStamped,
@@ -102,11 +103,11 @@ from app.schemas.scans import (
     ScanIn,
     ScanQuery,
 )
-from app.schemas.trajectory import Trajectory
 from app.schemas.system import (
     Health,
     Readiness,
 )
+from app.schemas.trajectory import Trajectory
 
 __all__ = [
     "BagImportResult",
@@ -159,6 +160,7 @@ __all__ = [
     "PlanResult",
     "PlannerInfo",
     "Planners",
+    "PathMessage",
     "Point",
     "PointCloudIn",
     "Pose2D",

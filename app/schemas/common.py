@@ -112,3 +112,10 @@ class PoseStamped(BaseModel):
 
     header: Header
     pose: PoseMsg
+
+
+class PathMessage(BaseModel):
+    """``nav_msgs/Path`` as rosbridge and Foxglove write it in JSON."""
+
+    header: Header = Field(description="frame_id: the map's frame, in which every pose is given")
+    poses: list[PoseStamped] = Field(description="each a geometry_msgs/PoseStamped with a header of its own")

@@ -2,23 +2,22 @@
 
 from __future__ import annotations
 
-from pydantic import BaseModel, Field
+from pydantic import Field
 
-from app.schemas.common import Header, PoseStamped
+from app.schemas.common import PathMessage
 
 
-class Trajectory(BaseModel):
+class Trajectory(PathMessage):
     """The sensor poses the map's stored scans were posted with, in the order they were fused: a ``nav_msgs/Path``
-    (``header`` and ``poses``, shaped as a plan's answer) with what the map says of it."""
+    (``header`` and ``poses``, shaped as a plan's answer) with what the map says of it.
 
-    header: Header = Field(
-        description="nav_msgs/Path header: frame_id is the map's frame; stamp is when the map reached this version "
-        "(its last batch's commit), as an OccupancyGrid read stamps it")
-    poses: list[PoseStamped] = Field(
-        description="one per stored scan, in the order fused; each header's stamp is the scan's (its header.stamp, "
-        "its message's, or when the service received it), 0 for a scan stored before scans kept stamps (see "
-        "unstamped). A LaserScan's pose as posted (2-D maps: z 0, its theta as a yaw quaternion); a point cloud's "
-        "sensor origin, identity orientation (a cloud is stored in the map frame, with its origin only)")
+    ``header.stamp`` is when the map reached this version (its last batch's commit), as an OccupancyGrid read
+    stamps it. One pose per stored scan; its header's stamp is the scan's (its ``header.stamp``, its message's, or
+    when the service received it), 0 for a scan stored before scans kept stamps (see ``unstamped``). A LaserScan's
+    pose as posted (2-D maps: z 0, its theta as a yaw quaternion); a point cloud's sensor origin with the identity
+    orientation (a cloud is stored in the map frame, with its origin only).
+    """
+
     version: int = Field(description="the map version the poses are of")
     since_version: int = Field(
         description="the scans of the batches after this version are listed: a snapshot drops the batches it covers")
