@@ -19,6 +19,7 @@ from pydantic import (
 from app.schemas.common import NonNegativeFinite, PositiveFinite, StampIn, ns_of_ros_time
 
 EXAMPLE_LASER = {
+    "header": {"stamp": {"sec": 1796614484, "nanosec": 690952830}, "frame_id": "laser"},
     "pose": {"x": 0.0, "y": 0.0, "theta": 0.0},
     "angle_min": -0.6,
     "angle_increment": 0.1,
