@@ -9,6 +9,7 @@ and a 2-D cloud's z is 0. A scan stored before scans kept stamps is stamped 0 (R
 
 from __future__ import annotations
 
+import json
 from collections.abc import Sequence
 from typing import Any
 
@@ -44,14 +45,28 @@ def _pose_stamped(pose: logcodec.ScanPose, frame_id: str) -> dict[str, Any]:
                      "orientation": _IDENTITY if pose.yaw is None else yaw_quaternion(pose.yaw)}}
 
 
+#: Poses serialised at a time: one ``json.dumps`` holds the GIL for its whole call, and every other request with it.
+_CHUNK = 4096
+_NO_POSES = b'"poses":[]'
+
+
 def trajectory_json(log: Sequence[tuple[int, bytes]], *, frame_id: str, stamp: dict[str, int], version: int,
                     since_version: int, max_poses: int) -> bytes:
-    """``Trajectory`` of the batches of ``log`` (version, payload), as JSON bytes (module doc)."""
+    """``Trajectory`` of the batches of ``log`` (version, payload), as JSON bytes (module doc).
+
+    The small fields go through the model; the poses, built in its shape by ``_pose_stamped``, are written by
+    ``json`` a chunk at a time (what the model reads back, every number as stored: tested): validating 100,000
+    of them through the model took 4 s, the rest of the answer 2.
+    """
     poses = scan_poses(log, max_poses)
-    return Trajectory.model_validate({
+    head = Trajectory.model_validate({
         "header": {"stamp": stamp, "frame_id": frame_id},
-        "poses": [_pose_stamped(pose, frame_id) for pose in poses],
+        "poses": [],
         "version": version,
         "since_version": since_version,
         "unstamped": sum(pose.stamp_ns is None for pose in poses),
     }).model_dump_json().encode()
+    assert head.count(_NO_POSES) == 1
+    chunks = (json.dumps([_pose_stamped(pose, frame_id) for pose in poses[i:i + _CHUNK]], separators=(",", ":"))
+              for i in range(0, len(poses), _CHUNK))
+    return head.replace(_NO_POSES, b'"poses":[' + ",".join(chunk[1:-1] for chunk in chunks).encode() + b"]")
