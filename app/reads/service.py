@@ -168,26 +168,29 @@ class MapReads:
                                 held.etag_seed)
 
         async with self.big_read(await self._planned(entry, region)):
-            grid, stored = await self._with_log(name, entry, copy)
+            grid, stored = await self._with_log(name, entry, copy, self.storage.load_map)
             return await self._workers.run_read(render, grid, stored, heavy=_heavy(grid.spec))
 
     async def trajectory(self, name: str) -> tuple[bytes, int]:
-        """The map's trajectory as ``Trajectory`` JSON (``app.reads.trajectory``), and the version it is of."""
+        """The map's trajectory as ``Trajectory`` JSON (``app.reads.trajectory``), and the version it is of: the scans
+        of its whole history (``Storage.load_history``: every batch after its base snapshot)."""
 
         async def copy(held: MapEntry) -> tuple[int, str, str]:
             return held.version, held.frame_id, held.updated
 
-        (version, frame_id, updated), stored = await self._with_log(name, await self._current(name), copy)
+        (version, frame_id, updated), stored = await self._with_log(name, await self._current(name), copy,
+                                                                    self.storage.load_history)
         made = await self._workers.run_read(functools.partial(
             trajectory.trajectory_json, stored.batches, frame_id=frame_id, stamp=msgtypes.ros_time_of_iso(updated),
-            version=version, since_version=stored.snapshot_version, max_poses=self.settings.max_trajectory_poses),
+            version=version, from_version=stored.snapshot_version, max_poses=self.settings.max_trajectory_poses),
             heavy=True)
         return made, version
 
-    async def _with_log(self, name: str, entry: MapEntry,
-                        copy: Callable[[MapEntry], Awaitable[T]]) -> tuple[T, StoredMap]:
-        """``copy(entry)`` and the map's stored batch log at one version (``Storage.load_map``: the latest snapshot's
-        version and the batches after it, ``stored.snapshot`` dropped).
+    async def _with_log(self, name: str, entry: MapEntry, copy: Callable[[MapEntry], Awaitable[T]],
+                        load: Callable[[str], StoredMap | None]) -> tuple[T, StoredMap]:
+        """``copy(entry)`` and the map's stored batches at one version, as ``load`` reads them (``Storage.load_map``:
+        the batches after the restart snapshot; ``Storage.load_history``: after the base), ``stored.snapshot``
+        dropped.
 
         Both are taken together under the apply lock, so no batch is applied between the two: the log
         holds every batch up to the copy's version (each was committed before it was applied), and those
@@ -198,7 +201,7 @@ class MapReads:
                 entry = await self._current(name)
             async with entry.apply_lock:
                 copied, version = await copy(entry), entry.version
-                stored = await self._workers.run_read(self.storage.load_map, entry.name)
+                stored = await self._workers.run_read(load, entry.name)
             # another replica's snapshot newer than this version: the log read starts after it; catch up, again
             if stored is None or stored.snapshot_version <= version:
                 break

@@ -51,7 +51,7 @@ _NO_POSES = b'"poses":[]'
 
 
 def trajectory_json(log: Sequence[tuple[int, bytes]], *, frame_id: str, stamp: dict[str, int], version: int,
-                    since_version: int, max_poses: int) -> bytes:
+                    from_version: int, max_poses: int) -> bytes:
     """``Trajectory`` of the batches of ``log`` (version, payload), as JSON bytes (module doc).
 
     The small fields go through the model; the poses, built in its shape by ``_pose_stamped``, are written by
@@ -63,7 +63,7 @@ def trajectory_json(log: Sequence[tuple[int, bytes]], *, frame_id: str, stamp: d
         "header": {"stamp": stamp, "frame_id": frame_id},
         "poses": [],
         "version": version,
-        "since_version": since_version,
+        "from_version": from_version,
         "unstamped": sum(pose.stamp_ns is None for pose in poses),
     }).model_dump_json().encode()
     assert head.count(_NO_POSES) == 1

@@ -19,6 +19,7 @@ class Trajectory(PathMessage):
     """
 
     version: int = Field(description="the map version the poses are of")
-    since_version: int = Field(
-        description="the scans of the batches after this version are listed: a snapshot drops the batches it covers")
+    from_version: int = Field(
+        description="the version the map's history starts after (its base snapshot's, as GET /maps/{name} shows "
+        "history.from_version): the scans of every batch after it are listed; those folded into the base are not")
     unstamped: int = Field(description="poses stamped 0 because their scan was stored without a stamp")

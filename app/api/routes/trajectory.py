@@ -29,7 +29,8 @@ async def get_trajectory(name: MapNamePath, service: ServiceDep) -> Response:
 
     A scan's stamp is its JSON ``header.stamp``, its ROS message's (CDR body, bag), or, for a scan posted without
     one, the time the service received its batch. Scans stored before stamps were kept are stamped 0 and counted
-    in ``unstamped``. Only the batches after the map's latest snapshot are stored (``since_version``).
+    in ``unstamped``. The scans are those of the map's history: every batch after its base snapshot (``from_version``;
+    the oldest leave it for the base beyond ``FUZZYRISK_MAX_HISTORY_BYTES``).
     """
     data, version = await service.reads.trajectory(name)
     return bytes_response(data, media_type="application/json", headers={etags.VERSION_HEADER: str(version)})

@@ -1,8 +1,9 @@
 """A scan's stamp in, and ``GET /maps/{name}/trajectory`` out: over HTTP, as a robot's software uses them.
 
 Stamps posted as JSON ``header.stamp``, with CDR messages and in bags come back with the poses the scans were posted
-with; a scan without one is stamped when the service received it; bad stamps are refused and nothing is stored; a
-store written before stamps reads as unstamped. After a kill -9, the same trajectory: ``tests/e2e/test_durability.py``.
+with; a scan without one is stamped when the service received it; a restart gives the same trajectory (after a kill
+-9 too: ``tests/e2e/test_durability.py``); bad stamps are refused and nothing is stored; a store written before
+stamps reads as unstamped.
 """
 
 from __future__ import annotations
@@ -58,7 +59,7 @@ def test_json_stamps_come_back_with_the_poses_in_the_order_fused(lab: TestClient
         assert lab.post("/maps/lab/scans", json={"scans": batch}).status_code == 200
     path = trajectory(lab, "lab")
     assert path["header"]["frame_id"] == "map" and path["version"] == 2
-    assert path["unstamped"] == 0 and path["since_version"] == 0
+    assert path["unstamped"] == 0 and path["from_version"] == 0
     posted = first + second
     assert [ns_of(p) for p in path["poses"]] == [1_796_614_484_690_952_831, 1_796_614_484_890_952_831, 7]
     for pose, scan in zip(path["poses"], posted, strict=True):
@@ -140,6 +141,21 @@ def test_a_bag_s_message_stamps_come_back_with_their_poses(lab: TestClient, tmp_
         assert yaw_of(pose["pose"]["orientation"]) == pytest.approx(0.6, abs=1e-12)
 
 
+def test_a_restart_gives_the_same_trajectory(make_client: Callable[..., TestClient], kit: Any) -> None:
+    first = make_client(snapshot_every=2)  # snapshots on the way and at the stop: they keep the batches they cover
+    assert first.post("/maps", json=kit.MAP_2D).status_code == 201
+    for k in range(5):
+        assert first.post("/maps/lab/scans", json={"scans": [
+            kit.laser(x=0.1 * k, header={"stamp": stamp(10 * S + k)}), kit.laser(y=0.2 * k)]}).status_code == 200
+    kit.snapshots_stored(first)
+    before = trajectory(first, "lab")
+    assert len(before["poses"]) == 10 and before["from_version"] == 0
+    first.__exit__(None, None, None)
+
+    second = make_client(snapshot_every=2)
+    assert trajectory(second, "lab") == before
+
+
 @pytest.mark.parametrize(("header", "field"), [
     ({"stamp": {"sec": -1, "nanosec": 0}}, "sec"),
     ({"stamp": {"sec": 5, "nanosec": S}}, "nanosec"),
@@ -188,6 +204,6 @@ def test_scans_stored_before_stamps_are_reported_unstamped(make_client: Callable
     shutil.copyfile(DATA_DIR / "stored_log" / DATABASE, tmp_path / "data" / DATABASE)  # written by earlier code
     client = make_client(snapshot_every=10**9)
     path = trajectory(client, "bayes")  # no snapshot: every batch since version 0
-    assert path["since_version"] == 0 and len(path["poses"]) > 0
+    assert path["from_version"] == 0 and len(path["poses"]) > 0
     assert path["unstamped"] == len(path["poses"])
     assert all(ns_of(p) == 0 for p in path["poses"])
