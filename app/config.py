@@ -110,6 +110,11 @@ class Settings(BaseSettings):
         description="Most points in one path check (413 beyond): a plan's path has a point a cell, so 10,000 points "
         "are 500 m at 0.05 m.",
     )
+    max_trajectory_poses: int = Field(
+        1_000_000, ge=1,
+        description="Most poses in a map's trajectory (GET /maps/{name}/trajectory: one per stored scan; 413 "
+        "beyond): about 200 bytes of JSON each.",
+    )
     max_plan_time_s: float = Field(30.0, gt=0.0, le=3600.0, description="Largest plan time_limit, seconds.")
     plan_workers: int = Field(2, ge=1, le=64, description="Planner worker processes.")
     plan_workers_per_map: int | None = Field(

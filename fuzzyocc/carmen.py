@@ -19,6 +19,13 @@ treats every reading within 1 % of it as a no-return (``+inf``, REP 117: free sp
 ``range_max``); ``range_max`` of every scan is that 99 % mark. Pass ``max_range`` to state the
 maximum yourself.
 
+Stamps. A scan's stamp is its message's timestamp (the logger's, else the IPC one), to the
+nanosecond of its decimal text. Some logs' stamps say nothing of time: all 0 (orebro), one value
+(belgioioso), two (csail), negative and backwards (infinite-corridor). When a log's stamps are not
+all finite, non-negative and strictly increasing, :func:`log_stamps_ns` numbers its scans at
+``NUMBERED_RATE_HZ`` from its first stamp instead (from 0 when that is negative or missing), and
+:func:`read_carmen` says so.
+
 :func:`grid_for_scans` gives the grid that holds a log's poses and surfaces (any ``LaserScan``
 list, in fact), so a log can be mapped without knowing its extent beforehand.
 """
@@ -28,8 +35,9 @@ from __future__ import annotations
 import gzip
 import math
 import zlib
-from collections.abc import Iterable, Iterator, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass
+from decimal import Decimal
 from pathlib import Path
 
 import numpy as np
@@ -37,13 +45,19 @@ import numpy as np
 from fuzzyocc.config import DEFAULT_MAX_CELLS, GridSpec
 from fuzzyocc.scans import LaserScan
 
-__all__ = ["CarmenScan", "NO_RETURN_FRACTION", "grid_for_scans", "read_carmen", "parse_carmen_lines"]
+__all__ = ["CarmenScan", "LogStamps", "NO_RETURN_FRACTION", "NUMBERED_RATE_HZ", "grid_for_scans", "log_stamps_ns",
+           "parse_carmen_lines", "read_carmen"]
 
 #: A reading at or above this fraction of the scanner's maximum is a no-return.
 NO_RETURN_FRACTION = 0.99
 
 #: Readings below this are skipped (a SICK reports 0 for a dazzled or blocked beam).
 RANGE_MIN_M = 0.01
+
+#: The rate at which the scans of a log whose stamps do not increase are numbered (the logs' SICK
+#: scanners were logged at about this rate).
+NUMBERED_RATE_HZ = 5
+_NS_PER_S = 1_000_000_000
 
 
 @dataclass(frozen=True)
@@ -74,11 +88,41 @@ class CarmenScan:
     line: int
     max_range: float | None = None
 
-    def to_laser_scan(self, range_max: float) -> LaserScan:
-        """The scan with readings at or above ``range_max`` as no-returns (``+inf``)."""
+    def to_laser_scan(self, range_max: float, stamp_ns: int | None = None) -> LaserScan:
+        """The scan with readings at or above ``range_max`` as no-returns (``+inf``), taken at ``stamp_ns``."""
         ranges = np.where(self.ranges >= range_max, np.inf, self.ranges)
         return LaserScan(pose=self.pose, angle_min=self.angle_min, angle_increment=self.angle_increment,
-                         ranges=ranges, range_min=RANGE_MIN_M, range_max=range_max)
+                         ranges=ranges, range_min=RANGE_MIN_M, range_max=range_max, stamp_ns=stamp_ns)
+
+
+@dataclass(frozen=True)
+class LogStamps:
+    """The stamps of a log's scans, Unix nanoseconds in log order, and whether they were numbered (the log's own
+    did not increase)."""
+
+    ns: list[int]
+    numbered: bool
+
+
+def _ns_of_seconds(seconds: float) -> int:
+    # through the shortest decimal that reads back to the float: a log's "1018930000.15" is 1018930000150000000 ns
+    return int((Decimal(repr(seconds)) * _NS_PER_S).to_integral_value())
+
+
+def log_stamps_ns(stamps: Sequence[float]) -> LogStamps:
+    """The stamps of a log's scans from their timestamps (seconds, in log order): the one rule of every reader of a
+    log (the importer, the benchmarks).
+
+    Stamps that are finite, non-negative and strictly increasing are kept, to the nanosecond. Any other log's scans
+    are numbered at ``NUMBERED_RATE_HZ`` from its first stamp (0 when that is negative or missing): scan ``k`` at
+    ``first + k * 200 ms``.
+    """
+    increasing = all(math.isfinite(s) and s >= 0.0 for s in stamps) and all(b > a for a, b in zip(stamps, stamps[1:]))
+    if increasing:
+        return LogStamps([_ns_of_seconds(s) for s in stamps], numbered=False)
+    first = _ns_of_seconds(stamps[0]) if stamps and math.isfinite(stamps[0]) and stamps[0] > 0.0 else 0
+    period = _NS_PER_S // NUMBERED_RATE_HZ
+    return LogStamps([first + k * period for k in range(len(stamps))], numbered=True)
 
 
 def _numbers(fields: list[str], start: int, count: int, what: str, line: int) -> list[float]:
@@ -157,8 +201,10 @@ def _open(path: Path) -> Iterable[str]:
     return path.open("r", encoding="ascii", errors="replace")
 
 
-def read_carmen(path: str | Path, max_range: float | None = None) -> list[LaserScan]:
-    """Every scan of a CARMEN log (``.log`` or ``.log.gz``) as a :class:`LaserScan`, in log order.
+def read_carmen(path: str | Path, max_range: float | None = None,
+                say: Callable[[str], None] | None = None) -> list[LaserScan]:
+    """Every scan of a CARMEN log (``.log`` or ``.log.gz``) as a :class:`LaserScan`, in log order, with its stamp
+    (:func:`log_stamps_ns`).
 
     Parameters
     ----------
@@ -168,6 +214,8 @@ def read_carmen(path: str | Path, max_range: float | None = None) -> list[LaserS
         The scanner's maximum reading in metres. Default: what a ``ROBOTLASER1`` message
         states, else the largest reading of the log. Readings at or above
         ``NO_RETURN_FRACTION * max_range`` are no-returns.
+    say : callable, optional
+        Told, in one line, when the log's stamps do not increase and its scans are numbered instead.
 
     Raises
     ------
@@ -190,14 +238,20 @@ def read_carmen(path: str | Path, max_range: float | None = None) -> list[LaserS
         raise ValueError(f"{path}: the compressed stream is truncated or corrupt ({exc})") from None
     if not raw:
         raise ValueError(f"{path} holds no FLASER or ROBOTLASER1 line")
-    scans = []
     log_max = max(float(s.ranges.max()) for s in raw)
     if max_range is None and log_max * NO_RETURN_FRACTION <= RANGE_MIN_M and any(s.max_range is None for s in raw):
         raise ValueError(f"{path}: every reading is {log_max} m or less, so the scanner's maximum cannot be "
                          "told from the log; pass max_range")
-    for s in raw:
+    stamps = log_stamps_ns([s.stamp for s in raw])
+    if stamps.numbered and say is not None:
+        distinct = len({s.stamp for s in raw})
+        say(f"{path.name}: the log's stamps do not increase (the first {raw[0].stamp!r} s, {distinct} distinct "
+            f"value{'s' * (distinct != 1)} in {len(raw)}): its scans are numbered at {NUMBERED_RATE_HZ} Hz from "
+            f"{Decimal(stamps.ns[0]) / _NS_PER_S} s")
+    scans = []
+    for s, stamp_ns in zip(raw, stamps.ns, strict=True):
         top = max_range if max_range is not None else (s.max_range if s.max_range is not None else log_max)
-        scans.append(s.to_laser_scan(NO_RETURN_FRACTION * top))
+        scans.append(s.to_laser_scan(NO_RETURN_FRACTION * top, stamp_ns))
     return scans
 
 

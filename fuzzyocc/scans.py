@@ -11,13 +11,18 @@ naming the field) and hold read-only float64 arrays:
 - :class:`PointCloud`, beam end points in the map frame with the sensor origin; a point
   farther than ``range_max`` is cut at ``range_max`` and counts as a no-return (OctoMap's
   ``insertPointCloud(..., maxrange)``); a point at the origin is skipped.
+
+Both carry the time they were taken, ``stamp_ns``: ROS time as integer Unix nanoseconds (exact, as
+``builtin_interfaces/Time`` holds it), or None for a scan that has none. Fusion ignores it.
 """
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import math
 from dataclasses import dataclass, field
+from typing import TypeVar
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -118,6 +123,27 @@ def _float_array(name: str, value: object) -> np.ndarray:
         raise ValueError(f"{name} must be an array of numbers") from None
 
 
+_Scan = TypeVar("_Scan", "LaserScan", "PointCloud")
+
+
+def _stamp_ns(value: object) -> int | None:
+    """A scan's stamp checked: None, or an integer number of nanoseconds >= 0 (ROS time is never negative)."""
+    if value is None:
+        return None
+    if isinstance(value, bool) or not isinstance(value, int | np.integer):
+        raise ValueError(f"stamp_ns must be an integer number of nanoseconds, got {value!r}")
+    if value < 0:
+        raise ValueError(f"stamp_ns must be >= 0 (Unix nanoseconds), got {value}")
+    return int(value)
+
+
+def _stamped(scan: _Scan, stamp_ns: int | None) -> _Scan:
+    """``scan`` with another stamp: its arrays shared (read-only), nothing else checked again."""
+    out = copy.copy(scan)
+    object.__setattr__(out, "stamp_ns", _stamp_ns(stamp_ns))
+    return out
+
+
 def _check_count(name: str, count: int, max_rays: int) -> None:
     if count > max_rays:
         raise ValueError(f"{name} has {count} beams, more than the limit of {max_rays} per scan; split the scan")
@@ -148,6 +174,8 @@ class LaserScan:
         Extra pose uncertainty of this scan along its beams, metres, >= 0.
     max_rays : int
         Refuse a scan with more beams than this.
+    stamp_ns : int, optional
+        When the scan was taken: Unix nanoseconds, >= 0; None: unstamped.
     """
 
     pose: tuple[float, float, float]
@@ -158,6 +186,7 @@ class LaserScan:
     range_max: float
     registration_sigma: float = 0.0
     max_rays: int = field(default=DEFAULT_MAX_RAYS, repr=False)
+    stamp_ns: int | None = None
 
     ndim = 2
 
@@ -187,6 +216,11 @@ class LaserScan:
         set_(self, "range_min", rmin)
         set_(self, "range_max", rmax)
         set_(self, "registration_sigma", _finite_scalar("registration_sigma", self.registration_sigma, minimum=0.0))
+        set_(self, "stamp_ns", _stamp_ns(self.stamp_ns))
+
+    def stamped(self, stamp_ns: int | None) -> LaserScan:
+        """This scan taken at ``stamp_ns`` instead (its ranges shared, not copied)."""
+        return _stamped(self, stamp_ns)
 
     @property
     def beam_count(self) -> int:
@@ -307,6 +341,8 @@ class PointCloud:
         Extra pose uncertainty of this sweep along its beams, metres, >= 0.
     max_rays : int
         Refuse a cloud with more points than this.
+    stamp_ns : int, optional
+        When the sweep was taken: Unix nanoseconds, >= 0; None: unstamped.
     """
 
     points: np.ndarray
@@ -314,6 +350,7 @@ class PointCloud:
     range_max: float
     registration_sigma: float = 0.0
     max_rays: int = field(default=DEFAULT_MAX_RAYS, repr=False)
+    stamp_ns: int | None = None
 
     def __post_init__(self) -> None:
         set_ = object.__setattr__
@@ -331,6 +368,11 @@ class PointCloud:
             raise ValueError(f"range_max must be positive, got {rmax}")
         set_(self, "range_max", rmax)
         set_(self, "registration_sigma", _finite_scalar("registration_sigma", self.registration_sigma, minimum=0.0))
+        set_(self, "stamp_ns", _stamp_ns(self.stamp_ns))
+
+    def stamped(self, stamp_ns: int | None) -> PointCloud:
+        """This cloud taken at ``stamp_ns`` instead (its points shared, not copied)."""
+        return _stamped(self, stamp_ns)
 
     @property
     def ndim(self) -> int:
@@ -345,6 +387,7 @@ class PointCloud:
         quaternion_xyzw: object,
         range_max: float,
         registration_sigma: float = 0.0,
+        stamp_ns: int | None = None,
     ) -> PointCloud:
         """A cloud from sensor-frame points and the sensor pose ``T_map_sensor``.
 
@@ -356,7 +399,7 @@ class PointCloud:
             Sensor position in the map frame, metres.
         quaternion_xyzw : (4,) array_like of float
             Sensor orientation in the map frame, ``[x, y, z, w]``; normalised here.
-        range_max, registration_sigma : float
+        range_max, registration_sigma, stamp_ns
             As in the constructor.
         """
         pts = _float_array("points", points_sensor)
@@ -369,7 +412,7 @@ class PointCloud:
         # normalised here and again by from_quat, as when stored maps were built: one division fewer moves points an ulp
         points_map = Rotation.from_quat(quat / np.linalg.norm(quat)).apply(pts) + position_map if pts.size else pts
         return cls(points=points_map, origin=tuple(position_map), range_max=range_max,
-                   registration_sigma=registration_sigma)
+                   registration_sigma=registration_sigma, stamp_ns=stamp_ns)
 
     @property
     def beam_count(self) -> int:

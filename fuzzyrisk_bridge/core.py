@@ -176,8 +176,10 @@ def scan_to_json(scan: Any, transform: Any) -> dict[str, Any]:
 
     The pose is the laser's in the map's plane (:func:`level_heading`: the service's rule): yaw
     from the quaternion; a laser mounted upside down (its z axis pointing down, roll pi) sweeps
-    clockwise seen from above, so its angles are negated. Raises ``NotLevel`` for a tilted laser,
-    ValueError for a message that cannot be a 2-D scan (non-finite pose or angles).
+    clockwise seen from above, so its angles are negated. The scan's ``header.stamp`` goes with it: the
+    service keeps it, and gives it back with the pose in the map's trajectory. Raises ``NotLevel`` for a
+    tilted laser, ValueError for a message that cannot be a 2-D scan (non-finite pose or angles, a stamp
+    that is not ROS time).
     """
     t = transform.transform
     p, q = t.translation, t.rotation
@@ -185,8 +187,12 @@ def scan_to_json(scan: Any, transform: Any) -> dict[str, Any]:
               float(scan.angle_increment), float(scan.range_min), float(scan.range_max)]
     if not all(math.isfinite(v) for v in values):
         raise ValueError(f"non-finite pose or scan parameters: {values}")
+    sec, nanosec = int(scan.header.stamp.sec), int(scan.header.stamp.nanosec)
+    if sec < 0 or not 0 <= nanosec < 1_000_000_000:
+        raise ValueError(f"header.stamp is not ROS time: sec {sec}, nanosec {nanosec}")
     yaw, turn = level_heading(*values[2:6])
     return {
+        "header": {"stamp": {"sec": sec, "nanosec": nanosec}},
         "pose": {"x": values[0], "y": values[1], "theta": yaw},
         "angle_min": turn * values[6],
         "angle_increment": turn * values[7],

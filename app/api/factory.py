@@ -20,7 +20,7 @@ from app.errors import ErrorBody
 from app.ops.metrics import Metrics
 from app.ops.version import package_version
 from app.api.middleware import ApiKeyMiddleware, BodyBudgetMiddleware, BodyLimitMiddleware, ObserveMiddleware
-from app.api.routes import bags, docs, maps, plans, recordings, risk, scans, system, ui
+from app.api.routes import bags, docs, maps, plans, recordings, risk, scans, system, trajectory, ui
 from app.schemas import OccupancyGridMessage, RiskGridJSON, ScanBatch
 from app.service.mapservice import MapService
 from app.storage import SqliteStorage, Storage
@@ -195,7 +195,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
     app.include_router(system.router)
     protected = [Depends(require_api_key)]
-    for module in (maps, scans, bags, risk, recordings, plans):
+    for module in (maps, scans, bags, risk, recordings, trajectory, plans):
         app.include_router(module.router, dependencies=protected)
     app.include_router(ui.router)  # the web page (app/routes/ui.py): its files need no key
     app.include_router(docs.router)  # /docs and /redoc with their files (no CDN), no key

@@ -8,7 +8,9 @@ The map's bounds are those of the log's poses and hits, padded by ``--margin`` (
 :func:`fuzzyocc.carmen.grid_for_scans`). Without ``--url`` the scans are fused here, into
 ``FuzzyMap(spec)`` (or ``BayesMap``), and the files are rendered by :mod:`app.formats.exports`, as the
 service renders them. With ``--url`` the map is created on the service (with the same sensor
-model) and the scans are posted in order as JSON batches; the files are then downloaded.
+model) and the scans are posted in order as JSON batches, each with its log stamp as ``header.stamp``
+(a log whose stamps do not increase has its scans numbered at 5 Hz, and the command says so:
+:func:`fuzzyocc.carmen.log_stamps_ns`); the files are then downloaded.
 Either way the scans are fused in log order, so a new map's risk is the same bit for bit.
 Progress goes to stderr (``app.cli.progress``: a bar on a terminal, else a line every few seconds; a
 first run says when it compiles the fusion kernels), a one-line summary to stdout; errors exit 1 with a message.
@@ -46,6 +48,7 @@ from app.cli.common import (
 )
 from app.cli.progress import Progress
 from app.ops.version import add_version_option
+from app.ros.messages_in import stamp_header
 from fuzzyocc import BayesMap, FuzzyMap, GridSpec, LaserScan, LatticeSpec
 from fuzzyocc.carmen import grid_for_scans, read_carmen
 
@@ -122,7 +125,8 @@ def scan_json(scan: LaserScan) -> dict[str, Any]:
     ranges = ["inf" if math.isinf(r) else r for r in scan.ranges.tolist()]
     return {"pose": {"x": x, "y": y, "theta": theta}, "angle_min": scan.angle_min,
             "angle_increment": scan.angle_increment, "ranges": ranges, "range_min": scan.range_min,
-            "range_max": scan.range_max, "registration_sigma": scan.registration_sigma}
+            "range_max": scan.range_max, "registration_sigma": scan.registration_sigma,
+            **stamp_header(scan.stamp_ns)}
 
 
 def _create_or_reuse(client: ServiceClient, args: argparse.Namespace, spec: GridSpec,
@@ -200,11 +204,14 @@ def _run(args: argparse.Namespace) -> str:
     if args.growing and args.model != "fuzzy":
         raise ImportFailed("--growing makes a fuzzy map: a bayes map needs a box (leave --growing out)")
     started = time.perf_counter()
-    everything = read_carmen(args.log, max_range=args.max_range)
+    notes: list[str] = []  # said once the progress is up
+    everything = read_carmen(args.log, max_range=args.max_range, say=notes.append)
     scans = everything[::args.every]
     spec = grid_for_scans(scans, args.resolution, args.margin)
     beams = BeamCounts.of(scans)
     with Progress(PROG) as shown, compile_notice(shown):
+        for note in notes:
+            shown.say(note)
         shown.say(f"{args.log.name}: {len(everything)} scans, map {spec.shape[0]} x {spec.shape[1]} cells of "
                   f"{spec.resolution} m from ({spec.origin[0]:g}, {spec.origin[1]:g})")
         progress = FusionProgress(len(scans), shown)

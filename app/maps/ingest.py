@@ -124,16 +124,21 @@ def checked_payload(spec: GridSpec | LatticeSpec, scans: list[Scan], budget: Bat
     return logcodec.encode(scans), work
 
 
+def stamped(scans: list[Scan], received_ns: int) -> list[Scan]:
+    """The scans, each without a stamp of its own stamped ``received_ns``: when the service received its batch."""
+    return [scan if scan.stamp_ns is not None else scan.stamped(received_ns) for scan in scans]
+
+
 def prepare(body: bytes, content_type: str, query: Mapping[str, str], dims: int, limits: Limits,
-            spec: GridSpec | LatticeSpec, budget: BatchBudget) -> tuple[list[Scan], bytes, int]:
-    """``parse`` and ``checked_payload``: the scans, their encoding and their cast work."""
-    scans = parse(body, content_type, query, dims, limits)
+            spec: GridSpec | LatticeSpec, budget: BatchBudget, received_ns: int) -> tuple[list[Scan], bytes, int]:
+    """``parse``, ``stamped`` and ``checked_payload``: the scans, their encoding and their cast work."""
+    scans = stamped(parse(body, content_type, query, dims, limits), received_ns)
     return scans, *checked_payload(spec, scans, budget)
 
 
 def prepare_encoded(body: bytes, content_type: str, query: Mapping[str, str], dims: int, limits: Limits,
-                    spec: GridSpec | LatticeSpec, budget: BatchBudget) -> tuple[bytes, int]:
+                    spec: GridSpec | LatticeSpec, budget: BatchBudget, received_ns: int) -> tuple[bytes, int]:
     """``prepare`` without the scans (``logcodec.decode`` gives them back): what a parse process returns (bytes
     cross a pipe at the cost of a copy; scans would be pickled object by object)."""
-    _, payload, work = prepare(body, content_type, query, dims, limits, spec, budget)
+    _, payload, work = prepare(body, content_type, query, dims, limits, spec, budget, received_ns)
     return payload, work

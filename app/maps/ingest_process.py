@@ -69,11 +69,12 @@ class ParseProcess:
                 self._executor = None
 
     async def prepare(self, body: bytes, content_type: str, query: Mapping[str, str], dims: int,
-                      limits: Limits, spec: GridSpec | LatticeSpec, budget: ingest.BatchBudget) -> tuple[bytes, int]:
+                      limits: Limits, spec: GridSpec | LatticeSpec, budget: ingest.BatchBudget,
+                      received_ns: int) -> tuple[bytes, int]:
         """``ingest.prepare_encoded`` in the process: the batch encoded (``logcodec.decode`` gives the scans)
         and its cast work; its errors as the parsing threads raise them."""
         loop = asyncio.get_running_loop()
-        args = (ingest.prepare_encoded, body, content_type, dict(query), dims, limits, spec, budget)
+        args = (ingest.prepare_encoded, body, content_type, dict(query), dims, limits, spec, budget, received_ns)
         for attempt in (1, 2):
             pool = await loop.run_in_executor(None, self._pool)  # may start the forkserver: not on the loop
             try:

@@ -14,8 +14,9 @@ import json
 import math
 import struct
 import zlib
-from collections.abc import Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
+from typing import Any, TypeVar
 
 import numpy as np
 
@@ -57,8 +58,10 @@ Edit = Clear | SetForget
 Batch = list[Scan] | Prior | Edit
 
 #: A stored batch: this magic, a little-endian uint32 header length, a JSON header, then per scan its
-#: float64 scalars and its values, raw little-endian. Batches stored before it are ``.npz`` files
-#: (they start with ``PK``, the zip magic) and still decode.
+#: float64 scalars and its values, raw little-endian. The header's entry of a stamped scan holds its
+#: ``stamp_ns`` (an integer: JSON keeps it exact); records written before stamps have none, and decode
+#: as unstamped. Batches stored before it are ``.npz`` files (they start with ``PK``, the zip magic) and
+#: still decode, unstamped.
 _MAGIC = b"FRB\x01"
 #: A stored prior: this magic, the header as a batch's (``{"shape": [nx, ny]}``), then the levels deflated
 #: (zlib): a saved map is mostly a few levels in long runs.
@@ -95,8 +98,9 @@ def encode(scans: Sequence[Scan]) -> bytes:
     """
     parts = [_parts(scan) for scan in scans]
     header = json.dumps({"scans": [
-        {"kind": kind, "scalars": int(scalars.size), "dtype": values.dtype.str, "shape": list(values.shape)}
-        for kind, scalars, values in parts
+        {"kind": kind, "scalars": int(scalars.size), "dtype": values.dtype.str, "shape": list(values.shape),
+         **({} if scan.stamp_ns is None else {"stamp_ns": scan.stamp_ns})}
+        for scan, (kind, scalars, values) in zip(scans, parts, strict=True)
     ]}).encode()
     chunks = [_MAGIC, _HEADER_LENGTH.pack(len(header)), header]
     for _, scalars, values in parts:
@@ -105,15 +109,15 @@ def encode(scans: Sequence[Scan]) -> bytes:
     return b"".join(chunks)
 
 
-def _scan(kind: str, scalars: list[float], values: np.ndarray) -> Scan:
+def _scan(kind: str, scalars: list[float], values: np.ndarray, stamp_ns: int | None = None) -> Scan:
     if kind == "laser":
         x, y, theta, angle_min, increment, range_min, range_max, reg = scalars
         return LaserScan(pose=(x, y, theta), angle_min=angle_min, angle_increment=increment, ranges=values,
                          range_min=range_min, range_max=range_max, registration_sigma=reg,
-                         max_rays=max(values.size, 1))
+                         max_rays=max(values.size, 1), stamp_ns=stamp_ns)
     *origin, range_max, reg = scalars
     return PointCloud(points=values, origin=tuple(origin), range_max=range_max, registration_sigma=reg,
-                      max_rays=max(values.shape[0], 1))
+                      max_rays=max(values.shape[0], 1), stamp_ns=stamp_ns)
 
 
 class CorruptBatch(ValueError):
@@ -129,18 +133,62 @@ def decode(payload: bytes) -> Batch:
 
     Raises :class:`CorruptBatch` for bytes that are not such a blob, never reading past them.
     """
+    return _guarded(_decode_any, payload)
+
+
+def _decode_any(payload: bytes) -> Batch:
+    if payload.startswith(_PRIOR_MAGIC):
+        return _decode_prior(payload)
+    if payload.startswith(_EDIT_MAGIC):
+        return _decode_edit(payload)
+    if not payload.startswith(_MAGIC):
+        return _decode_npz(payload)
+    return _decode_framed(payload)
+
+
+_T = TypeVar("_T")
+
+
+def _guarded(read: Callable[[bytes], _T], payload: bytes) -> _T:
     try:
-        if payload.startswith(_PRIOR_MAGIC):
-            return _decode_prior(payload)
-        if payload.startswith(_EDIT_MAGIC):
-            return _decode_edit(payload)
-        if not payload.startswith(_MAGIC):
-            return _decode_npz(payload)
-        return _decode_framed(payload)
+        return read(payload)
     except CorruptBatch:
         raise
     except Exception as exc:  # noqa: BLE001 - any failure to decode is corruption, named as such
         raise CorruptBatch(f"stored batch does not decode: {type(exc).__name__}: {exc}") from exc
+
+
+@dataclass(frozen=True)
+class ScanPose:
+    """Where and when a stored scan was taken, without its beams: a LaserScan's ``(x, y)`` and ``yaw``, or a cloud's
+    origin (``yaw`` None: a cloud carries no orientation); ``stamp_ns`` None: unstamped."""
+
+    position: tuple[float, ...]
+    yaw: float | None
+    stamp_ns: int | None
+
+
+def _pose(kind: str, scalars: Sequence[float], stamp_ns: int | None) -> ScanPose:
+    if kind == "laser":
+        return ScanPose((float(scalars[0]), float(scalars[1])), float(scalars[2]), stamp_ns)
+    return ScanPose(tuple(float(v) for v in scalars[:-2]), None, stamp_ns)  # origin, then range_max and sigma
+
+
+def scan_poses(payload: bytes) -> list[ScanPose]:
+    """The poses of a batch record's scans in order (none for a prior or an edit), their beams left undecoded.
+
+    Raises :class:`CorruptBatch` as :func:`decode` does.
+    """
+    return _guarded(_poses, payload)
+
+
+def _poses(payload: bytes) -> list[ScanPose]:
+    if payload.startswith(_MAGIC):
+        return [_pose(str(item["kind"]), scalars, item.get("stamp_ns")) for item, scalars, _ in _frames(payload)]
+    batch = _decode_any(payload)
+    if not isinstance(batch, list):
+        return []
+    return [_pose(*_parts(scan)[:2], scan.stamp_ns) for scan in batch]
 
 
 def decode_scans(payload: bytes) -> list[Scan]:
@@ -203,7 +251,9 @@ def _take(payload: bytes, offset: int, dtype: np.dtype, count: int) -> np.ndarra
     return np.frombuffer(payload, dtype=dtype, count=count, offset=offset)
 
 
-def _decode_framed(payload: bytes) -> list[Scan]:
+def _frames(payload: bytes) -> Iterator[tuple[dict[str, Any], np.ndarray, np.ndarray]]:
+    """Each scan of a framed record: its header entry, its scalars and its values (views of ``payload``, as stored),
+    bounds-checked."""
     offset = len(_MAGIC)
     (length,) = _HEADER_LENGTH.unpack_from(payload, offset)
     offset += _HEADER_LENGTH.size
@@ -211,19 +261,25 @@ def _decode_framed(payload: bytes) -> list[Scan]:
         raise CorruptBatch("stored batch is truncated inside its header")
     header = json.loads(payload[offset:offset + length])
     offset += length
-    scans: list[Scan] = []
     for item in header["scans"]:
         kind, count, shape = str(item["kind"]), int(item["scalars"]), tuple(int(n) for n in item["shape"])
         if count not in _SCALARS.get(kind, ()) or any(n < 0 for n in shape) or len(shape) != (1 if kind == "laser" else 2):
             raise CorruptBatch(f"stored batch has a malformed scan header: {item!r}")
+        stamp = item.get("stamp_ns")
+        if stamp is not None and (isinstance(stamp, bool) or not isinstance(stamp, int) or stamp < 0):
+            raise CorruptBatch(f"stored batch has a malformed stamp: {item!r}")
         scalars = _take(payload, offset, np.dtype("<f8"), count)
         offset += scalars.nbytes
         values = _take(payload, offset, _VALUE_DTYPES[item["dtype"]], math.prod(shape)).reshape(shape)
         offset += values.nbytes
-        scans.append(_scan(kind, scalars.tolist(), values.astype(np.float64)))
+        yield item, scalars, values
     if offset != len(payload):
         raise CorruptBatch(f"stored batch has {len(payload) - offset} bytes after its last scan")
-    return scans
+
+
+def _decode_framed(payload: bytes) -> list[Scan]:
+    return [_scan(str(item["kind"]), scalars.tolist(), values.astype(np.float64), item.get("stamp_ns"))
+            for item, scalars, values in _frames(payload)]
 
 
 def _decode_npz(payload: bytes) -> list[Scan]:

@@ -241,13 +241,13 @@ class WritePath:
 
 
     def _prepare(
-        self, entry: MapEntry, body: bytes, content_type: str, query: Mapping[str, str]
+        self, entry: MapEntry, body: bytes, content_type: str, query: Mapping[str, str], received_ns: int
     ) -> tuple[list[Scan], bytes, int]:
-        """Parse, validate (query and body) and encode a batch, with its cast work (no lock held: it touches no
-        map state). In a parsing thread, or on the event loop for a small body (``INLINE_PARSE_BYTES``).
+        """Parse, validate (query and body), stamp and encode a batch, with its cast work (no lock held: it touches
+        no map state). In a parsing thread, or on the event loop for a small body (``INLINE_PARSE_BYTES``).
         """
         return ingest.prepare(body, content_type, query, entry.spec.ndim, self._limits, entry.spec,
-                                 self._budget(entry))
+                              self._budget(entry), received_ns)
 
     def _apply(self, entry: MapEntry, version: int, batch: Batch) -> BatchResult:
         """Fuse a committed batch (in a fusion thread; the caller holds the apply turn and the apply lock)."""
@@ -341,8 +341,10 @@ class WritePath:
     ) -> BatchResult:
         """Fuse one batch (JSON ``ScanBatch`` or one binary scan) into a map, durably, all or nothing.
 
-        Batches to one map are committed and applied in the order they arrived here.
+        Batches to one map are committed and applied in the order they arrived here. A scan without a stamp of
+        its own is stamped with the time the batch arrived here (the service's clock).
         """
+        received_ns = time.time_ns()
         entry, _ = await self._registry.held(name)
         self._check_memory(entry)
         # no await between the check and the take: together they are atomic on the event loop
@@ -350,14 +352,15 @@ class WritePath:
         ticket = entry.line.take()  # before any await: this fixes the batch's place in line
         try:
             if len(body) <= INLINE_PARSE_BYTES:
-                scans, payload, work = self._prepare(entry, body, content_type, query)
+                scans, payload, work = self._prepare(entry, body, content_type, query, received_ns)
             elif wants(body, content_type):
                 payload, work = await self._parse_process.prepare(
-                    body, content_type, query, entry.spec.ndim, self._limits, entry.spec, self._budget(entry))
+                    body, content_type, query, entry.spec.ndim, self._limits, entry.spec, self._budget(entry),
+                    received_ns)
                 scans = await self._workers.run_parser(logcodec.decode_scans, payload)  # 8 x 2 M ranges: 0.2 s
             else:
                 scans, payload, work = await self._workers.run_parser(self._prepare, entry, body, content_type,
-                                                                      query)
+                                                                      query, received_ns)
         except BaseException as exc:
             entry.line.done(ticket)
             if isinstance(exc, (Invalid, TooLarge, RequestValidationError, UnsupportedMediaType)):
@@ -374,8 +377,10 @@ class WritePath:
         ``uid`` is the ``map_uid`` the scans were validated for: a map deleted and created again
         under the same name since (another grid, maybe another dimension) answers ``Conflict`` and
         stores nothing. ``admitted``: the batch belongs to an import whose first batch was admitted,
-        so it is not refused for the line's length (an import is refused whole, or not at all).
+        so it is not refused for the line's length (an import is refused whole, or not at all). Scans without a
+        stamp are stamped as ``add_scans`` stamps them.
         """
+        scans = ingest.stamped(scans, time.time_ns())
         entry, _ = await self._registry.held(name)
         self._check_memory(entry)
         if not admitted:

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import functools
 import logging
 import math
 from collections.abc import AsyncIterator, Awaitable, Callable, Mapping
@@ -20,6 +21,7 @@ from app.ros import msgtypes
 from app.config import Settings
 from app.errors import Conflict, Invalid, NotFound, TooLarge, Unavailable
 from app.maps import GridSnapshot, GridStamp, MapEntry, copy_limit, history_of
+from app.reads import trajectory
 from app.reads.lane import ReadLane, Turn
 from app.schemas import WHOLE_MAP, GridWindow, LastScan, MapInfo, OccupancyGrid, RiskGridJSON, RiskValues
 from app.storage import Storage, StoredMap
@@ -155,45 +157,65 @@ class MapReads:
     async def render_log(self, name: str, render: Callable[[GridSnapshot, StoredMap], T],
                          region: GridWindow = WHOLE_MAP) -> T:
         """``render(grid, stored)`` in a read thread: the map's grid over ``region`` and its stored batch log at one
-        version.
-
-        The grid is copied and the log read (``Storage.load_map``: the latest snapshot's version and the
-        batches after it) together under the apply lock, so no batch is applied between the two: the log
-        holds every batch up to the grid's version (each was committed before it was applied), and those
-        committed but not applied yet are left out. ``render`` runs once the lock is released
-        (``app.reads.recording``); ``stored.snapshot`` is dropped, the arrays are not needed.
-        """
+        version (``_with_log``; ``app.reads.recording``)."""
         entry = await self._current(name)
-        async with self.big_read(await self._planned(entry, region)):
-            return await self._render_log(name, entry, render, region)
 
-    async def _render_log(self, name: str, entry: MapEntry, render: Callable[[GridSnapshot, StoredMap], T],
-                          region: GridWindow) -> T:
-        """``render_log`` of a map looked up (looked up again when another replica's snapshot is newer)."""
+        async def copy(held: MapEntry) -> GridSnapshot:
+            window = await self._resolved(held, region)
+            risk, observed = await self._workers.run_read(
+                lambda e=held, w=window: (e.map.risk(w), e.map.observed(w)), heavy=_heavy(window))
+            return GridSnapshot(_spec_of(held, window), held.version, risk, observed, held.frame_id, held.updated,
+                                held.etag_seed)
+
+        async with self.big_read(await self._planned(entry, region)):
+            grid, stored = await self._with_log(name, entry, copy, self.storage.load_map)
+            return await self._workers.run_read(render, grid, stored, heavy=_heavy(grid.spec))
+
+    async def trajectory(self, name: str) -> tuple[bytes, int]:
+        """The map's trajectory as ``Trajectory`` JSON (``app.reads.trajectory``), and the version it is of: the scans
+        of its whole history (``Storage.load_history``: every batch after its base snapshot)."""
+
+        async def copy(held: MapEntry) -> tuple[int, str, str]:
+            return held.version, held.frame_id, held.updated
+
+        (version, frame_id, updated), stored = await self._with_log(name, await self._current(name), copy,
+                                                                    self.storage.load_history)
+        made = await self._workers.run_read(functools.partial(
+            trajectory.trajectory_json, stored.batches, frame_id=frame_id, stamp=msgtypes.ros_time_of_iso(updated),
+            version=version, from_version=stored.snapshot_version, max_poses=self.settings.max_trajectory_poses),
+            heavy=True)
+        return made, version
+
+    async def _with_log(self, name: str, entry: MapEntry, copy: Callable[[MapEntry], Awaitable[T]],
+                        load: Callable[[str], StoredMap | None]) -> tuple[T, StoredMap]:
+        """``copy(entry)`` and the map's stored batches at one version, as ``load`` reads them (``Storage.load_map``:
+        the batches after the restart snapshot; ``Storage.load_history``: after the base), ``stored.snapshot``
+        dropped.
+
+        Both are taken together under the apply lock, so no batch is applied between the two: the log
+        holds every batch up to the copy's version (each was committed before it was applied), and those
+        committed but not applied yet are left out.
+        """
         for attempt in range(3):
             if attempt:
                 entry = await self._current(name)
             async with entry.apply_lock:
-                window = await self._resolved(entry, region)
-                risk, observed, stored = await self._workers.run_read(
-                    lambda e=entry, w=window: (e.map.risk(w), e.map.observed(w), self.storage.load_map(e.name)),
-                    heavy=_heavy(window))
-                grid = GridSnapshot(_spec_of(entry, window), entry.version, risk, observed, entry.frame_id,
-                                    entry.updated, entry.etag_seed)
-            # another replica's snapshot newer than this grid: the log read starts after it; catch up, again
-            if stored is None or stored.snapshot_version <= grid.version:
+                copied, version = await copy(entry), entry.version
+                stored = await self._workers.run_read(load, entry.name)
+            # another replica's snapshot newer than this version: the log read starts after it; catch up, again
+            if stored is None or stored.snapshot_version <= version:
                 break
         if stored is None or stored.incarnation != entry.incarnation \
                 or stored.meta.get("created") != entry.meta["created"]:  # deleted (and made again)
             raise NotFound(f"no map named {name!r}; GET /maps lists them")
-        if stored.snapshot_version > grid.version:
+        if stored.snapshot_version > version:
             raise Unavailable(f"map {name!r} changes faster than its log can be read; retry",
                               headers={"Retry-After": "1"})
         if stored.damage:
             raise Unavailable(f"map {name!r}: its stored log is damaged ({'; '.join(stored.damage)})")
         stored.snapshot = None
-        stored.batches = [(version, payload) for version, payload in stored.batches if version <= grid.version]
-        return await self._workers.run_read(render, grid, stored, heavy=_heavy(grid.spec))
+        stored.batches = [(v, payload) for v, payload in stored.batches if v <= version]
+        return copied, stored
 
     async def risk_at(self, name: str, points: list[list[float]]) -> RiskValues:
         if len(points) > self.settings.max_query_points:

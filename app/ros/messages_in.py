@@ -8,6 +8,7 @@ pose of the message's ``header.frame_id`` in the map frame, REP 103) comes with 
 
 A message becomes a :class:`PlanarScan` or a :class:`SensorCloud`: exactly what a JSON batch carries
 (``to_json``), so a message posted as CDR, as JSON or fused in-process gives the same map, bit for bit.
+Its ``header.stamp`` goes with it (``stamp_ns``; a JSON scan's ``header.stamp``), as every message has one.
 
 - **LaserScan on a 2-D map**: the scanner must be level (its z axis within ``LEVEL_TOLERANCE_RAD`` of
   the map's +z or -z); ``theta`` is the heading of its x axis, and a scanner mounted upside down (z
@@ -28,6 +29,7 @@ A message becomes a :class:`PlanarScan` or a :class:`SensorCloud`: exactly what 
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import struct
 from collections.abc import Mapping
@@ -41,8 +43,8 @@ from scipy.spatial.transform import Rotation
 
 from app.scans import Limits, Scan, check_rays, laser_scan, point_cloud
 from app.errors import Invalid
-from app.ros.msgtypes import typestore
-from app.schemas import Pose2D, Pose3D
+from app.ros.msgtypes import ns_of_ros_time, ros_time_of_ns, typestore
+from app.schemas import Pose2D, Pose3D, StampIn
 from fuzzyocc.tf import Transform
 
 LASER_SCAN = "sensor_msgs/msg/LaserScan"
@@ -150,6 +152,23 @@ def _range_token(r: float) -> float | str:
     return r
 
 
+def stamp_header(stamp_ns: int | None) -> dict[str, Any]:
+    """The ``header`` of a JSON scan (``ScanHeader``) taken at ``stamp_ns``; empty for an unstamped one."""
+    return {} if stamp_ns is None else {"header": {"stamp": ros_time_of_ns(stamp_ns)}}
+
+
+def message_stamp_ns(msg: Any, name: str) -> int:
+    """A message's ``header.stamp`` as Unix nanoseconds; ``Invalid`` for one a JSON scan may not carry either
+    (negative, ``nanosec`` past a second)."""
+    stamp = {"sec": int(msg.header.stamp.sec), "nanosec": int(msg.header.stamp.nanosec)}
+    try:
+        StampIn.model_validate(stamp)
+    except ValidationError as exc:
+        error = exc.errors()[0]
+        raise Invalid(f"{name}.header.stamp.{error['loc'][0]}: {error['msg']}, got {stamp}") from None
+    return ns_of_ros_time(stamp)
+
+
 @dataclass(frozen=True)
 class PlanarScan:
     """A LaserScan for a 2-D map, as a JSON batch carries it (``LaserScanIn``)."""
@@ -160,19 +179,21 @@ class PlanarScan:
     ranges: np.ndarray
     range_min: float
     range_max: float
+    stamp_ns: int | None = None
 
     def to_scan(self, name: str, *, registration_sigma: float, dims: int, limits: Limits) -> Scan:
         return laser_scan(
             name, self.pose, angle_min=self.angle_min, angle_increment=self.angle_increment, ranges=self.ranges,
             range_min=self.range_min, range_max=self.range_max, registration_sigma=registration_sigma, dims=dims,
-            limits=limits,
+            limits=limits, stamp_ns=self.stamp_ns,
         )
 
     def to_json(self, registration_sigma: float = 0.0) -> dict[str, Any]:
         # json writes the shortest repr that reads back to the same float64: the service fuses these numbers
         return {"pose": self.pose.model_dump(), "angle_min": self.angle_min, "angle_increment": self.angle_increment,
                 "ranges": [_range_token(r) for r in self.ranges.tolist()], "range_min": self.range_min,
-                "range_max": self.range_max, "registration_sigma": registration_sigma}
+                "range_max": self.range_max, "registration_sigma": registration_sigma,
+                **stamp_header(self.stamp_ns)}
 
     @property
     def usable(self) -> bool:
@@ -187,15 +208,16 @@ class SensorCloud:
     pose: Pose2D | Pose3D
     points: np.ndarray
     range_max: float
+    stamp_ns: int | None = None
 
     def to_scan(self, name: str, *, registration_sigma: float, dims: int, limits: Limits) -> Scan:
         return point_cloud(name, self.pose, self.points, range_max=self.range_max,
-                                   registration_sigma=registration_sigma, dims=dims, limits=limits)
+                           registration_sigma=registration_sigma, dims=dims, limits=limits, stamp_ns=self.stamp_ns)
 
     def to_json(self, registration_sigma: float = 0.0) -> dict[str, Any]:
         finite = self.points[np.isfinite(self.points).all(axis=1)]
         return {"pose": self.pose.model_dump(), "points": finite.tolist(), "range_max": self.range_max,
-                "registration_sigma": registration_sigma}
+                "registration_sigma": registration_sigma, **stamp_header(self.stamp_ns)}
 
     @property
     def usable(self) -> bool:
@@ -296,9 +318,16 @@ def sensor_scan(msg: Any, msgtype: str, pose: SensorPose, *, dims: int, limits: 
                 range_max: float | None = None, name: str = "body") -> SensorScan:
     """What a LaserScan or PointCloud2 message taken at ``pose`` is on a map of ``dims`` dimensions.
 
-    ``range_max`` is a PointCloud2's (the message has none); a LaserScan's is its own.
+    ``range_max`` is a PointCloud2's (the message has none); a LaserScan's is its own. The scan is stamped with
+    the message's ``header.stamp``.
     Raises ``Invalid`` (422) or ``TooLarge`` (413) with a message that says what to change.
     """
+    scan = _unstamped(msg, msgtype, pose, dims=dims, limits=limits, range_max=range_max, name=name)
+    return dataclasses.replace(scan, stamp_ns=message_stamp_ns(msg, name))
+
+
+def _unstamped(msg: Any, msgtype: str, pose: SensorPose, *, dims: int, limits: Limits,
+               range_max: float | None, name: str) -> SensorScan:
     if msgtype == LASER_SCAN:
         return _laser(msg, pose, name, dims, limits)
     if msgtype != POINT_CLOUD2:

@@ -10,16 +10,18 @@ time as ``builtin_interfaces/Time`` ``{"sec", "nanosec"}``.
 from __future__ import annotations
 
 import functools
-from collections.abc import Mapping
 from datetime import UTC, datetime
-from typing import Any
 
 from rosbags.typesys import Stores, get_typestore
 from rosbags.typesys.store import Typestore
 
+# ROS time <-> nanoseconds is vocabulary the bodies share (a scan's header.stamp): defined there, used from here too
+from app.schemas.common import NS_PER_S, ns_of_ros_time, ros_time_of_ns
+
+__all__ = ["NS_PER_S", "STORE", "ns_of_ros_time", "ros_time_of", "ros_time_of_iso", "ros_time_of_ns", "typestore"]
+
 #: Message definitions of ROS 2 Jazzy.
 STORE = Stores.ROS2_JAZZY
-NS_PER_S = 1_000_000_000
 _EPOCH = datetime(1970, 1, 1, tzinfo=UTC)
 
 
@@ -27,19 +29,6 @@ _EPOCH = datetime(1970, 1, 1, tzinfo=UTC)
 def typestore() -> Typestore:
     """The message types, built once (about 0.1 s): every CDR body is read and written with these."""
     return get_typestore(STORE)
-
-
-def ros_time_of_ns(nanoseconds: int) -> dict[str, int]:
-    """``builtin_interfaces/Time`` of Unix nanoseconds (``time.time_ns()``)."""
-    sec, nanosec = divmod(int(nanoseconds), NS_PER_S)
-    return {"sec": sec, "nanosec": nanosec}
-
-
-def ns_of_ros_time(stamp: Mapping[str, int] | Any) -> int:
-    """Unix nanoseconds of a ``builtin_interfaces/Time``: a message's stamp (``.sec``, ``.nanosec``) or its JSON dict."""
-    if isinstance(stamp, Mapping):
-        return int(stamp["sec"]) * NS_PER_S + int(stamp["nanosec"])
-    return int(stamp.sec) * NS_PER_S + int(stamp.nanosec)
 
 
 def ros_time_of(when: datetime) -> dict[str, int]:

@@ -39,13 +39,14 @@ def from_json(batch: ScanBatch, dims: int, limits: Limits) -> list[Scan]:
     scans: list[Scan] = []
     for i, scan in enumerate(batch.scans):
         name = f"scans[{i}]"
+        stamp_ns = None if scan.header is None else scan.header.stamp_ns()
         if isinstance(scan, LaserScanIn):
             # numpy reads null as NaN and the strings "inf", "-inf", "nan" (and Infinity) as floats
             ranges = np.array(scan.ranges, dtype=np.float64)
             scans.append(laser_scan(
                 name, scan.pose, angle_min=scan.angle_min, angle_increment=scan.angle_increment, ranges=ranges,
                 range_min=scan.range_min, range_max=scan.range_max, registration_sigma=scan.registration_sigma,
-                dims=dims, limits=limits,
+                dims=dims, limits=limits, stamp_ns=stamp_ns,
             ))
         else:
             assert isinstance(scan, PointCloudIn)
@@ -54,7 +55,7 @@ def from_json(batch: ScanBatch, dims: int, limits: Limits) -> list[Scan]:
             points = np.array(scan.points, dtype=np.float64)
             scans.append(point_cloud(
                 name, scan.pose, points, range_max=scan.range_max, registration_sigma=scan.registration_sigma,
-                dims=dims, limits=limits,
+                dims=dims, limits=limits, stamp_ns=stamp_ns,
             ))
     return scans
 

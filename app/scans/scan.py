@@ -56,9 +56,9 @@ def _value_error(name: str, exc: ValueError) -> Invalid:
 
 def laser_scan(
     name: str, pose: Pose2D, *, angle_min: float, angle_increment: float, ranges: np.ndarray, range_min: float,
-    range_max: float, registration_sigma: float, dims: int, limits: Limits,
+    range_max: float, registration_sigma: float, dims: int, limits: Limits, stamp_ns: int | None = None,
 ) -> LaserScan:
-    """A validated ``LaserScan`` for a map of ``dims`` dimensions."""
+    """A validated ``LaserScan`` for a map of ``dims`` dimensions, taken at ``stamp_ns`` (None: unstamped)."""
     if dims != 2:
         raise Invalid(f"{name} is a LaserScan (planar) but the map is 3-D: send a point cloud with a 3-D pose")
     check_rays(f"{name}.ranges", ranges.size, limits)
@@ -66,7 +66,7 @@ def laser_scan(
         return LaserScan(
             pose=(pose.x, pose.y, pose.theta), angle_min=angle_min, angle_increment=angle_increment,
             ranges=ranges, range_min=range_min, range_max=range_max, registration_sigma=registration_sigma,
-            max_rays=limits.max_rays,
+            max_rays=limits.max_rays, stamp_ns=stamp_ns,
         )
     except ValueError as exc:
         raise _value_error(name, exc) from None
@@ -74,9 +74,9 @@ def laser_scan(
 
 def point_cloud(
     name: str, pose: Pose2D | Pose3D, points_sensor: np.ndarray, *, range_max: float, registration_sigma: float,
-    dims: int, limits: Limits,
+    dims: int, limits: Limits, stamp_ns: int | None = None,
 ) -> PointCloud:
-    """A validated map-frame ``PointCloud`` from sensor-frame points and the sensor pose."""
+    """A validated map-frame ``PointCloud`` from sensor-frame points and the sensor pose, taken at ``stamp_ns``."""
     # the pose first: a 3-D cloud sent to a 2-D map is a wrong map, not wrong points
     if dims == 3 and not isinstance(pose, Pose3D):
         raise Invalid(f"{name}.pose must be {{position: [x, y, z], orientation: [qx, qy, qz, qw]}} on a 3-D map")
@@ -90,11 +90,11 @@ def point_cloud(
     try:
         if isinstance(pose, Pose3D):
             return PointCloud.from_sensor_frame(
-                points_sensor, pose.position, pose.orientation, range_max, registration_sigma
+                points_sensor, pose.position, pose.orientation, range_max, registration_sigma, stamp_ns
             )
         return PointCloud(
             points=_planar_to_map(points_sensor, pose), origin=(pose.x, pose.y), range_max=range_max,
-            registration_sigma=registration_sigma, max_rays=limits.max_rays,
+            registration_sigma=registration_sigma, max_rays=limits.max_rays, stamp_ns=stamp_ns,
         )
     except ValueError as exc:
         raise _value_error(name, exc) from None

@@ -1,8 +1,8 @@
 """Request and response bodies of the HTTP contract (docs/api.md), one module per resource.
 
 ``common`` holds what several share (map names, frame ids, bounded numbers, the nav_msgs parts);
-``engine_definition``, ``maps``, ``scans``, ``bags``, ``risk``, ``plans`` and ``system`` the bodies of
-their routes; ``engine_choice`` a map's engine as taken, stored and shown. Shapes and simple bounds are
+``engine_definition``, ``maps``, ``scans``, ``bags``, ``risk``, ``plans``, ``trajectory`` and ``system`` the
+bodies of their routes; ``engine_choice`` a map's engine as taken, stored and shown. Shapes and simple bounds are
 checked here (finite numbers, lengths, ranges); checks that need a map (dimensions, bounds, limits) live
 in the services (``app.maps``, ``app.plans``, ``app.reads``). The OpenAPI examples are real requests:
 ``tests/app/test_operations.py`` pastes them. Every body is importable from here.
@@ -23,11 +23,13 @@ from app.schemas.common import (
     Header,
     MapName,
     NonNegativeFinite,
+    PathMessage,
     Point,
     PoseMsg,
     PoseStamped,
     PositiveFinite,
     Quaternion,
+    StampIn,
     Time,
     Vector,
     check_frame_id,
@@ -97,6 +99,7 @@ from app.schemas.scans import (
     RangeToken,
     RangeValue,
     ScanBatch,
+    ScanHeader,
     ScanIn,
     ScanQuery,
 )
@@ -104,6 +107,7 @@ from app.schemas.system import (
     Health,
     Readiness,
 )
+from app.schemas.trajectory import Trajectory
 
 __all__ = [
     "BagImportResult",
@@ -151,6 +155,7 @@ __all__ = [
     "OccupancyGridMessage",
     "PathCheckRequest",
     "PathCheckResult",
+    "PathMessage",
     "PathRules",
     "PlanRequest",
     "PlanResult",
@@ -175,11 +180,14 @@ __all__ = [
     "SCAN_QUERY_DOC",
     "SCAN_QUERY_FIELDS",
     "ScanBatch",
+    "ScanHeader",
     "ScanIn",
     "ScanQuery",
     "SensorIn",
+    "StampIn",
     "Time",
     "TrapezoidIn",
+    "Trajectory",
     "TriangleIn",
     "Vector",
     "WHOLE_MAP",

@@ -5,9 +5,10 @@
 from __future__ import annotations
 
 import re
-from typing import Annotated
+from collections.abc import Mapping
+from typing import Annotated, Any
 
-from pydantic import AfterValidator, BaseModel, Field, FiniteFloat
+from pydantic import AfterValidator, BaseModel, ConfigDict, Field, FiniteFloat
 
 NAME_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$"
 _NAME_RE = re.compile(NAME_PATTERN)
@@ -73,6 +74,34 @@ class Time(BaseModel):
     nanosec: int
 
 
+NS_PER_S = 1_000_000_000
+#: ``builtin_interfaces/Time.sec`` is an int32.
+MAX_ROS_SEC = 2**31 - 1
+
+
+class StampIn(Time):
+    """A ``builtin_interfaces/Time`` taken in (a scan's ``header.stamp``): Unix time, never negative (``rclcpp::Time``
+    refuses that too), ``nanosec`` below one second, both JSON integers."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    sec: Annotated[int, Field(ge=0, le=MAX_ROS_SEC, strict=True)]
+    nanosec: Annotated[int, Field(ge=0, lt=NS_PER_S, strict=True)]
+
+
+def ros_time_of_ns(nanoseconds: int) -> dict[str, int]:
+    """``builtin_interfaces/Time`` of Unix nanoseconds (``time.time_ns()``)."""
+    sec, nanosec = divmod(int(nanoseconds), NS_PER_S)
+    return {"sec": sec, "nanosec": nanosec}
+
+
+def ns_of_ros_time(stamp: Mapping[str, int] | Any) -> int:
+    """Unix nanoseconds of a ``builtin_interfaces/Time``: a message's stamp (``.sec``, ``.nanosec``) or its JSON dict."""
+    if isinstance(stamp, Mapping):
+        return int(stamp["sec"]) * NS_PER_S + int(stamp["nanosec"])
+    return int(stamp.sec) * NS_PER_S + int(stamp.nanosec)
+
+
 class Header(BaseModel):
     stamp: Time
     frame_id: str
@@ -83,3 +112,10 @@ class PoseStamped(BaseModel):
 
     header: Header
     pose: PoseMsg
+
+
+class PathMessage(BaseModel):
+    """``nav_msgs/Path`` as rosbridge and Foxglove write it in JSON."""
+
+    header: Header = Field(description="frame_id: the map's frame, in which every pose is given")
+    poses: list[PoseStamped] = Field(description="each a geometry_msgs/PoseStamped with a header of its own")

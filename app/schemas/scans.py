@@ -16,9 +16,10 @@ from pydantic import (
     model_validator,
 )
 
-from app.schemas.common import NonNegativeFinite, PositiveFinite
+from app.schemas.common import NonNegativeFinite, PositiveFinite, StampIn, ns_of_ros_time
 
 EXAMPLE_LASER = {
+    "header": {"stamp": {"sec": 1796614484, "nanosec": 690952830}, "frame_id": "laser"},
     "pose": {"x": 0.0, "y": 0.0, "theta": 0.0},
     "angle_min": -0.6,
     "angle_increment": 0.1,
@@ -69,6 +70,20 @@ class Pose3D(BaseModel):
         return self
 
 
+class ScanHeader(BaseModel):
+    """A scan's ``std_msgs/Header``: ``stamp`` is when it was taken; ``frame_id`` (the sensor's frame) is not used, the
+    pose places the scan."""
+
+    stamp: StampIn | None = Field(
+        None, description="ROS time (Unix sec and nanosec) the scan was taken, kept with it (GET "
+        "/maps/{name}/trajectory); left out: the time the service received the batch, on its clock")
+    frame_id: str | None = None
+
+    def stamp_ns(self) -> int | None:
+        """The stamp as Unix nanoseconds, or None."""
+        return None if self.stamp is None else ns_of_ros_time(self.stamp)
+
+
 class LaserScanIn(BaseModel):
     """A ``sensor_msgs/LaserScan``: beam i points at ``angle_min + i * angle_increment`` (REP 117 ranges)."""
 
@@ -88,7 +103,7 @@ class LaserScanIn(BaseModel):
     time_increment: float | None = None
     scan_time: float | None = None
     intensities: list[float | None] | None = None
-    header: dict[str, Any] | None = None
+    header: ScanHeader | None = None
 
 
 class PointCloudIn(BaseModel):
@@ -102,7 +117,7 @@ class PointCloudIn(BaseModel):
     )
     range_max: PositiveFinite
     registration_sigma: NonNegativeFinite = 0.0
-    header: dict[str, Any] | None = None
+    header: ScanHeader | None = None
 
 
 def _scan_kind(value: Any) -> str | None:

@@ -1,5 +1,6 @@
 """kill -9 during a stream of batches: every acknowledged batch is there, and the map is exactly a
-fresh in-process fusion of the batches it holds. SIGTERM: a batch in flight is finished and kept."""
+fresh in-process fusion of the batches it holds; after a kill -9 the trajectory (stamps and poses) is the same.
+SIGTERM: a batch in flight is finished and kept."""
 
 from __future__ import annotations
 
@@ -82,6 +83,30 @@ def test_kill_9_mid_stream_loses_no_acknowledged_batch(start_server: Any, world:
         held = http.get("/maps/hall/risk", params={"format": "npy"}).content
     risk = np.load(io.BytesIO(held))
     assert risk.tobytes() == _replay(world, bodies[:version])
+
+
+def test_after_kill_9_the_trajectory_is_the_same(start_server: Any, world: Any) -> None:
+    server = start_server(FUZZYRISK_SNAPSHOT_EVERY="1000")
+    bodies = _bodies(world, 6)
+    for k, body in enumerate(bodies[:4]):  # four stamped by the robot, two stamped by the service
+        body["scans"][0]["header"] = {"stamp": {"sec": 1_700_000_000 + k, "nanosec": 123_456_789}}
+    with server.client() as http:
+        assert http.post("/maps", json=world.MAP).status_code == 201
+        posted_from = time.time_ns()
+        for body in bodies:
+            assert http.post("/maps/hall/scans", json=body).status_code == 200
+        posted_to = time.time_ns()
+        before = http.get("/maps/hall/trajectory").json()
+    stamps = [p["header"]["stamp"]["sec"] * 10**9 + p["header"]["stamp"]["nanosec"] for p in before["poses"]]
+    assert stamps[:4] == [(1_700_000_000 + k) * 10**9 + 123_456_789 for k in range(4)]
+    assert posted_from <= stamps[4] <= stamps[5] <= posted_to
+    assert [(p["pose"]["position"]["x"], p["pose"]["position"]["y"]) for p in before["poses"]] == [
+        (b["scans"][0]["pose"]["x"], b["scans"][0]["pose"]["y"]) for b in bodies]
+    server.kill()
+
+    server = start_server()
+    with server.client() as http:
+        assert http.get("/maps/hall/trajectory").json() == before
 
 
 def test_sigterm_finishes_the_batch_in_flight(start_server: Any, world: Any) -> None:

@@ -184,6 +184,12 @@ def test_the_generated_client_drives_every_operation(generated: tuple[ModuleType
     last_scan = jazzy_typestore().deserialize_cdr(scans[-1], "sensor_msgs/msg/LaserScan")
     assert last_scan.ranges.astype("<f4").tobytes() == raw
 
+    # the trajectory: every scan's sensor pose as posted, in order, stamped when the service received it
+    path = op("trajectory", "get_trajectory").sync("hall", client=client)
+    assert isinstance(path, m.Trajectory) and path.version == one.version and path.unstamped == 0
+    assert [(p.pose.position.x, p.pose.position.y) for p in path.poses] == [(px, py) for px, py, _ in POSES]
+    assert all(p.header.stamp.sec > 0 and p.header.frame_id == "map" for p in path.poses)
+
     # plans, a start the planner cannot use (Nav2's code in the one error body), and a path checked
     names = [p.name for p in op("plans", "planners").sync(client=client).planners]
     assert "grid" in names and "RRTstar" in names

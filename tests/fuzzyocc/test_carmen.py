@@ -9,7 +9,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fuzzyocc.carmen import NO_RETURN_FRACTION, CarmenScan, grid_for_scans, parse_carmen_lines, read_carmen
+from fuzzyocc.carmen import (
+    NO_RETURN_FRACTION,
+    CarmenScan,
+    grid_for_scans,
+    log_stamps_ns,
+    parse_carmen_lines,
+    read_carmen,
+)
 from tests.conftest import carmen_log
 
 #: The table of tests/data/README.md: FLASER scans and beams per scan of each log.
@@ -255,3 +262,53 @@ def test_an_unusable_grid_is_refused_with_what_to_change(resolution: float, marg
     scans = read_carmen(carmen_log("orebro-corrected.log.gz"))
     with pytest.raises(ValueError, match=says):
         grid_for_scans(scans, resolution=resolution, margin=margin)
+
+
+# ---------------------------------------------------------------- stamps
+
+
+def _log_stamps(name: str) -> list[float]:
+    with gzip.open(carmen_log(name), "rt") as lines:
+        return [scan.stamp for scan in parse_carmen_lines(lines)]
+
+
+#: The real logs whose stamps do not increase, and the stamp their numbering starts from, ns.
+NUMBERED_LOGS = {
+    "orebro-corrected.log.gz": 0,  # every stamp 0
+    "belgioioso-corrected.log.gz": 1_018_930_000 * 10**9,  # one value
+    "csail-corrected.log.gz": 1_134_860_000 * 10**9,  # two
+    "infinite-corridor-corrected.log.gz": 0,  # from -0.445999 s, backwards: numbered from 0
+}
+
+
+@pytest.mark.parametrize("name", sorted(NUMBERED_LOGS))
+def test_a_real_log_whose_stamps_do_not_increase_is_numbered_at_5_hz_from_its_first(name: str) -> None:
+    raw = _log_stamps(name)
+    assert any(b <= a for a, b in zip(raw, raw[1:]))  # what makes it one of them
+    said: list[str] = []
+    scans = read_carmen(carmen_log(name), say=said.append)
+    assert [s.stamp_ns for s in scans] == [NUMBERED_LOGS[name] + k * 200_000_000 for k in range(len(scans))]
+    assert log_stamps_ns(raw).numbered
+    assert len(said) == 1 and name in said[0] and "numbered at 5 Hz" in said[0]
+
+
+@pytest.mark.parametrize("name", sorted(set(REAL_LOGS) - set(NUMBERED_LOGS)))
+def test_a_real_log_whose_stamps_increase_keeps_them_to_the_nanosecond(name: str) -> None:
+    with gzip.open(carmen_log(name), "rt") as lines:
+        # the logger's timestamp as written: the last field of each FLASER line
+        written = [line.split()[-1] for line in lines if line.startswith("FLASER")]
+    said: list[str] = []
+    scans = read_carmen(carmen_log(name), say=said.append)
+    for text, scan in zip(written, scans, strict=True):
+        whole, _, fraction = text.partition(".")
+        assert scan.stamp_ns == int(whole) * 10**9 + int(fraction.ljust(9, "0")), text
+    assert said == []
+
+
+@pytest.mark.parametrize(("stamps", "first"), [([3.0, 3.0], 3 * 10**9), ([2.0, 1.0], 2 * 10**9), ([-1.0, 0.5], 0),
+                                               ([math.nan, 4.0], 0), ([1.0, math.inf], 10**9)])
+def test_stamps_that_are_not_finite_non_negative_and_increasing_are_numbered(stamps: list[float], first: int) -> None:
+    numbered = log_stamps_ns(stamps)
+    assert numbered.numbered and numbered.ns == [first, first + 200_000_000]
+    kept = log_stamps_ns([0.0, 0.25, 1018930000.15])
+    assert not kept.numbered and kept.ns == [0, 250_000_000, 1_018_930_000_150_000_000]

@@ -134,3 +134,24 @@ def test_from_sensor_frame_rejects_bad_input(kwargs: dict, field: str) -> None:
     fields.update(kwargs)
     with pytest.raises(ValueError, match=field):
         PointCloud.from_sensor_frame(**fields)
+
+
+@pytest.mark.parametrize("stamp", [-1, 1.5, 2.0, "5", True])
+def test_a_stamp_is_whole_nanoseconds_never_negative(stamp: object) -> None:
+    with pytest.raises(ValueError, match="stamp_ns"):
+        _scan(stamp_ns=stamp)
+    with pytest.raises(ValueError, match="stamp_ns"):
+        PointCloud(points=[[1.0, 0.0]], origin=(0.0, 0.0), range_max=5.0, stamp_ns=stamp)
+
+
+def test_a_scan_keeps_its_stamp_and_takes_another_without_a_copy_of_its_beams() -> None:
+    scan = _scan(stamp_ns=np.int64(1_700_000_000_123_456_789))
+    assert scan.stamp_ns == 1_700_000_000_123_456_789 and type(scan.stamp_ns) is int
+    assert _scan().stamp_ns is None  # unstamped unless given
+    later = scan.stamped(1_700_000_000_323_456_789)
+    assert later.stamp_ns == 1_700_000_000_323_456_789 and scan.stamp_ns == 1_700_000_000_123_456_789
+    assert later.ranges is scan.ranges and later.pose == scan.pose
+    with pytest.raises(ValueError, match="stamp_ns"):
+        scan.stamped(-5)
+    cloud = PointCloud.from_sensor_frame([[1.0, 0.0, 0.0]], [0.0, 0.0, 1.0], [0.0, 0.0, 0.0, 1.0], 5.0, stamp_ns=42)
+    assert cloud.stamp_ns == 42 and cloud.stamped(None).stamp_ns is None

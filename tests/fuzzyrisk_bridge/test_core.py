@@ -215,7 +215,8 @@ def wait_for(condition: Callable[[], bool], timeout_s: float = 30.0) -> float:
 
 def test_scan_to_json_takes_the_pose_from_tf_and_keeps_rep117_readings() -> None:
     ranges = np.array([1.5, np.inf, -np.inf, np.nan, 2.25], dtype=np.float32)
-    scan = scan_to_json(laser_msg(ranges=ranges), tf_msg(1.0, -2.0, 0.7))
+    scan = scan_to_json(laser_msg(stamp_s=12.5, ranges=ranges), tf_msg(1.0, -2.0, 0.7))
+    assert scan["header"] == {"stamp": {"sec": 12, "nanosec": 500_000_000}}  # the message's, kept by the service
     assert scan["pose"] == {"x": 1.0, "y": -2.0, "theta": pytest.approx(0.7, abs=1e-12)}
     assert scan["ranges"] == [1.5, "inf", "-inf", None, 2.25]
     assert scan["angle_min"] == pytest.approx(-math.pi / 4) and scan["angle_increment"] > 0
@@ -223,6 +224,13 @@ def test_scan_to_json_takes_the_pose_from_tf_and_keeps_rep117_readings() -> None
     # float32 readings go out as the exact float64 of their float32 (what a binary upload carries)
     odd = scan_to_json(laser_msg(ranges=np.array([3.1], dtype=np.float32)), tf_msg(0, 0, 0))
     assert odd["ranges"] == [float(np.float32(3.1))]
+
+
+def test_a_scan_whose_stamp_is_not_ros_time_is_skipped_not_sent() -> None:
+    msg = laser_msg()
+    msg.header.stamp.sec = -1
+    with pytest.raises(ValueError, match="header.stamp"):
+        scan_to_json(msg, tf_msg(0, 0, 0))
 
 
 def test_scan_to_json_turns_an_upside_down_laser_the_other_way() -> None:
@@ -328,7 +336,12 @@ def test_scans_are_posted_in_batches_and_fuse_as_the_same_scans_posted_directly(
             assert http.post("/maps/direct/scans", json={"scans": scans}).status_code == 200
         bridged = http.get("/maps/lab/risk", params={"format": "npy"}).content
         direct = http.get("/maps/direct/risk", params={"format": "npy"}).content
+        # each scan kept its message's stamp, and comes back with the pose tf gave it
+        poses = http.get("/maps/lab/trajectory").json()["poses"]
     assert bridged == direct
+    sent = [laser_msg(stamp_s=0.1 * i).header.stamp for i in range(len(POSES))]
+    assert [p["header"]["stamp"] for p in poses] == [{"sec": t.sec, "nanosec": t.nanosec} for t in sent]
+    assert [(p["pose"]["position"]["x"], p["pose"]["position"]["y"]) for p in poses] == [(x, y) for x, y, _ in POSES]
     assert bridge.stats.as_dict() | {"version": None} == {
         "received": 25, "queued": 25, "dropped": 0, "skipped": 0, "tilted": 0, "errors": 0, "scans_posted": 25,
         "batches_posted": 3, "batches_failed": 0, "retries": 0, "throttled": 0, "timeouts": 0, "version": None}

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import gzip
 import http.server
 import io
 import json
@@ -210,6 +211,26 @@ def test_a_busy_service_is_waited_for_and_other_errors_show_its_detail(
     assert "0 of 8 scans were fused into 'm'" in err
 
 
+def test_the_scans_are_posted_with_their_log_stamps(busy_service: str, capsys: pytest.CaptureFixture[str]) -> None:
+    seattle = carmen_log("seattle-corrected.log.gz")  # stamps that increase: posted as logged, to the nanosecond
+    assert main([str(seattle), "--every", "60", "--batch", "4", "--url", busy_service, "--map", "m"]) == 0
+    stamps = [scan["header"]["stamp"] for body in _BusyOnce.bodies[2:] for scan in body["scans"]]
+    with gzip.open(seattle, "rt") as lines:
+        logged = [line.split()[-1] for line in lines if line.startswith("FLASER")][::60]
+    assert stamps == [{"sec": int(t.split(".")[0]), "nanosec": int(t.split(".")[1].ljust(9, "0"))} for t in logged]
+    assert "numbered" not in capsys.readouterr().err
+
+
+def test_a_log_whose_stamps_do_not_increase_is_posted_at_5_hz_and_said_so(
+        orebro: Path, busy_service: str, capsys: pytest.CaptureFixture[str]) -> None:
+    assert main([str(orebro), "--every", "30", "--batch", "4", "--url", busy_service, "--map", "m"]) == 0
+    stamps = [scan["header"]["stamp"] for body in _BusyOnce.bodies[2:] for scan in body["scans"]]
+    assert stamps == [{"sec": 6 * k, "nanosec": 0} for k in range(8)]  # every 30th scan of 5 Hz: 6 s apart
+    said = [line for line in capsys.readouterr().err.splitlines() if "stamps" in line]
+    assert len(said) == 1 and said[0].startswith("fuzzyrisk-import-log: orebro-corrected.log.gz: ")
+    assert "numbered at 5 Hz" in said[0]
+
+
 @pytest.mark.slow
 @pytest.mark.timeout(300)
 def test_through_a_real_service_the_risk_equals_the_in_process_map_bit_for_bit(orebro: Path, tmp_path: Path) -> None:
@@ -228,6 +249,12 @@ def test_through_a_real_service_the_risk_equals_the_in_process_map_bit_for_bit(o
                 "start); the first batch waits for them...") in result.stderr.splitlines()
         assert "237 scans read, 237 fused, 0 skipped" in result.stdout
         assert "map 'orebro' version 8 on" in result.stdout  # 237 scans in batches of 32
+        assert sum("numbered at 5 Hz" in line for line in result.stderr.splitlines()) == 1  # its stamps are all 0
+        path = httpx.get(f"{server.url}/maps/orebro/trajectory", timeout=60).json()
+        assert [p["header"]["stamp"] for p in path["poses"]] == [
+            {"sec": k // 5, "nanosec": k % 5 * 200_000_000} for k in range(237)]
+        assert [(p["pose"]["position"]["x"], p["pose"]["position"]["y"]) for p in path["poses"]] == [
+            s.pose[:2] for s in read_carmen(orebro)]
 
         response = httpx.get(f"{server.url}/maps/orebro/risk", params={"format": "npy"}, timeout=60)
         assert response.status_code == 200

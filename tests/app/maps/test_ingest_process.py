@@ -43,6 +43,23 @@ def test_a_large_json_batch_makes_the_same_map_as_the_same_scans_sent_in_small_b
     np.testing.assert_array_equal(kit.risk_npy(client, "whole"), kit.risk_npy(client, "parts"))
 
 
+def test_a_large_json_batch_keeps_its_stamps_through_the_process(make_client: Any, kit: Any) -> None:
+    client = make_client()
+    assert client.post("/maps", json=kit.MAP_2D).status_code == 201
+    batch = _big_batch(kit)
+    for i, scan in enumerate(batch["scans"][::2]):  # every other scan stamped by the robot, the rest on arrival
+        scan["header"] = {"stamp": {"sec": 1_700_000_000 + i, "nanosec": 7}}
+    before = time.time_ns()
+    assert client.post("/maps/lab/scans", content=json.dumps(batch),
+                       headers={"Content-Type": "application/json"}).status_code == 200
+    after = time.time_ns()
+    assert len(_parse_processes(client)) == 1  # it went through the process
+    stamps = [p["header"]["stamp"]["sec"] * 10**9 + p["header"]["stamp"]["nanosec"]
+              for p in client.get("/maps/lab/trajectory").json()["poses"]]
+    assert stamps[::2] == [(1_700_000_000 + i) * 10**9 + 7 for i in range(len(stamps[::2]))]
+    assert len(set(stamps[1::2])) == 1 and before <= stamps[1] <= after
+
+
 def test_a_large_json_batch_gets_the_same_errors_from_the_process(make_client: Any, kit: Any) -> None:
     client = make_client(max_batch_cells=10_000)
     assert client.post("/maps", json=kit.MAP_2D).status_code == 201

@@ -55,10 +55,18 @@ def held_arrays(client: TestClient, name: str) -> dict[str, np.ndarray]:
 
 
 def logged_batches(client: TestClient, name: str) -> dict[int, bytes]:
-    """Version -> the batch record the service stored (its scans in the map frame, as ``app.maps.logcodec`` encodes)."""
+    """Version -> the batch record the service stored (its scans in the map frame, as ``app.maps.logcodec`` encodes),
+    without the stamps the code that wrote ``batches.npz`` did not keep (each scan has one now: checked here)."""
     stored = client.app.state.service.storage.load_map(name)  # type: ignore[attr-defined]
     assert stored is not None and stored.snapshot is None, "a snapshot took batches out of the log"
-    return dict(stored.batches)
+    unstamped = {}
+    for version, payload in stored.batches:
+        scans = logcodec.decode(payload)
+        if isinstance(scans, list):
+            assert all(scan.stamp_ns is not None for scan in scans), f"{name} version {version}: a scan has no stamp"
+            payload = logcodec.encode([scan.stamped(None) for scan in scans])
+        unstamped[version] = payload
+    return unstamped
 
 
 def _stored() -> dict[str, Any]:
