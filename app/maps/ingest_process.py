@@ -8,7 +8,7 @@ process forked from the planner workers' forkserver, 5 steps of niceness below t
 server only moves their bytes. Binary and CDR bodies, cheap to read, stay in the parsing threads.
 
 The process ends with the server (as the planner workers do) and is replaced at the next batch if
-it dies; a batch it was parsing gets a 503. It starts at the first such batch (about 2 s, once): a
+it dies; a batch it was parsing is parsed once more by the new one, and gets a 503 if that one dies too. It starts at the first such batch (about 2 s, once): a
 service that never gets one never pays its memory.
 """
 
@@ -88,7 +88,13 @@ class ParseProcess:
             try:
                 return await asyncio.wrap_future(future)
             except BrokenProcessPool:
+                # Either it died parsing this batch, or it died idle and the pool had not noticed when the batch
+                # was handed to it (the pool learns of a death from a thread of its own). Parsing stores nothing, so
+                # a new process parses the batch once more; a batch that kills that one too gets the 503.
                 self._forget(pool)
+                if attempt == 1:
+                    LOG.warning("the parse process died before this batch was parsed; a new one parses it")
+                    continue
                 LOG.error("the parse process died parsing a batch; a new one takes the next")
                 raise Unavailable("the process parsing this batch died (out of memory?); nothing was stored: "
                                   "send it again", headers={"Retry-After": "1"}) from None
