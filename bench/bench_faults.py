@@ -44,7 +44,8 @@
 
    * acknowledged batches lost: an acknowledged version missing from the log (or above the map's
      version, or discarded); stored with other content: the batch committed as that version is not
-     the one acknowledged (``app.maps.logcodec.encode`` of the scans sent, byte for byte) (both 0)
+     the one acknowledged (``app.maps.logcodec.encode`` of the scans sent, byte for byte, once the stamps the
+     service gave them are taken off) (both 0)
    * versions acknowledged twice, version gaps, committed versions that were never acknowledged and
      are not a batch whose request a kill cut (0)
    * divergent replicas: one (map, version) whose ``.npy`` bytes or ETag differ between replicas
@@ -1024,6 +1025,11 @@ def _verify_map(name: str, stored: Any, rows: dict[int, AuditedBatch], snapshots
         counts.acked_lost += len(acked)
         counts.details.append(f"{name}: not in the database")
         return
+    def as_sent(payload: bytes) -> bytes:
+        """A stored batch as its robot sent it: the stamps the service gave its unstamped scans (the time it received
+        them) taken off."""
+        return codec.encode([scan.stamped(None) for scan in codec.decode_scans(payload)])
+
     # (a) the log against the books
     in_log = dict(stored.batches)
     for version, index in sorted(acked.items()):
@@ -1032,7 +1038,7 @@ def _verify_map(name: str, stored: Any, rows: dict[int, AuditedBatch], snapshots
                 version > stored.snapshot_version and version not in in_log):
             counts.acked_lost += 1
             counts.details.append(f"{name}: acknowledged version {version} is not stored")
-        elif row.payload != sent(index) or (version in in_log and in_log[version] != row.payload):
+        elif as_sent(row.payload) != sent(index) or (version in in_log and in_log[version] != row.payload):
             counts.acked_wrong_content += 1
             counts.details.append(f"{name}: the batch stored as version {version} is not the one acknowledged")
     gaps = sorted(set(range(1, stored.version + 1)) - rows.keys())
@@ -1043,8 +1049,8 @@ def _verify_map(name: str, stored: Any, rows: dict[int, AuditedBatch], snapshots
     for version, row in sorted(rows.items()):
         if version in acked or row.discarded:
             continue
-        if candidates[row.payload] > 0:  # a batch whose request a kill cut: committed before the replica died
-            candidates[row.payload] -= 1
+        if candidates[as_sent(row.payload)] > 0:  # a batch whose request a kill cut: committed before the replica died
+            candidates[as_sent(row.payload)] -= 1
             counts.in_flight_committed += 1
         else:
             counts.unexplained_versions += 1
