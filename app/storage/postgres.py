@@ -56,10 +56,6 @@ _SCHEMA = (
         incarnation TEXT,
         scans BIGINT NOT NULL DEFAULT 0
     )""",
-    # added since the first schema (a database from before gets them, its history counted from its rows)
-    "ALTER TABLE maps ADD COLUMN IF NOT EXISTS base_version BIGINT NOT NULL DEFAULT 0",
-    "ALTER TABLE maps ADD COLUMN IF NOT EXISTS history_bytes BIGINT NOT NULL DEFAULT 0",
-    "ALTER TABLE maps ADD COLUMN IF NOT EXISTS history_scans BIGINT NOT NULL DEFAULT 0",
     """CREATE TABLE IF NOT EXISTS batches (
         map TEXT NOT NULL REFERENCES maps(name) ON DELETE CASCADE,
         seq BIGINT NOT NULL,
@@ -69,7 +65,6 @@ _SCHEMA = (
         updated TEXT,
         PRIMARY KEY (map, seq)
     )""",
-    "ALTER TABLE batches ADD COLUMN IF NOT EXISTS bytes BIGINT",
     *(f"""CREATE TABLE IF NOT EXISTS {table} (
         map TEXT PRIMARY KEY REFERENCES maps(name) ON DELETE CASCADE,
         version BIGINT NOT NULL,
@@ -77,6 +72,16 @@ _SCHEMA = (
         crc BIGINT,
         updated TEXT
     )""" for table in ("snapshots", "bases")),  # a map's restart snapshot and its base snapshot
+)
+#: Columns added since the first schema (a database from before gets them, its history counted from its rows):
+#: (table, column, definition). Each is added only when missing: ``ALTER TABLE ... ADD COLUMN IF NOT EXISTS`` takes
+#: the table's ACCESS EXCLUSIVE lock even when the column is there, and a replica starting beside one that writes
+#: then deadlocked with it (PostgreSQL 40P01, a batch answered 503).
+_ADDED_COLUMNS = (
+    ("maps", "base_version", "BIGINT NOT NULL DEFAULT 0"),
+    ("maps", "history_bytes", "BIGINT NOT NULL DEFAULT 0"),
+    ("maps", "history_scans", "BIGINT NOT NULL DEFAULT 0"),
+    ("batches", "bytes", "BIGINT"),
 )
 
 _HEAD = ("SELECT name, meta, updated, version, snapshot_version, scans, incarnation, base_version, history_bytes, "
@@ -118,6 +123,11 @@ class PostgresStorage:
                                        "AND table_name = 'maps' AND column_name = 'history_bytes'").fetchone()
                 for statement in _SCHEMA:
                     conn.execute(statement)
+                present = {(str(t), str(c)) for t, c in conn.execute(
+                    "SELECT table_name, column_name FROM information_schema.columns WHERE table_schema = current_schema()")}
+                for table, column, definition in _ADDED_COLUMNS:
+                    if (table, column) not in present:
+                        conn.execute(f"ALTER TABLE {table} ADD COLUMN {column} {definition}")
                 if counted is None:  # a database from before the history: it holds the batches after the snapshots
                     conn.execute(f"UPDATE maps SET (history_bytes, history_scans) = {HISTORY_OF_ROWS}")
         except BaseException:

@@ -86,8 +86,11 @@ def test_ctrl_c_stops_the_copy_with_exit_130_one_line_and_nothing_at_the_destina
     out_dir.mkdir()
     copy = out_dir / "copy.sqlite3"
     read_end, write_end, junk = _full_pipe()
+    # Ctrl-C as a terminal sends it: a suite run in the background (a shell's ``&``) hands its children SIGINT ignored,
+    # and Python keeps an ignored SIGINT ignored
     process = subprocess.Popen([sys.executable, "-m", "app.backup", str(copy), "--data-dir", str(data)], cwd=ROOT,
-                               stdout=subprocess.PIPE, stderr=write_end)
+                               stdout=subprocess.PIPE, stderr=write_end,
+                               preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     os.close(write_end)
     try:
         deadline = time.monotonic() + 240.0  # a net against a hang: the wait ends on its condition
