@@ -26,7 +26,7 @@ restart replays; older scans stay in the map's history but are not exported; ``s
 where the log starts). An imported map's first batch (a saved map's cells) holds no scan: the grid shows it. At most ``FUZZYRISK_SNAPSHOT_EVERY`` batches, and ``FUZZYRISK_SNAPSHOT_LOG_BYTES``
 of them (plus one).
 
-Stamps: a batch stores no robot time. Of the N scans, in version order and in order within each
+Stamps: derived, not the scans' stored stamps (``GET /maps/{name}/trajectory`` gives those). Of the N scans, in version order and in order within each
 batch, scan k (1..N) is stamped ``updated - (N - k) * 0.1 s``: the last at ``updated``, the time
 the map reached this version (its last batch's commit; the grid's stamp), one every 0.1 s before
 it (10 Hz, a common laser's rate). A function of the version and the log, so every read of one

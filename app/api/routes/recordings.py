@@ -31,7 +31,7 @@ _MCAP_200 = _binary_200(
 )
 _HEADERS = {**_MCAP_200[200]["headers"], recording.SINCE_HEADER: {
     "description": "the map version the recorded scans start after: those of the batches since the map's latest "
-    "snapshot are recorded (a snapshot drops the batches it covers)", "schema": {"type": "integer"}}}
+    "snapshot are recorded (older ones stay in the map's history, not in the recording)", "schema": {"type": "integer"}}}
 _MCAP_200[200]["headers"] = _HEADERS
 _RESPONSES = {
     **_NOT_FOUND,
