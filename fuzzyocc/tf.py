@@ -10,7 +10,7 @@ lookup fails with a :class:`LookupFailed` whose ``reason`` is short and countabl
 first transform odom -> base_link").
 
 The same rule serves a whole track at once (:func:`interpolate`, which :mod:`fuzzyocc.trajectory`
-uses), and the planar reading of a rotation lives here too: :func:`heading` (a level scanner's yaw)
+uses), and the planar reading of a rotation lives here too: :func:`level_heading` (a level scanner's yaw)
 and :func:`yaw_quaternion` (a yaw as a quaternion).
 
 Quaternions are ``[x, y, z, w]`` (ROS order). Frames in names: ``T_a_b`` maps points of frame
@@ -39,15 +39,26 @@ UNIT_QUATERNION_TOLERANCE = 1e-3
 LEVEL_TOLERANCE_RAD = math.radians(3.0)
 
 
-def heading(quaternion_xyzw: object) -> tuple[float, float]:
-    """(theta, up) of a frame rotated by ``quaternion_xyzw`` (normalised here): the heading of its x axis in the
-    parent's xy plane (radians, REP 103, in [-pi, pi]), and the z of its z axis in the parent (1 level, -1 upside
-    down; roll and pitch only tilt it)."""
+class NotLevel(ValueError):
+    """A scanner tilted more than ``LEVEL_TOLERANCE_RAD`` from level; ``degrees`` says how far."""
+
+    def __init__(self, degrees: float) -> None:
+        super().__init__(f"the scanner is tilted {degrees:.1f} degrees from level (its z axis against the "
+                         f"vertical), more than {math.degrees(LEVEL_TOLERANCE_RAD):g}")
+        self.degrees = degrees
+
+
+def level_heading(quaternion_xyzw: object) -> tuple[float, float]:
+    """(theta, turn) of a level scanner rotated by ``quaternion_xyzw`` (normalised here): the heading of its x axis
+    in the parent's xy plane (radians, REP 103, in [-pi, pi]), and +1 (z up) or -1 (z down: it sweeps the other
+    way). Roll and pitch within ``LEVEL_TOLERANCE_RAD`` are dropped; beyond it, :class:`NotLevel`."""
     q = np.array(quaternion_xyzw, dtype=np.float64)
     qx, qy, qz, qw = q / np.linalg.norm(q)
-    up = 1.0 - 2.0 * (qx * qx + qy * qy)
+    up = 1.0 - 2.0 * (qx * qx + qy * qy)  # z of the scanner's z axis in the parent frame
+    if abs(up) < math.cos(LEVEL_TOLERANCE_RAD):
+        raise NotLevel(math.degrees(math.acos(min(abs(up), 1.0))))
     theta = math.atan2(2.0 * (qx * qy + qw * qz), 1.0 - 2.0 * (qy * qy + qz * qz))
-    return theta, float(up)
+    return theta, (1.0 if up > 0.0 else -1.0)
 
 
 def yaw_quaternion(yaw: float) -> tuple[float, float, float, float]:

@@ -20,7 +20,6 @@ Nothing here knows of ROS messages, storage or the web.
 from __future__ import annotations
 
 import dataclasses
-import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -28,11 +27,10 @@ from scipy.spatial.transform import Rotation, Slerp
 
 from fuzzyocc.scans import LaserScan, PointCloud
 from fuzzyocc.tf import (
-    LEVEL_TOLERANCE_RAD,
     UNIT_QUATERNION_TOLERANCE,
     Transform,
-    heading,
     interpolate,
+    level_heading,
     nanoseconds_since_first,
     yaw_quaternion,
 )
@@ -195,9 +193,9 @@ def repose(scan: LaserScan | PointCloud, position: object, quaternion_xyzw: obje
     beams, stamp and settings, a new pose.
 
     A LaserScan's pose becomes ``(x, y, theta)``: ``theta`` the heading of the sensor's x axis
-    (:func:`fuzzyocc.tf.heading`, the rule a LaserScan posted with a 3-D pose meets), ``z`` dropped.
-    Roll and pitch within ``LEVEL_TOLERANCE_RAD`` are dropped as they are when a scan is posted (the
-    scan is fused flat); beyond it, ``ValueError``. A scanner upside down (z down) is fine: the stored
+    (:func:`fuzzyocc.tf.level_heading`, the rule a LaserScan posted with a 3-D pose meets), ``z``
+    dropped. Roll and pitch within ``LEVEL_TOLERANCE_RAD`` are dropped as they are when a scan is
+    posted (the scan is fused flat); beyond it, :class:`fuzzyocc.tf.NotLevel` (a ``ValueError``). A scanner upside down (z down) is fine: the stored
     beams already sweep the map's way, and are kept as stored (the record does not say whether the
     scanner was upside down, so it is taken to be mounted as it was). A quaternion that is exactly
     the one :func:`fuzzyocc.tf.yaw_quaternion` makes of the scan's own ``theta`` (its pose as ``GET
@@ -210,18 +208,14 @@ def repose(scan: LaserScan | PointCloud, position: object, quaternion_xyzw: obje
         For a ``PointCloud``: its points are stored in the map frame with the sensor's origin only,
         so the rotation to undo is unknown (docs/DESIGN.md, section 8.7).
     ValueError
-        A pose that is not finite, or that tilts the scanner off level.
+        A pose that is not finite, or that tilts the scanner off level (``NotLevel``).
     """
     if isinstance(scan, PointCloud):
         raise NotImplementedError("a stored PointCloud cannot be re-posed: it keeps its points in the map frame and "
                                   "its sensor's origin, not the orientation they were placed with")
     x, y, _ = _rows("position", [position], 1, 3)[0]
     quaternion = _rows("quaternion_xyzw", [quaternion_xyzw], 1, 4)[0]
-    theta, up = heading(quaternion)
-    if abs(up) < math.cos(LEVEL_TOLERANCE_RAD):
-        tilt = math.degrees(math.acos(min(abs(up), 1.0)))
-        raise ValueError(f"the pose tilts the scanner {tilt:.1f} degrees from level; a LaserScan is re-posed only "
-                         f"level within {math.degrees(LEVEL_TOLERANCE_RAD):g} degrees (z up, or down)")
+    theta, _ = level_heading(quaternion)  # the turn is in the stored beams already
     if tuple(quaternion.tolist()) == yaw_quaternion(scan.pose[2]):
         theta = scan.pose[2]
     return dataclasses.replace(scan, pose=(float(x), float(y), theta))

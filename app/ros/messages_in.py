@@ -10,7 +10,7 @@ A message becomes a :class:`PlanarScan` or a :class:`SensorCloud`: exactly what 
 (``to_json``), so a message posted as CDR, as JSON or fused in-process gives the same map, bit for bit.
 Its ``header.stamp`` goes with it (``stamp_ns``; a JSON scan's ``header.stamp``), as every message has one.
 
-- **LaserScan on a 2-D map**: the scanner must be level (its z axis within ``LEVEL_TOLERANCE_RAD`` of
+- **LaserScan on a 2-D map**: the scanner must be level (its z axis within ``fuzzyocc.tf.LEVEL_TOLERANCE_RAD`` of
   the map's +z or -z); ``theta`` is the heading of its x axis, and a scanner mounted upside down (z
   down, e.g. roll pi) sweeps the other way, so its angles are negated. Ranges as REP 117 says, as in
   JSON: ``+inf`` or ``>= range_max`` a no-return, ``-inf``, NaN and ``< range_min`` skipped.
@@ -45,7 +45,8 @@ from app.scans import Limits, Scan, check_rays, laser_scan, point_cloud
 from app.errors import Invalid
 from app.ros.msgtypes import ns_of_ros_time, ros_time_of_ns, typestore
 from app.schemas import Pose2D, Pose3D, StampIn
-from fuzzyocc.tf import LEVEL_TOLERANCE_RAD, Transform, heading
+from fuzzyocc import tf
+from fuzzyocc.tf import Transform
 
 LASER_SCAN = "sensor_msgs/msg/LaserScan"
 POINT_CLOUD2 = "sensor_msgs/msg/PointCloud2"
@@ -124,16 +125,15 @@ def _unit_quaternion(pose: SensorPose) -> np.ndarray:
 def level_heading(pose: SensorPose, name: str) -> tuple[float, float]:
     """(theta, turn) of a level scanner: the heading of its x axis in the map, and +1 (z up) or -1 (z down).
 
-    A scanner tilted beyond ``LEVEL_TOLERANCE_RAD`` has no planar scan: ``Invalid``.
+    A scanner tilted beyond ``fuzzyocc.tf.LEVEL_TOLERANCE_RAD`` has no planar scan: ``Invalid`` naming ``name``.
     """
-    theta, up = heading(pose.orientation)
-    if abs(up) < math.cos(LEVEL_TOLERANCE_RAD):
-        tilt = math.degrees(math.acos(min(abs(up), 1.0)))
-        raise Invalid(f"{name}: the scanner is tilted {tilt:.1f} degrees from level (its z axis against the map's "
-                      f"vertical); a 2-D map takes a LaserScan only from a scanner level within "
-                      f"{math.degrees(LEVEL_TOLERANCE_RAD):g} degrees (z up, or down when mounted upside down): "
-                      "create a 3-D map for a tilted scanner")
-    return theta, (1.0 if up > 0.0 else -1.0)
+    try:
+        return tf.level_heading(pose.orientation)
+    except tf.NotLevel as exc:
+        raise Invalid(f"{name}: the scanner is tilted {exc.degrees:.1f} degrees from level (its z axis against the "
+                      f"map's vertical); a 2-D map takes a LaserScan only from a scanner level within "
+                      f"{math.degrees(tf.LEVEL_TOLERANCE_RAD):g} degrees (z up, or down when mounted upside down): "
+                      "create a 3-D map for a tilted scanner") from None
 
 
 # ---------------------------------------------------------------- what a message becomes

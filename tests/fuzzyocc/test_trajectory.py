@@ -11,7 +11,7 @@ from scipy.spatial.transform import Rotation
 
 from fuzzyocc import FuzzyMap, GridSpec, LaserScan, PointCloud
 from fuzzyocc.carmen import grid_for_scans, read_carmen
-from fuzzyocc.tf import heading, yaw_quaternion
+from fuzzyocc.tf import NotLevel, level_heading, yaw_quaternion
 from fuzzyocc.trajectory import Trajectory, repose
 
 CARMEN = Path(__file__).resolve().parents[1] / "data" / "carmen"
@@ -159,12 +159,12 @@ def test_an_upside_down_scanner_is_reposed_with_its_beams_as_stored() -> None:
     # a LaserScan from a scanner upside down was stored with its angles negated: they stay, theta is the heading
     q = Rotation.from_euler("ZYX", [-0.4, 0.0, math.pi]).as_quat()
     out = repose(_scan(), [0.0, 0.0, 0.0], q)
-    assert out.pose[2] == pytest.approx(-0.4, abs=1e-15) and heading(q)[1] < 0
+    assert out.pose[2] == pytest.approx(-0.4, abs=1e-15) and level_heading(q)[1] == -1.0
     assert (out.angle_min, out.angle_increment) == (-1.0, 0.25)
 
 
 def test_a_tilted_pose_or_a_cloud_is_not_reposed() -> None:
-    with pytest.raises(ValueError, match=r"tilts the scanner 10\.0 degrees from level"):
+    with pytest.raises(NotLevel, match=r"tilted 10\.0 degrees from level"):
         repose(_scan(), [0.0, 0.0, 0.0], Rotation.from_euler("x", math.radians(10.0)).as_quat())
     with pytest.raises(ValueError, match=r"position\[0\] must be finite"):
         repose(_scan(), [math.nan, 0.0, 0.0], [0.0, 0.0, 0.0, 1.0])
@@ -176,7 +176,7 @@ def test_a_tilted_pose_or_a_cloud_is_not_reposed() -> None:
 def test_a_scans_own_heading_keeps_its_theta_bit_for_bit() -> None:
     # 4 rad is -2.28 rad once read off a quaternion: the scan keeps the theta it has
     scan = _scan((1.0, 2.0, 4.0))
-    assert heading(_yaw(4.0))[0] != 4.0
+    assert level_heading(_yaw(4.0))[0] != 4.0
     out = repose(scan, [3.0, 2.0, 0.0], _yaw(4.0))
     assert out.pose == (3.0, 2.0, 4.0)
 
@@ -200,7 +200,7 @@ def test_reposed_scans_fuse_into_the_map_of_scans_taken_at_those_poses() -> None
     assert at.inside.sum() == 29 and not at.inside[29:].any()
     reposed = [repose(s, p, q) if inside else s
                for s, inside, p, q in zip(scans, at.inside, at.positions, at.quaternions, strict=True)]
-    direct = [LaserScan(pose=(p[0], p[1], heading(q)[0]), angle_min=s.angle_min, angle_increment=s.angle_increment,
+    direct = [LaserScan(pose=(p[0], p[1], level_heading(q)[0]), angle_min=s.angle_min, angle_increment=s.angle_increment,
                         ranges=np.array(s.ranges), range_min=s.range_min, range_max=s.range_max, stamp_ns=s.stamp_ns)
               if inside else s
               for s, inside, p, q in zip(scans, at.inside, at.positions, at.quaternions, strict=True)]
