@@ -195,9 +195,10 @@ def repose(scan: LaserScan | PointCloud, position: object, quaternion_xyzw: obje
     A LaserScan's pose becomes ``(x, y, theta)``: ``theta`` the heading of the sensor's x axis
     (:func:`fuzzyocc.tf.level_heading`, the rule a LaserScan posted with a 3-D pose meets), ``z``
     dropped. Roll and pitch within ``LEVEL_TOLERANCE_RAD`` are dropped as they are when a scan is
-    posted (the scan is fused flat); beyond it, :class:`fuzzyocc.tf.NotLevel` (a ``ValueError``). A scanner upside down (z down) is fine: the stored
-    beams already sweep the map's way, and are kept as stored (the record does not say whether the
-    scanner was upside down, so it is taken to be mounted as it was). A quaternion that is exactly
+    posted (the scan is fused flat); beyond it, :class:`fuzzyocc.tf.NotLevel`. A scanner upside
+    down (z down) is fine: the stored beams already sweep the map's way, and are kept as stored
+    (the record does not say whether the scanner was upside down, so it is taken to be mounted as
+    it was). A quaternion that is exactly
     the one :func:`fuzzyocc.tf.yaw_quaternion` makes of the scan's own ``theta`` (its pose as ``GET
     /maps/{name}/trajectory`` gives it) keeps that ``theta`` bit for bit: a yaw read off a quaternion
     is wrapped to [-pi, pi] and may round, and a map moves with one ulp of pose.

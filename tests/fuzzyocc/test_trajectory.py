@@ -200,8 +200,9 @@ def test_reposed_scans_fuse_into_the_map_of_scans_taken_at_those_poses() -> None
     assert at.inside.sum() == 29 and not at.inside[29:].any()
     reposed = [repose(s, p, q) if inside else s
                for s, inside, p, q in zip(scans, at.inside, at.positions, at.quaternions, strict=True)]
-    direct = [LaserScan(pose=(p[0], p[1], level_heading(q)[0]), angle_min=s.angle_min, angle_increment=s.angle_increment,
-                        ranges=np.array(s.ranges), range_min=s.range_min, range_max=s.range_max, stamp_ns=s.stamp_ns)
+    direct = [LaserScan(pose=(p[0], p[1], level_heading(q)[0]), angle_min=s.angle_min,
+                        angle_increment=s.angle_increment, ranges=np.array(s.ranges), range_min=s.range_min,
+                        range_max=s.range_max, stamp_ns=s.stamp_ns)
               if inside else s
               for s, inside, p, q in zip(scans, at.inside, at.positions, at.quaternions, strict=True)]
     spec = grid_for_scans(scans, resolution=0.1, margin=2.0)
