@@ -9,12 +9,17 @@ composed with scipy's ``Rotation``. A stamp outside an edge's samples is not ext
 lookup fails with a :class:`LookupFailed` whose ``reason`` is short and countable ("before the
 first transform odom -> base_link").
 
+The same rule serves a whole track at once (:func:`interpolate`, which :mod:`fuzzyocc.trajectory`
+uses), and the planar reading of a rotation lives here too: :func:`level_heading` (a level scanner's yaw)
+and :func:`yaw_quaternion` (a yaw as a quaternion).
+
 Quaternions are ``[x, y, z, w]`` (ROS order). Frames in names: ``T_a_b`` maps points of frame
 ``b`` into frame ``a`` (``p_a = T_a_b * p_b``). Nothing here knows of ROS messages or the web.
 """
 
 from __future__ import annotations
 
+import math
 from bisect import bisect_left
 from dataclasses import dataclass, field
 
@@ -23,6 +28,78 @@ from scipy.spatial.transform import Rotation, Slerp
 
 #: Longest chain of frames a lookup follows (a cycle in a broken tree stops here, not in a loop).
 MAX_CHAIN = 64
+
+#: How far a quaternion's norm may be from 1 for it to count as a unit quaternion: a sensor pose in, a
+#: trajectory's poses. Loose enough for float32 messages and JSON written to a few digits, as tf2 and ROS
+#: take them; tighter than anything that is not meant to be a rotation.
+UNIT_QUATERNION_TOLERANCE = 1e-3
+
+#: A scanner whose z axis is farther than this from the vertical (up or down) is not level: a 2-D map refuses
+#: its LaserScan (3 degrees: a beam 10 m out is then at most 0.5 m off the map's plane).
+LEVEL_TOLERANCE_RAD = math.radians(3.0)
+
+
+class NotLevel(ValueError):
+    """A scanner tilted more than ``LEVEL_TOLERANCE_RAD`` from level; ``degrees`` says how far."""
+
+    def __init__(self, degrees: float) -> None:
+        super().__init__(f"the scanner is tilted {degrees:.1f} degrees from level (its z axis against the "
+                         f"vertical), more than {math.degrees(LEVEL_TOLERANCE_RAD):g}")
+        self.degrees = degrees
+
+
+def level_heading(quaternion_xyzw: object) -> tuple[float, float]:
+    """(theta, turn) of a level scanner rotated by ``quaternion_xyzw`` (normalised here): the heading of its x axis
+    in the parent's xy plane (radians, REP 103, in [-pi, pi]), and +1 (z up) or -1 (z down: it sweeps the other
+    way). Roll and pitch within ``LEVEL_TOLERANCE_RAD`` are dropped; beyond it, :class:`NotLevel`."""
+    q = np.array(quaternion_xyzw, dtype=np.float64)
+    qx, qy, qz, qw = q / np.linalg.norm(q)
+    up = 1.0 - 2.0 * (qx * qx + qy * qy)  # z of the scanner's z axis in the parent frame
+    if abs(up) < math.cos(LEVEL_TOLERANCE_RAD):
+        raise NotLevel(math.degrees(math.acos(min(abs(up), 1.0))))
+    theta = math.atan2(2.0 * (qx * qy + qw * qz), 1.0 - 2.0 * (qy * qy + qz * qz))
+    return theta, (1.0 if up > 0.0 else -1.0)
+
+
+def yaw_quaternion(yaw: float) -> tuple[float, float, float, float]:
+    """``[x, y, z, w]`` of a rotation by ``yaw`` about +z (REP 103: counter-clockwise from +x)."""
+    return 0.0, 0.0, math.sin(0.5 * yaw), math.cos(0.5 * yaw)
+
+
+def nanoseconds_since_first(stamps_ns: np.ndarray) -> np.ndarray:
+    """Integer stamps as float64 nanoseconds since the first: exact for 104 days (since the epoch, float64 would
+    round a stamp to 256 ns). What a :class:`Slerp` over a track is built on."""
+    return (np.asarray(stamps_ns, dtype=np.int64) - int(stamps_ns[0])).astype(np.float64)
+
+
+def interpolate(stamps_ns: np.ndarray, translations: np.ndarray, slerp: Slerp,
+                at_ns: np.ndarray) -> tuple[np.ndarray, Rotation]:
+    """A track's poses at stamps strictly between its first and last sample, as tf2 interpolates them.
+
+    Parameters
+    ----------
+    stamps_ns : (N,) ndarray of int64
+        The samples' stamps, strictly increasing, N >= 2.
+    translations : (N, 3) ndarray of float64
+        The samples' translations.
+    slerp : Slerp
+        The samples' rotations over :func:`nanoseconds_since_first` of ``stamps_ns``.
+    at_ns : (M,) ndarray of int64
+        The stamps asked for, each inside ``(stamps_ns[0], stamps_ns[-1])``.
+
+    Returns
+    -------
+    (M, 3) ndarray of float64, Rotation of M
+        The translation linearly between the two samples around each stamp, and the rotation by
+        slerp, the shorter way round. A stamp equal to a sample's gives that sample's pose up to
+        rounding: a caller that wants it exactly takes the sample.
+    """
+    after = np.searchsorted(stamps_ns, at_ns, side="right")
+    before = after - 1
+    # int64 differences, exact as float64 below 2**53 ns: the fraction is the correctly rounded quotient
+    u = (at_ns - stamps_ns[before]).astype(np.float64) / (stamps_ns[after] - stamps_ns[before]).astype(np.float64)
+    a, b = translations[before], translations[after]
+    return a + u[:, None] * (b - a), slerp((at_ns - stamps_ns[0]).astype(np.float64))
 
 
 @dataclass(frozen=True)
@@ -73,6 +150,8 @@ class _Track:
     stamps: list[int] = field(default_factory=list)
     transforms: list[Transform] = field(default_factory=list)
     _slerp: Slerp | None = None
+    _stamps: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    _translations: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     _ready: bool = True
 
     def add(self, stamp_ns: int, transform: Transform) -> None:
@@ -88,9 +167,10 @@ class _Track:
         keep = [i for i in range(len(stamps)) if i + 1 == len(stamps) or stamps[i + 1] != stamps[i]]
         self.stamps = [stamps[i] for i in keep]
         self.transforms = [transforms[i] for i in keep]
-        # nanoseconds since the first sample: exact in float64 for 104 days (since the epoch they would not be)
-        since_first = (np.array(self.stamps, dtype=np.int64) - self.stamps[0]).astype(np.float64)
-        self._slerp = (Slerp(since_first, Rotation.concatenate([t.rotation for t in self.transforms]))
+        self._stamps = np.array(self.stamps, dtype=np.int64)
+        self._translations = np.array([t.translation for t in self.transforms], dtype=np.float64)
+        self._slerp = (Slerp(nanoseconds_since_first(self._stamps),
+                             Rotation.concatenate([t.rotation for t in self.transforms]))
                        if len(self.stamps) > 1 else None)
         self._ready = True
 
@@ -107,9 +187,9 @@ class _Track:
         if i == len(stamps):
             raise LookupFailed(f"after the last transform {self.parent} -> {child}")
         assert self._slerp is not None  # two samples at least, one either side
-        a, b = self.transforms[i - 1].translation, self.transforms[i].translation
-        u = (stamp_ns - stamps[i - 1]) / (stamps[i] - stamps[i - 1])
-        return Transform(a + u * (b - a), self._slerp(float(stamp_ns - stamps[0])))
+        translation, rotation = interpolate(self._stamps, self._translations, self._slerp,
+                                            np.array([stamp_ns], dtype=np.int64))
+        return Transform(translation[0], rotation[0])
 
     @property
     def span(self) -> tuple[int, int]:

@@ -138,7 +138,7 @@ def _range(value: float) -> float | str | None:
 
 
 #: How far a laser's z axis may lean from the map's vertical (up, or down when mounted upside down)
-#: for its scan to go on a 2-D map: ``app.rosmsgs.LEVEL_TOLERANCE_RAD``, the service's own limit for a
+#: for its scan to go on a 2-D map: ``fuzzyocc.tf.LEVEL_TOLERANCE_RAD``, the service's own limit for a
 #: LaserScan posted as CDR (copied, not imported: the bridge uses the standard library only).
 LEVEL_TOLERANCE_RAD = math.radians(3.0)
 
@@ -150,7 +150,7 @@ class NotLevel(ValueError):
 def level_heading(qx: float, qy: float, qz: float, qw: float) -> tuple[float, float]:
     """(theta, turn) of a level laser with orientation ``q`` in the map: its heading, and +1 (z up) or -1 (z down).
 
-    Mirrors ``app.rosmsgs.level_heading`` (the rule a LaserScan body posted as CDR meets on a 2-D
+    Mirrors ``fuzzyocc.tf.level_heading`` (the rule a LaserScan body posted as CDR meets on a 2-D
     map), so that a scan comes to the same pose whichever way it reaches the service: the quaternion
     normalised first, refused when the z axis leans more than ``LEVEL_TOLERANCE_RAD`` from the
     vertical (``NotLevel``), and upright when the z axis points up (``up > 0``, as the service

@@ -10,7 +10,7 @@ A message becomes a :class:`PlanarScan` or a :class:`SensorCloud`: exactly what 
 (``to_json``), so a message posted as CDR, as JSON or fused in-process gives the same map, bit for bit.
 Its ``header.stamp`` goes with it (``stamp_ns``; a JSON scan's ``header.stamp``), as every message has one.
 
-- **LaserScan on a 2-D map**: the scanner must be level (its z axis within ``LEVEL_TOLERANCE_RAD`` of
+- **LaserScan on a 2-D map**: the scanner must be level (its z axis within ``fuzzyocc.tf.LEVEL_TOLERANCE_RAD`` of
   the map's +z or -z); ``theta`` is the heading of its x axis, and a scanner mounted upside down (z
   down, e.g. roll pi) sweeps the other way, so its angles are negated. Ranges as REP 117 says, as in
   JSON: ``+inf`` or ``>= range_max`` a no-return, ``-inf``, NaN and ``< range_min`` skipped.
@@ -45,6 +45,7 @@ from app.scans import Limits, Scan, check_rays, laser_scan, point_cloud
 from app.errors import Invalid
 from app.ros.msgtypes import ns_of_ros_time, ros_time_of_ns, typestore
 from app.schemas import Pose2D, Pose3D, StampIn
+from fuzzyocc import tf
 from fuzzyocc.tf import Transform
 
 LASER_SCAN = "sensor_msgs/msg/LaserScan"
@@ -63,9 +64,6 @@ def media_type(msgtype: str) -> str:
 
 #: Accepted Content-Types (compared lower-case, as media types are case-insensitive) -> message type.
 MEDIA_TYPES = {media_type(t).lower(): t for t in MSGTYPES}
-#: A scanner whose z axis is farther than this from the map's vertical is not level: a 2-D map refuses
-#: its LaserScan (3 degrees: a beam 10 m out is then at most 0.5 m off the map's plane).
-LEVEL_TOLERANCE_RAD = math.radians(3.0)
 #: Most fields a PointCloud2 may declare (drivers send 3 to 12); checked before the message is read.
 MAX_POINT_FIELDS = 64
 #: Query parameters a CDR body must not carry: the message itself holds them.
@@ -127,18 +125,15 @@ def _unit_quaternion(pose: SensorPose) -> np.ndarray:
 def level_heading(pose: SensorPose, name: str) -> tuple[float, float]:
     """(theta, turn) of a level scanner: the heading of its x axis in the map, and +1 (z up) or -1 (z down).
 
-    A scanner tilted beyond ``LEVEL_TOLERANCE_RAD`` has no planar scan: ``Invalid``.
+    A scanner tilted beyond ``fuzzyocc.tf.LEVEL_TOLERANCE_RAD`` has no planar scan: ``Invalid`` naming ``name``.
     """
-    qx, qy, qz, qw = _unit_quaternion(pose)
-    up = 1.0 - 2.0 * (qx * qx + qy * qy)  # z of the sensor's z axis in the map frame
-    if abs(up) < math.cos(LEVEL_TOLERANCE_RAD):
-        tilt = math.degrees(math.acos(min(abs(up), 1.0)))
-        raise Invalid(f"{name}: the scanner is tilted {tilt:.1f} degrees from level (its z axis against the map's "
-                      f"vertical); a 2-D map takes a LaserScan only from a scanner level within "
-                      f"{math.degrees(LEVEL_TOLERANCE_RAD):g} degrees (z up, or down when mounted upside down): "
-                      "create a 3-D map for a tilted scanner")
-    theta = math.atan2(2.0 * (qx * qy + qw * qz), 1.0 - 2.0 * (qy * qy + qz * qz))
-    return theta, (1.0 if up > 0.0 else -1.0)
+    try:
+        return tf.level_heading(pose.orientation)
+    except tf.NotLevel as exc:
+        raise Invalid(f"{name}: the scanner is tilted {exc.degrees:.1f} degrees from level (its z axis against the "
+                      f"map's vertical); a 2-D map takes a LaserScan only from a scanner level within "
+                      f"{math.degrees(tf.LEVEL_TOLERANCE_RAD):g} degrees (z up, or down when mounted upside down): "
+                      "create a 3-D map for a tilted scanner") from None
 
 
 # ---------------------------------------------------------------- what a message becomes

@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import dataclasses
 import io
-import math
 import struct
 from collections.abc import Sequence
 from datetime import UTC, datetime
@@ -24,6 +23,7 @@ import numpy as np
 from mcap.writer import CompressionType, Writer
 
 from app.ros.msgtypes import typestore
+from fuzzyocc import tf
 
 OCCUPANCY_GRID = "nav_msgs/msg/OccupancyGrid"
 #: The content type of a CDR-serialized OccupancyGrid (``format=cdr``): a vendor type naming the message.
@@ -65,7 +65,7 @@ def zip_date_time(text: str) -> tuple[int, int, int, int, int, int]:
 
 def yaw_quaternion(yaw: float) -> dict[str, float]:
     """``geometry_msgs/Quaternion`` of a rotation by ``yaw`` about +z (REP 103: counter-clockwise from +x)."""
-    return {"x": 0.0, "y": 0.0, "z": math.sin(0.5 * yaw), "w": math.cos(0.5 * yaw)}
+    return dict(zip("xyzw", tf.yaw_quaternion(yaw), strict=True))
 
 
 def path_yaws(path: np.ndarray, state_space: str, goal_yaw: float | None = None) -> np.ndarray:

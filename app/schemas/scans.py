@@ -17,6 +17,7 @@ from pydantic import (
 )
 
 from app.schemas.common import NonNegativeFinite, PositiveFinite, StampIn, ns_of_ros_time
+from fuzzyocc.tf import UNIT_QUATERNION_TOLERANCE
 
 EXAMPLE_LASER = {
     "header": {"stamp": {"sec": 1796614484, "nanosec": 690952830}, "frame_id": "laser"},
@@ -63,7 +64,7 @@ class Pose3D(BaseModel):
     @model_validator(mode="after")
     def _unit_quaternion(self) -> Pose3D:
         norm = math.sqrt(sum(q * q for q in self.orientation))
-        if abs(norm - 1.0) > 1e-3:
+        if abs(norm - 1.0) > UNIT_QUATERNION_TOLERANCE:
             raise ValueError(
                 f"orientation must be a unit quaternion [qx, qy, qz, qw] (ROS order), its norm is {norm:.6g}"
             )
