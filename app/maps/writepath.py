@@ -189,7 +189,7 @@ class WritePath:
             if fold is None:
                 return
             done = await self._workers.run_admin(
-                self.storage.write_base, entry.name, fold.version, fold.payload, entry.incarnation)
+                self.storage.write_base, entry.name, fold.version, fold.payload, entry.incarnation, fold.planned_at)
         except Exception as exc:
             self.metrics.history_fold_failures.inc()
             LOG.warning("the history could not be folded; it stays as it is and the fold is tried again after the "
