@@ -15,9 +15,16 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from app.errors import Invalid
 from app.maps import logcodec
+from app.schemas import CorrectedPath
+from app.schemas.common import ns_of_ros_time
 from app.storage import StoredMap
 from fuzzyocc.trajectory import Trajectory, laser_poses
+
+#: ``Trajectory``'s names of its fields, and where they are in a ``CorrectedPath`` body (errors name the body's).
+_FIELDS = {"stamps_ns[": "poses[{}].header.stamp", "positions[": "poses[{}].pose.position",
+           "quaternions[": "poses[{}].pose.orientation"}
 
 
 class NothingToCorrect(ValueError):
@@ -37,6 +44,39 @@ class Correction:
     through: int
     moves: dict[int, np.ndarray]
     scans: int
+
+
+#: A sensor's fixed pose on a robot: position (metres) and quaternion ``[x, y, z, w]``.
+SensorOffset = tuple[tuple[float, float, float], tuple[float, float, float, float]]
+
+
+def sensor_trajectory(path: CorrectedPath, frame_id: str, offset: SensorOffset | None) -> Trajectory:
+    """The sensor's trajectory of a ``PUT /maps/{name}/trajectory`` body: its poses, or with ``offset`` (the sensor's
+    fixed pose on the robot, a static TF ``base_link -> laser``: position and quaternion) each pose composed with it.
+
+    ``Invalid`` naming the body's field: another frame than the map's, stamps that do not strictly increase, a
+    quaternion that is not a unit one.
+    """
+    if path.header.frame_id != frame_id:
+        raise Invalid(f"header.frame_id is {path.header.frame_id!r}: a corrected trajectory is given in the map's frame, "
+                      f"{frame_id!r}")
+    stamps = np.array([ns_of_ros_time(p.header.stamp) for p in path.poses], dtype=np.int64)
+    positions = np.array([[p.pose.position.x, p.pose.position.y, p.pose.position.z] for p in path.poses])
+    quaternions = np.array([[p.pose.orientation.x, p.pose.orientation.y, p.pose.orientation.z, p.pose.orientation.w]
+                            for p in path.poses])
+    try:
+        trajectory = Trajectory(stamps, positions, quaternions)
+        if offset is not None:
+            trajectory = trajectory.with_offset(*offset)
+    except ValueError as exc:
+        message = str(exc)
+        for name, field in _FIELDS.items():
+            if message.startswith(name):
+                index, _, rest = message[len(name):].partition("]")
+                message = field.format(index) + rest
+                break
+        raise Invalid(message.replace("stamps_ns[", "poses[").replace("offset ", "offset_")) from None
+    return trajectory
 
 
 def plan(history: StoredMap, trajectory: Trajectory, through: int) -> Correction:
