@@ -304,4 +304,6 @@ def _catch_up(storage: Storage, name: str, rebuilt: MapEntry, after: int) -> int
     done = replay(rebuilt.map, stored, after=after)
     if done.version:
         rebuilt.version, rebuilt.updated = done.version, done.updated
+    if done.last_scan is not None:
+        rebuilt.last_scan = done.last_scan
     return max(after, stored.version)
