@@ -2,20 +2,25 @@
 
 from __future__ import annotations
 
+import gzip
 import http.server
 import json
 import math
 import re
+import subprocess
+import sys
 import threading
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any, ClassVar
 
+import httpx
 import pytest
 
 from app.cli.import_log import main
+from app.schemas import MapCreate
 from fuzzyocc.carmen import read_carmen
-from tests.conftest import carmen_log
+from tests.conftest import ROOT, carmen_log
 
 
 @pytest.fixture
@@ -94,6 +99,12 @@ def service() -> Iterator[type[_Refusion]]:
     server.shutdown()
     server.server_close()
     thread.join(timeout=10)
+
+
+def run_command(*args: str) -> subprocess.CompletedProcess[str]:
+    """The command as a user runs it, in its own process (which ends before this returns)."""
+    return subprocess.run([sys.executable, "-m", "app.import_log", *args], cwd=ROOT, capture_output=True,
+                          text=True, timeout=240)
 
 
 def put(log: Path, service: type[_Refusion], *options: str) -> int:
@@ -180,3 +191,50 @@ def test_options_that_do_not_go_with_a_trajectory_are_refused(
         main(options)
     assert info.value.code == 2
     assert "error:" in capsys.readouterr().err
+
+
+def _first_scans(log: Path, count: int, out: Path, drift: float = 0.0) -> Path:
+    """The first ``count`` FLASER lines of ``log`` as a log of their own; with ``drift``, their laser poses drift from
+    the first scan on (a growing offset and turn, as odometry drifts) and their beams and stamps stay."""
+    with gzip.open(log, "rt") as lines:
+        scans = [line.split() for line in lines if line.startswith("FLASER")][:count]
+    for k, fields in enumerate(scans):
+        at = 2 + int(fields[1])  # x y theta follow the ranges
+        x, y, theta = (float(v) for v in fields[at:at + 3])
+        fields[at:at + 3] = [repr(x + 0.01 * drift * k), repr(y - 0.006 * drift * k), repr(theta + 0.002 * drift * k)]
+    out.write_text("".join(" ".join(fields) + "\n" for fields in scans))
+    return out
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(300)
+def test_through_a_real_service_a_drifted_map_corrected_by_the_original_log_is_the_original_map(
+        orebro: Path, tmp_path: Path) -> None:
+    from bench._client import ServerProcess
+
+    original = _first_scans(orebro, 100, tmp_path / "original.log")
+    drifted = _first_scans(orebro, 100, tmp_path / "drifted.log", drift=1.0)
+    server = ServerProcess(data_dir=tmp_path / "data")
+    server.start()
+    try:
+        with httpx.Client(base_url=server.url, timeout=60) as client:
+            assert run_command(str(original), "--url", server.url, "--map", "direct").returncode == 0
+            # the drifted log's own bounds would make another grid: it goes into a map of the direct one's box
+            box = {k: v for k, v in client.get("/maps/direct").json().items() if k in MapCreate.model_fields}
+            assert client.post("/maps", json={**box, "name": "drifted"}).status_code == 201
+            imported = run_command(str(drifted), "--url", server.url, "--map", "drifted", "--append")
+            assert imported.returncode == 0, imported.stderr
+            direct = client.get("/maps/direct/risk", params={"format": "npy"}).content
+            assert client.get("/maps/drifted/risk", params={"format": "npy"}).content != direct
+            version = client.get("/maps/drifted").json()["version"]
+
+            corrected = run_command("--trajectory", str(original), "--url", server.url, "--map", "drifted")
+            assert corrected.returncode == 0, corrected.stderr
+            assert "rebuilding: 100/100 scans" in corrected.stderr
+            assert "100 poses put on map 'drifted'" in corrected.stdout
+            assert "100 scans re-posed" in corrected.stdout and f"version {version + 1}" in corrected.stdout
+            assert client.get("/maps/drifted/risk", params={"format": "npy"}).content == direct
+            poses = [p["pose"] for p in client.get("/maps/drifted/trajectory").json()["poses"]]
+            assert poses == [p["pose"] for p in client.get("/maps/direct/trajectory").json()["poses"]]
+    finally:
+        server.close()
