@@ -72,20 +72,30 @@ def open_map(page: Page, url: str, name: str) -> None:
     page.get_by_label("Show the last scan's beams").uncheck()
 
 
+#: For each world point, the canvas pixels in the trajectory's green within 2 pixels of where it is drawn.
+_GREEN_NEAR = """([points, origin, res, w, h]) => {
+    const c = document.getElementById('map-canvas');
+    const g = c.getContext('2d');
+    return points.map(([x, y]) => {
+        const u = Math.round((x - origin[0]) / res / w * c.width);
+        const v = Math.round((1 - (y - origin[1]) / res / h) * c.height);
+        const d = g.getImageData(u - 2, v - 2, 5, 5).data;
+        let n = 0;
+        for (let i = 0; i < d.length; i += 4) if (d[i] < 60 && d[i + 1] > 120 && d[i + 2] < 120) n++;
+        return n;
+    });
+}"""
+
+
 def green_near(page: Page, points: list[tuple[float, float]]) -> list[int]:
-    """For each world point, the canvas pixels in the trajectory's green within 2 pixels of where it is drawn."""
-    return page.evaluate("""([points, origin, res, w, h]) => {
-        const c = document.getElementById('map-canvas');
-        const g = c.getContext('2d');
-        return points.map(([x, y]) => {
-            const u = Math.round((x - origin[0]) / res / w * c.width);
-            const v = Math.round((1 - (y - origin[1]) / res / h) * c.height);
-            const d = g.getImageData(u - 2, v - 2, 5, 5).data;
-            let n = 0;
-            for (let i = 0; i < d.length; i += 4) if (d[i] < 60 && d[i + 1] > 120 && d[i + 2] < 120) n++;
-            return n;
-        });
-    }""", [points, list(ORIGIN), RES, WIDTH, HEIGHT])
+    """``_GREEN_NEAR`` of the points, now."""
+    return page.evaluate(_GREEN_NEAR, [points, list(ORIGIN), RES, WIDTH, HEIGHT])
+
+
+def wait_for_green_at(page: Page, points: list[tuple[float, float]]) -> None:
+    """Wait until the trajectory is drawn through every one of the points."""
+    page.wait_for_function(f"(args) => ({_GREEN_NEAR})(args).every((n) => n > 0)",
+                           arg=[points, list(ORIGIN), RES, WIDTH, HEIGHT], timeout=PATIENCE_S * 1000)
 
 
 def polls_of_the_map_list(page: Page, count: int) -> None:
@@ -171,3 +181,30 @@ def test_the_rebuild_panel_shows_the_progress_while_it_runs_and_why_it_failed(
     count = len(reads)
     polls_of_the_map_list(page, 2)
     assert len(reads) == count
+
+
+def test_a_corrected_trajectory_put_by_a_slam_node_shows_as_rebuilt_with_the_new_poses(
+        server: Server, page: Page) -> None:
+    with httpx.Client(base_url=server.url, timeout=60.0) as client:
+        created = client.post("/maps", json={**WORLD_MAP, "name": "moved", "origin": list(ORIGIN), "size": list(SIZE)})
+        assert created.status_code == 201, created.text
+        fused = client.post("/maps/moved/scans", json={"scans": [stamped(p, k) for k, p in enumerate(POSES)]})
+        assert fused.status_code == 200, fused.text
+        open_map(page, server.url, "moved")
+        expect(page.locator("#rebuild")).to_have_attribute("data-state", "none")
+        expect(page.locator("#rebuild-state")).to_have_text("No corrected trajectory yet.")
+        # the loop closure: every pose was 0.3 m further north than the robot thought
+        path = client.get("/maps/moved/trajectory").json()
+        for pose in path["poses"]:
+            pose["pose"]["position"]["y"] += 0.3
+        put = client.put("/maps/moved/trajectory", json={"header": path["header"], "poses": path["poses"]})
+        assert put.status_code == 202, put.text
+    expect(page.locator("#rebuild")).to_have_attribute("data-state", "done")
+    expect(page.locator("#rebuild-state")).to_contain_text(re.compile(r"Rebuilt on the corrected trajectory of "
+                                                                      r"\d\d:\d\d:\d\d: map version 2\."))
+    expect(page.locator("#rebuild-figures")).to_contain_text(f"{len(POSES)} scans re-posed; {len(POSES)} scans "
+                                                             "re-fused in")
+    expect(page.locator("#rebuild-bar")).to_be_hidden()
+    # the map and its trajectory are read again: the line now runs through the corrected poses
+    expect(page.locator("#map-canvas")).to_have_attribute("data-version", "2")
+    wait_for_green_at(page, [(x, y + 0.3) for x, y, _ in POSES])
