@@ -236,5 +236,14 @@ def test_through_a_real_service_a_drifted_map_corrected_by_the_original_log_is_t
             assert client.get("/maps/drifted/risk", params={"format": "npy"}).content == direct
             poses = [p["pose"] for p in client.get("/maps/drifted/trajectory").json()["poses"]]
             assert poses == [p["pose"] for p in client.get("/maps/direct/trajectory").json()["poses"]]
+
+            # another building's log: its stamps (2002's) span none of the map's scans, and the service says so
+            other = run_command("--trajectory", str(carmen_log("seattle-corrected.log.gz")), "--url", server.url,
+                                "--map", "drifted")
+            assert other.returncode == 1
+            [said] = [line for line in other.stderr.splitlines() if "error" in line]
+            assert said.startswith(f"fuzzyrisk-import-log: error: PUT {server.url}/maps/drifted/trajectory answered "
+                                   "409: "), said
+            assert client.get("/maps/drifted").json()["version"] == version + 1  # nothing changed
     finally:
         server.close()
