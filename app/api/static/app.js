@@ -565,16 +565,7 @@
 
   // the sensor's way through the map: a thin green line on a white casing, the newest pose a dot
   function drawTrajectory(points) {
-    ctx.lineJoin = "round";
-    ctx.lineCap = "round";
-    tracePath(points);
-    ctx.strokeStyle = "#fff";
-    ctx.lineWidth = 4;
-    ctx.stroke();
-    tracePath(points);
-    ctx.strokeStyle = TRAJECTORY_COLOUR;
-    ctx.lineWidth = 2;
-    ctx.stroke();
+    strokeCased(points, "#fff", 4, TRAJECTORY_COLOUR, 2);
     const [cx, cy] = toCanvas(points[points.length - 1]);
     ctx.beginPath();
     ctx.arc(cx, cy, 4, 0, 2 * Math.PI);
@@ -593,18 +584,22 @@
     });
   }
 
-  function drawPath(points) {
+  // a line on a wider casing, so that it reads on light and dark cells alike
+  function strokeCased(points, casing, casingWidth, colour, width) {
     ctx.lineJoin = "round";
     ctx.lineCap = "round";
-    // a dark casing first, so the path reads on light and dark cells alike
     tracePath(points);
-    ctx.strokeStyle = "#000";
-    ctx.lineWidth = 6;
+    ctx.strokeStyle = casing;
+    ctx.lineWidth = casingWidth;
     ctx.stroke();
     tracePath(points);
-    ctx.strokeStyle = PATH_COLOUR;
-    ctx.lineWidth = 3;
+    ctx.strokeStyle = colour;
+    ctx.lineWidth = width;
     ctx.stroke();
+  }
+
+  function drawPath(points) {
+    strokeCased(points, "#000", 6, PATH_COLOUR, 3);
   }
 
   // the heading as an arrow from the marker's centre: black, edged in white so that it reads
