@@ -343,6 +343,11 @@ class PointCloud:
         Refuse a cloud with more points than this.
     stamp_ns : int, optional
         When the sweep was taken: Unix nanoseconds, >= 0; None: unstamped.
+    sensor_points, sensor_pose : optional
+        How the cloud was placed, when it was made from sensor-frame points (``from_sensor_frame``,
+        ``from_planar_sensor_frame`` set them): those points, and the sensor pose ``(x, y, z, qx, qy, qz, qw)``
+        or ``(x, y, theta)``. Kept so that the cloud can be stored as taken and placed again at another pose
+        (a corrected trajectory) by the same arithmetic; not part of equality.
     """
 
     points: np.ndarray
@@ -351,6 +356,8 @@ class PointCloud:
     registration_sigma: float = 0.0
     max_rays: int = field(default=DEFAULT_MAX_RAYS, repr=False)
     stamp_ns: int | None = None
+    sensor_points: np.ndarray | None = field(default=None, repr=False, compare=False)
+    sensor_pose: tuple[float, ...] | None = field(default=None, compare=False)
 
     def __post_init__(self) -> None:
         set_ = object.__setattr__
@@ -369,6 +376,11 @@ class PointCloud:
         set_(self, "range_max", rmax)
         set_(self, "registration_sigma", _finite_scalar("registration_sigma", self.registration_sigma, minimum=0.0))
         set_(self, "stamp_ns", _stamp_ns(self.stamp_ns))
+        if (self.sensor_points is None) != (self.sensor_pose is None):
+            raise ValueError("sensor_points and sensor_pose go together")
+        if self.sensor_points is not None:
+            set_(self, "sensor_points", _readonly(_float_array("sensor_points", self.sensor_points)))
+            set_(self, "sensor_pose", tuple(float(v) for v in self.sensor_pose))  # type: ignore[union-attr]
 
     def stamped(self, stamp_ns: int | None) -> PointCloud:
         """This cloud taken at ``stamp_ns`` instead (its points shared, not copied)."""
@@ -388,6 +400,7 @@ class PointCloud:
         range_max: float,
         registration_sigma: float = 0.0,
         stamp_ns: int | None = None,
+        max_rays: int = DEFAULT_MAX_RAYS,
     ) -> PointCloud:
         """A cloud from sensor-frame points and the sensor pose ``T_map_sensor``.
 
@@ -399,7 +412,7 @@ class PointCloud:
             Sensor position in the map frame, metres.
         quaternion_xyzw : (4,) array_like of float
             Sensor orientation in the map frame, ``[x, y, z, w]``; normalised here.
-        range_max, registration_sigma, stamp_ns
+        range_max, registration_sigma, stamp_ns, max_rays
             As in the constructor.
         """
         pts = _float_array("points", points_sensor)
@@ -412,7 +425,28 @@ class PointCloud:
         # normalised here and again by from_quat, as when stored maps were built: one division fewer moves points an ulp
         points_map = Rotation.from_quat(quat / np.linalg.norm(quat)).apply(pts) + position_map if pts.size else pts
         return cls(points=points_map, origin=tuple(position_map), range_max=range_max,
-                   registration_sigma=registration_sigma, stamp_ns=stamp_ns)
+                   registration_sigma=registration_sigma, max_rays=max_rays, stamp_ns=stamp_ns, sensor_points=pts,
+                   sensor_pose=(*position_map.tolist(), *quat.tolist()))
+
+    @classmethod
+    def from_planar_sensor_frame(
+        cls,
+        points_sensor: object,
+        pose: tuple[float, float, float],
+        range_max: float,
+        registration_sigma: float = 0.0,
+        stamp_ns: int | None = None,
+        max_rays: int = DEFAULT_MAX_RAYS,
+    ) -> PointCloud:
+        """A 2-D cloud from ``(N, 2)`` sensor-frame points and a planar sensor pose ``(x, y, theta)`` (REP 103)."""
+        pts = _float_array("points", points_sensor)
+        if pts.ndim != 2 or pts.shape[1] != 2:
+            raise ValueError(f"points must have shape (N, 2) in the sensor frame, got {pts.shape}")
+        x, y, theta = _finite_tuple("pose", pose, 3)
+        c, s = math.cos(theta), math.sin(theta)
+        points_map = pts @ np.array([[c, -s], [s, c]]).T + np.array([x, y])
+        return cls(points=points_map, origin=(x, y), range_max=range_max, registration_sigma=registration_sigma,
+                   max_rays=max_rays, stamp_ns=stamp_ns, sensor_points=pts, sensor_pose=(x, y, theta))
 
     @property
     def beam_count(self) -> int:

@@ -1,8 +1,9 @@
 """A corrected trajectory applied to a map's history: the new pose of each stored scan it covers, and back.
 
 ``plan`` reads the stamps and poses of the history's scans (``logcodec.scan_poses``, beams left undecoded) and gives
-each LaserScan whose stamp lies in the trajectory's ``[first, last]`` its pose there (``Trajectory.poses_at``, as tf2
-interpolates; ``fuzzyocc.trajectory.laser_poses``, as a LaserScan posted at that pose would be placed). Scans outside
+each scan whose stamp lies in the trajectory's ``[first, last]`` its pose there (``Trajectory.poses_at``, as tf2
+interpolates): a LaserScan or a 2-D cloud as one posted at that pose would be placed
+(``fuzzyocc.trajectory.laser_poses``), a 3-D cloud the whole pose. Scans outside
 the range, unstamped ones and every scan stored after the map's version at the request keep theirs. The result is
 stored with the correction (``encode`` / ``decode``) until the map has been rebuilt at it; the rebuild replays the
 history with these poses (``apply``).
@@ -27,6 +28,11 @@ _FIELDS = {"stamps_ns[": "poses[{}].header.stamp", "positions[": "poses[{}].pose
            "quaternions[": "poses[{}].pose.orientation"}
 
 
+#: How a stored scan takes a corrected pose: its heading in the plane (a LaserScan, a 2-D cloud: the level rule of
+#: ``laser_poses``), the whole pose (a 3-D cloud stored as taken), or not at all (a cloud stored in the map frame).
+_PLANAR, _FULL, _FIXED = 0, 1, 2
+
+
 class NothingToCorrect(ValueError):
     """No stored scan has a stamp in the trajectory's range (the message says what the map's stamps span)."""
 
@@ -37,8 +43,8 @@ class CannotRepose(ValueError):
 
 @dataclass(frozen=True)
 class Correction:
-    """The new poses of a map's history: ``moves`` maps a batch's version to one ``(x, y, theta)`` row per scan of it
-    (NaN rows: kept as they are), for the batches up to ``through`` (the map's version at the request) that have a
+    """The new poses of a map's history: ``moves`` maps a batch's version to one ``logcodec.encode_poses`` row per scan
+    of it (NaN rows: kept as they are), for the batches up to ``through`` (the map's version at the request) that have a
     scan in the trajectory's range; ``scans`` counts the scans moved."""
 
     through: int
@@ -82,14 +88,14 @@ def sensor_trajectory(path: CorrectedPath, frame_id: str, offset: SensorOffset |
 def plan(history: StoredMap, trajectory: Trajectory, through: int) -> Correction:
     """The correction ``trajectory`` (the sensor's, offsets applied) makes to the history's batches up to ``through``.
 
-    Raises ``NothingToCorrect`` (no stamped scan in range), ``CannotRepose`` (a point cloud in range),
+    Raises ``NothingToCorrect`` (no stamped scan in range), ``CannotRepose`` (a cloud stored in the map frame in range),
     ``fuzzyocc.tf.NotLevel`` (a pose in range tilts the scanner off level) and ``logcodec.CorruptBatch``.
     """
     versions: list[int] = []
     counts: list[int] = []
     stamps: list[int] = []
     yaws: list[float] = []
-    clouds: list[bool] = []
+    kinds: list[int] = []  # _PLANAR, _FULL or _FIXED
     first = last = None
     for version, payload in logcodec.moved([b for b in history.batches if b[0] <= through], history.poses):
         poses = logcodec.scan_poses(payload)
@@ -101,7 +107,7 @@ def plan(history: StoredMap, trajectory: Trajectory, through: int) -> Correction
             stamp = -1 if pose.stamp_ns is None else pose.stamp_ns
             stamps.append(stamp)
             yaws.append(np.nan if pose.yaw is None else pose.yaw)
-            clouds.append(pose.yaw is None)
+            kinds.append(_PLANAR if pose.yaw is not None else _FULL if pose.orientation is not None else _FIXED)
             if stamp >= 0:
                 first = stamp if first is None else min(first, stamp)
                 last = stamp if last is None else max(last, stamp)
@@ -119,13 +125,17 @@ def plan(history: StoredMap, trajectory: Trajectory, through: int) -> Correction
         raise NothingToCorrect(
             f"no stored scan has a stamp in the trajectory's range ({int(trajectory.stamps_ns[0])} to "
             f"{int(trajectory.stamps_ns[-1])} ns); the map's history holds {span}")
-    cloud = np.flatnonzero(inside & np.asarray(clouds, dtype=bool))
-    if cloud.size:
-        raise CannotRepose(f"{cloud.size} stored point clouds have stamps in the trajectory's range (the first at "
-                           f"{int(at[cloud[0]])} ns): a point cloud is stored in the map frame and cannot be re-posed "
-                           "yet; only maps of LaserScans can be corrected")
-    new = np.full((at.size, 3), np.nan)
-    new[inside] = laser_poses(positions[inside], quaternions[inside], np.asarray(yaws)[inside])
+    kind = np.asarray(kinds, dtype=np.int8)
+    fixed = np.flatnonzero(inside & (kind == _FIXED))
+    if fixed.size:
+        raise CannotRepose(f"{fixed.size} stored point clouds have stamps in the trajectory's range (the first at "
+                           f"{int(at[fixed[0]])} ns) and were stored in the map frame, without the pose they were "
+                           "placed at (before clouds were stored as taken): they cannot be re-posed; correct a "
+                           "range after them")
+    new = np.full((at.size, logcodec.POSE_WIDTH), np.nan)
+    planar, full = inside & (kind == _PLANAR), inside & (kind == _FULL)
+    new[planar, :3] = laser_poses(positions[planar], quaternions[planar], np.asarray(yaws)[planar])
+    new[full] = np.column_stack([positions[full], quaternions[full]])  # a 3-D sensor takes the pose as it is
     moves: dict[int, np.ndarray] = {}
     offset = 0
     for version, count in zip(versions, counts, strict=True):
@@ -151,7 +161,7 @@ def encode(correction: Correction) -> bytes:
     """A correction as the bytes stored with it until the rebuild is done."""
     versions = np.fromiter(correction.moves, dtype=np.int64, count=len(correction.moves))
     counts = np.array([len(rows) for rows in correction.moves.values()], dtype=np.int64)
-    rows = np.concatenate(list(correction.moves.values())) if correction.moves else np.zeros((0, 3))
+    rows = np.concatenate(list(correction.moves.values())) if correction.moves else np.zeros((0, logcodec.POSE_WIDTH))
     out = io.BytesIO()
     np.savez(out, allow_pickle=False, through=np.int64(correction.through), scans=np.int64(correction.scans),
              versions=versions, counts=counts, poses=rows.astype("<f8"))

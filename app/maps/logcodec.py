@@ -98,6 +98,11 @@ def _parts(scan: Scan) -> tuple[str, np.ndarray, np.ndarray]:
         scalars = [*scan.pose, scan.angle_min, scan.angle_increment, scan.range_min, scan.range_max,
                    scan.registration_sigma]
         return "laser", np.array(scalars, dtype="<f8"), _compact(scan.ranges)
+    if scan.sensor_points is not None and scan.sensor_pose is not None:
+        # as taken: its sensor-frame points and pose, placed again at decode by the same arithmetic (a corrected
+        # pose places them anew; float32 points of a driver stay float32)
+        scalars = [*scan.sensor_pose, scan.range_max, scan.registration_sigma]
+        return "sensor_cloud", np.array(scalars, dtype="<f8"), _compact(scan.sensor_points)
     return "cloud", np.array([*scan.origin, scan.range_max, scan.registration_sigma], dtype="<f8"), _compact(scan.points)
 
 
@@ -126,8 +131,14 @@ def _scan(kind: str, scalars: list[float], values: np.ndarray, stamp_ns: int | N
         return LaserScan(pose=(x, y, theta), angle_min=angle_min, angle_increment=increment, ranges=values,
                          range_min=range_min, range_max=range_max, registration_sigma=reg,
                          max_rays=max(values.size, 1), stamp_ns=stamp_ns)
-    *origin, range_max, reg = scalars
-    return PointCloud(points=values, origin=tuple(origin), range_max=range_max, registration_sigma=reg,
+    *pose, range_max, reg = scalars
+    if kind == "sensor_cloud" and len(pose) == 7:
+        return PointCloud.from_sensor_frame(values, pose[:3], pose[3:], range_max, reg, stamp_ns,
+                                            max_rays=max(values.shape[0], 1))
+    if kind == "sensor_cloud":
+        return PointCloud.from_planar_sensor_frame(values, (pose[0], pose[1], pose[2]), range_max, reg, stamp_ns,
+                                                   max_rays=max(values.shape[0], 1))
+    return PointCloud(points=values, origin=tuple(pose), range_max=range_max, registration_sigma=reg,
                       max_rays=max(values.shape[0], 1), stamp_ns=stamp_ns)
 
 
@@ -135,7 +146,9 @@ class CorruptBatch(ValueError):
     """A stored batch whose bytes do not decode (the message says where)."""
 
 
-_SCALARS = {"laser": (8,), "cloud": (4, 5)}  # laser: pose, angles, ranges, sigma; cloud: origin (2 or 3), max, sigma
+#: laser: pose, angles, ranges, sigma; cloud (map-frame points): origin (2 or 3), max, sigma; sensor_cloud (sensor-frame
+#: points): pose (x, y, theta, or x, y, z, qx, qy, qz, qw), max, sigma
+_SCALARS = {"laser": (8,), "cloud": (4, 5), "sensor_cloud": (5, 9)}
 
 
 def decode(payload: bytes) -> Batch:
@@ -171,17 +184,22 @@ def _guarded(read: Callable[[bytes], _T], payload: bytes) -> _T:
 
 @dataclass(frozen=True)
 class ScanPose:
-    """Where and when a stored scan was taken, without its beams: a LaserScan's ``(x, y)`` and ``yaw``, or a cloud's
-    origin (``yaw`` None: a cloud carries no orientation); ``stamp_ns`` None: unstamped."""
+    """Where and when a stored scan was taken, without its beams: a LaserScan's (or a 2-D cloud's) ``(x, y)`` and
+    ``yaw``; a 3-D cloud's position and ``orientation`` ``(qx, qy, qz, qw)``; or, for a cloud stored in the map frame,
+    its origin alone (no orientation: it cannot be re-posed); ``stamp_ns`` None: unstamped."""
 
     position: tuple[float, ...]
     yaw: float | None
     stamp_ns: int | None
+    orientation: tuple[float, float, float, float] | None = None
 
 
 def _pose(kind: str, scalars: Sequence[float], stamp_ns: int | None) -> ScanPose:
-    if kind == "laser":
+    if kind == "laser" or (kind == "sensor_cloud" and len(scalars) == 5):
         return ScanPose((float(scalars[0]), float(scalars[1])), float(scalars[2]), stamp_ns)
+    if kind == "sensor_cloud":
+        x, y, z, qx, qy, qz, qw = (float(v) for v in scalars[:7])
+        return ScanPose((x, y, z), None, stamp_ns, (qx, qy, qz, qw))
     return ScanPose(tuple(float(v) for v in scalars[:-2]), None, stamp_ns)  # origin, then range_max and sigma
 
 
@@ -307,26 +325,28 @@ def _layout(payload: bytes) -> list[tuple[dict[str, Any], int, int]]:
     return layout
 
 
-#: A batch's scans' current poses, where a corrected trajectory moved them: one ``(x, y, theta)`` row of
-#: little-endian float64 per scan of the batch, in order; NaN rows keep the scan's own pose (a point cloud's).
+#: A batch's scans' current poses, where a corrected trajectory moved them: one row of ``POSE_WIDTH`` little-endian
+#: float64 per scan of the batch, in order: ``(x, y, theta)`` then NaN for a LaserScan or a 2-D cloud, ``(x, y, z,
+#: qx, qy, qz, qw)`` for a 3-D cloud; a NaN row keeps the scan's own pose.
 POSE_DTYPE = np.dtype("<f8")
+POSE_WIDTH = 7
 
 
 def encode_poses(poses: np.ndarray) -> bytes:
-    """A batch's scans' poses (``(n, 3)`` float64, NaN rows: kept as stored) as a batch row's ``poses``."""
+    """A batch's scans' poses (``(n, POSE_WIDTH)`` float64, NaN rows: kept as stored) as a batch row's ``poses``."""
     return np.ascontiguousarray(poses, dtype=POSE_DTYPE).tobytes()
 
 
 def decode_poses(data: bytes) -> np.ndarray:
-    """The ``(n, 3)`` poses of :func:`encode_poses`."""
-    if len(data) % (3 * POSE_DTYPE.itemsize):
-        raise CorruptBatch(f"stored poses are {len(data)} bytes, not rows of three float64")
-    return np.frombuffer(data, dtype=POSE_DTYPE).reshape(-1, 3)
+    """The ``(n, POSE_WIDTH)`` poses of :func:`encode_poses`."""
+    if len(data) % (POSE_WIDTH * POSE_DTYPE.itemsize):
+        raise CorruptBatch(f"stored poses are {len(data)} bytes, not rows of {POSE_WIDTH} float64")
+    return np.frombuffer(data, dtype=POSE_DTYPE).reshape(-1, POSE_WIDTH)
 
 
 def with_poses(payload: bytes, poses: bytes) -> bytes:
-    """``payload`` with its LaserScans at the poses of ``poses`` (:func:`encode_poses`; NaN rows and point clouds keep
-    theirs), everything else as stored, bit for bit: what the batch replays as once a correction moved it.
+    """``payload`` with its scans at the poses of ``poses`` (:func:`encode_poses`; NaN rows, and clouds stored in the map
+    frame, keep theirs), everything else as stored, bit for bit: what the batch replays as once a correction moved it.
 
     Raises :class:`CorruptBatch` when ``poses`` does not hold one row per scan.
     """
@@ -353,8 +373,9 @@ def _with_poses(payload: bytes, poses: np.ndarray) -> bytes:
         raise CorruptBatch(f"stored poses hold {len(poses)} rows for a batch of {len(layout)} scans")
     patched = bytearray(payload)
     for (item, scalars_at, _), pose in zip(layout, poses, strict=True):
-        if item["kind"] == "laser" and not np.isnan(pose).any():
-            patched[scalars_at:scalars_at + 3 * POSE_DTYPE.itemsize] = pose.astype(POSE_DTYPE).tobytes()
+        width = int(item["scalars"]) - 2 if item["kind"] == "sensor_cloud" else 3 if item["kind"] == "laser" else 0
+        if width and not np.isnan(pose[:width]).any():
+            patched[scalars_at:scalars_at + width * POSE_DTYPE.itemsize] = pose[:width].astype(POSE_DTYPE).tobytes()
     return bytes(patched)
 
 

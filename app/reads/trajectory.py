@@ -1,9 +1,9 @@
 """A map's trajectory: the sensor pose of each stored scan, with its stamp, as ``Trajectory`` JSON (a ``nav_msgs/Path``).
 
 Read from the batch log's records without decoding the beams (``logcodec.scan_poses``). A LaserScan's pose is
-``(x, y, theta)``, given as z 0 and a yaw quaternion (``messages_out.yaw_quaternion``, as a plan's poses); a point
-cloud keeps only its sensor origin (its points are stored in the map frame), so its orientation is the identity
-and a 2-D cloud's z is 0. A scan stored before scans kept stamps is stamped 0 (ROS's "no time") and counted in
+``(x, y, theta)``, given as z 0 and a yaw quaternion (``messages_out.yaw_quaternion``, as a plan's poses), as is a
+2-D cloud's; a 3-D cloud's is its sensor pose, its quaternion as posted; a cloud stored in the map frame (before
+clouds were stored as taken) keeps only its sensor origin, with the identity orientation. A scan stored before scans kept stamps is stamped 0 (ROS's "no time") and counted in
 ``unstamped``.
 """
 
@@ -60,7 +60,8 @@ def trajectory_json(log: Sequence[tuple[int, bytes]], *, moved: Mapping[int, byt
         "unstamped": sum(pose.stamp_ns is None for pose in poses),
     }).model_dump_json().encode()
     assert head.count(_NO_POSES) == 1
-    chunks = (json.dumps([pose_stamped(pose.position, pose.yaw, stamp_ns=pose.stamp_ns or 0, frame_id=frame_id)
+    chunks = (json.dumps([pose_stamped(pose.position, pose.yaw, stamp_ns=pose.stamp_ns or 0, frame_id=frame_id,
+                                    orientation=pose.orientation)
                        for pose in poses[i:i + _CHUNK]], separators=(",", ":"))
               for i in range(0, len(poses), _CHUNK))
     return head.replace(_NO_POSES, b'"poses":[' + ",".join(chunk[1:-1] for chunk in chunks).encode() + b"]")

@@ -68,17 +68,22 @@ def yaw_quaternion(yaw: float) -> dict[str, float]:
     return dict(zip("xyzw", tf.yaw_quaternion(yaw), strict=True))
 
 
-#: A point cloud's orientation in a trajectory: a cloud keeps its sensor's origin only.
+#: The orientation of a cloud stored in the map frame (before clouds were stored as taken): its sensor's origin only.
 _IDENTITY = {"x": 0.0, "y": 0.0, "z": 0.0, "w": 1.0}
 
 
-def pose_stamped(position: Sequence[float], yaw: float | None, *, stamp_ns: int, frame_id: str) -> dict[str, Any]:
+def pose_stamped(position: Sequence[float], yaw: float | None, *, stamp_ns: int, frame_id: str,
+                 orientation: Sequence[float] | None = None) -> dict[str, Any]:
     """``geometry_msgs/PoseStamped`` as JSON of a sensor pose taken at ``stamp_ns``: ``position`` x, y(, z; 0 when
-    left out) and ``yaw`` as a quaternion (None: the identity). A trajectory's pose, out and in."""
+    left out) and ``yaw`` as a quaternion, or ``orientation`` ``(qx, qy, qz, qw)`` as given (neither: the identity).
+    A trajectory's pose, out and in."""
     x, y, *rest = position
+    if orientation is not None:
+        quaternion = dict(zip(("x", "y", "z", "w"), (float(v) for v in orientation), strict=True))
+    else:
+        quaternion = _IDENTITY if yaw is None else yaw_quaternion(yaw)
     return {"header": {"stamp": ros_time_of_ns(stamp_ns), "frame_id": frame_id},
-            "pose": {"position": {"x": x, "y": y, "z": rest[0] if rest else 0.0},
-                     "orientation": _IDENTITY if yaw is None else yaw_quaternion(yaw)}}
+            "pose": {"position": {"x": x, "y": y, "z": rest[0] if rest else 0.0}, "orientation": quaternion}}
 
 
 def path_yaws(path: np.ndarray, state_space: str, goal_yaw: float | None = None) -> np.ndarray:

@@ -8,7 +8,6 @@ Errors name the field (``scans[2].pose``) and say what to fix.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -36,13 +35,6 @@ def check_rays(name: str, count: int, limits: Limits) -> None:
             f"{name} has {count} beams, more than the limit of {limits.max_rays} per scan "
             "(FUZZYRISK_MAX_RAYS_PER_SCAN): split it into several scans"
         )
-
-
-def _planar_to_map(points_sensor: np.ndarray, pose: Pose2D) -> np.ndarray:
-    """(N, 2) sensor-frame points -> map frame under a planar pose."""
-    c, s = math.cos(pose.theta), math.sin(pose.theta)
-    rotation = np.array([[c, -s], [s, c]])
-    return points_sensor @ rotation.T + np.array([pose.x, pose.y])
 
 
 def _finite_rows(points: np.ndarray) -> np.ndarray:
@@ -90,11 +82,12 @@ def point_cloud(
     try:
         if isinstance(pose, Pose3D):
             return PointCloud.from_sensor_frame(
-                points_sensor, pose.position, pose.orientation, range_max, registration_sigma, stamp_ns
+                points_sensor, pose.position, pose.orientation, range_max, registration_sigma, stamp_ns,
+                max_rays=limits.max_rays,
             )
-        return PointCloud(
-            points=_planar_to_map(points_sensor, pose), origin=(pose.x, pose.y), range_max=range_max,
-            registration_sigma=registration_sigma, max_rays=limits.max_rays, stamp_ns=stamp_ns,
+        return PointCloud.from_planar_sensor_frame(
+            points_sensor, (pose.x, pose.y, pose.theta), range_max, registration_sigma, stamp_ns,
+            max_rays=limits.max_rays,
         )
     except ValueError as exc:
         raise _value_error(name, exc) from None

@@ -16,8 +16,9 @@ class Trajectory(PathMessage):
     ``header.stamp`` is when the map reached this version (its last batch's commit), as an OccupancyGrid read
     stamps it. One pose per stored scan; its header's stamp is the scan's (its ``header.stamp``, its message's, or
     when the service received it), 0 for a scan stored before scans kept stamps (see ``unstamped``). A LaserScan's
-    pose as posted (2-D maps: z 0, its theta as a yaw quaternion); a point cloud's sensor origin with the identity
-    orientation (a cloud is stored in the map frame, with its origin only).
+    pose as posted (2-D maps: z 0, its theta as a yaw quaternion); a point cloud's sensor pose as posted (a 2-D
+    cloud's as a LaserScan's); a cloud stored before clouds were stored as taken has its origin only, with the
+    identity orientation.
     """
 
     version: int = Field(description="the map version the poses are of")

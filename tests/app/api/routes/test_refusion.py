@@ -19,6 +19,7 @@ from typing import Any
 import numpy as np
 import pytest
 from fastapi.testclient import TestClient
+from scipy.spatial.transform import Rotation
 
 from app.cli.import_log import scan_json
 from fuzzyocc import LaserScan
@@ -284,17 +285,37 @@ def test_a_rebuild_stopped_by_a_restart_resumes_and_completes(
     assert status["state"] == "done" and grid_of(again, "robot") == expected
 
 
-def test_a_map_of_point_clouds_cannot_be_corrected_yet(client: TestClient, kit: Any) -> None:
-    assert client.post("/maps", json=kit.MAP_3D).status_code == 201
+def _clouds(kit: Any, poses: Sequence[tuple[np.ndarray, np.ndarray]]) -> list[dict[str, Any]]:
     points = kit.cloud_sensor_points().tolist()
-    cloud = {"pose": {"position": [0.0, 0.0, 1.0], "orientation": [0.0, 0.0, 0.0, 1.0]}, "points": points,
-             "range_max": 10.0, "header": {"stamp": {"sec": 5, "nanosec": 0}, "frame_id": "laser"}}
-    assert client.post("/maps/hall/scans", json={"scans": [cloud]}).status_code == 200, "cloud refused"
-    one = {"header": {"stamp": {"sec": 5, "nanosec": 0}, "frame_id": "map"},
-           "pose": {"position": {"x": 0.0, "y": 0.0, "z": 1.0}, "orientation": {"x": 0.0, "y": 0.0, "z": 0.0, "w": 1.0}}}
-    response = client.put("/maps/hall/trajectory", json={"header": one["header"], "poses": [one]})
-    assert response.status_code == 409 and "point cloud" in error_message(response)
-    assert client.get("/maps/hall/rebuild").json()["state"] == "none"
+    return [{"pose": {"position": position.tolist(), "orientation": quaternion.tolist()}, "points": points,
+             "range_max": 10.0, "header": {"stamp": {"sec": 100 + k, "nanosec": 0}, "frame_id": "laser"}}
+            for k, (position, quaternion) in enumerate(poses)]
+
+
+def test_a_map_of_3d_clouds_is_rebuilt_at_the_corrected_sensor_poses(client: TestClient, kit: Any) -> None:
+    # a 3-D sensor takes the whole corrected pose: position and orientation, roll and pitch included
+    rng = np.random.default_rng(4)
+    true = [(np.array([rng.uniform(-1, 1), rng.uniform(-1, 1), 1.0 + rng.uniform(-0.2, 0.2)]),
+             Rotation.from_euler("zyx", [rng.uniform(-3, 3), rng.uniform(-0.2, 0.2), rng.uniform(-0.2, 0.2)]).as_quat())
+            for _ in range(12)]
+    drift = [(p + rng.normal(0, 0.1, 3), (Rotation.from_quat(q) * Rotation.from_euler("z", rng.normal(0, 0.05))).as_quat())
+             for p, q in true]
+    for name, poses in (("direct", true), ("robot", drift)):
+        assert client.post("/maps", json={**kit.MAP_3D, "name": name}).status_code == 201
+        assert client.post(f"/maps/{name}/scans", json={"scans": _clouds(kit, poses)}).status_code == 200
+    assert grid_of(client, "robot") != grid_of(client, "direct")
+    path = {"header": {"stamp": {"sec": 0, "nanosec": 0}, "frame_id": "map"},
+            "poses": [{"header": {"stamp": {"sec": 100 + k, "nanosec": 0}, "frame_id": "map"},
+                       "pose": {"position": dict(zip("xyz", p.tolist(), strict=True)),
+                                "orientation": dict(zip("xyzw", q.tolist(), strict=True))}}
+                      for k, (p, q) in enumerate(true)]}
+    response = client.put("/maps/robot/trajectory", json=path)
+    assert response.status_code == 202, response.text
+    assert response.json()["rebuild"]["scans_reposed"] == len(true)
+    assert rebuilt(client, "robot", response.json()["rebuild"]["id"])["state"] == "done"
+    assert grid_of(client, "robot") == grid_of(client, "direct")
+    # the trajectory gives each cloud's sensor pose, orientation included
+    assert client.get("/maps/robot/trajectory").json()["poses"] == path["poses"]
 
 
 def _history(client: TestClient, name: str, scans: Sequence[LaserScan]) -> None:

@@ -105,9 +105,9 @@ def test_cdr_message_stamps_come_back_with_their_sensor_poses(client: TestClient
     assert yaw_of(planar["pose"]["orientation"]) == pytest.approx(0.8, abs=1e-12)
     (swept,) = trajectory(client, "hall")["poses"]
     assert ns_of(swept) == 1_700_000_000_500_000_000
-    # a cloud is stored in the map frame with its origin only: the sensor's position, no orientation
+    # a cloud is stored as taken: the sensor's whole pose
     assert swept["pose"]["position"] == {"x": 0.25, "y": 0.5, "z": 1.2}
-    assert swept["pose"]["orientation"] == {"x": 0.0, "y": 0.0, "z": 0.0, "w": 1.0}
+    assert swept["pose"]["orientation"] == {k: tilted[f"q{k}"] for k in "xyzw"}
 
 
 def write_bag(path: Path, stamps: list[int]) -> Path:
