@@ -21,8 +21,8 @@ log's corrected poses and hits (``bench maps``' box). For each log (``--logs``, 
    and B's ``risk.npy`` are identical (bit for bit), the rebuild's time (the status's ``elapsed_s``,
    and PUT to done on our clock) and scans/s beside ``FuzzyMap.integrate_batch`` of the same scans in
    this process, just after (target >= 0.9x), and its speed as a multiple of the log's duration (its
-   last stamp less its first; target >= 100x; a log whose stamps do not increase is numbered at 5 Hz,
-   and its row says so).
+   last stamp less its first; target >= 100x where the stamps are real: a log whose stamps do not
+   increase is numbered at 5 Hz, and its row says so and is not judged).
 
 Then, on the log with the most scans: an innocent client (``bench._abuse_clients.Innocent``, its own
 process) posts a binary 1080-beam scan every 0.1 s to a map of its own and reads its ``risk.npy``
@@ -348,7 +348,7 @@ def speed_table(reports: Sequence[LogReport]) -> str:
              "scans/s | ratio (>= 0.9x) | log duration | x real time (>= 100x) |"),
              "|---|---|---|---|---|---|---|---|"]
     for r in reports:
-        duration = (f"{r.duration_s:.1f} s (numbered at 5 Hz: its stamps do not increase)" if r.numbered
+        duration = (f"{r.duration_s:.1f} s: numbered at 5 Hz, its stamps do not increase (not judged)" if r.numbered
                     else f"{r.duration_s:.1f} s")
         lines.append(
             f"| {r.name} | {r.status['scans_total']} | {r.status['elapsed_s']:.2f} / {r.put_to_done_s:.2f} s | "
@@ -368,7 +368,8 @@ def beside_line(b: Beside) -> str:
 def targets(reports: Sequence[LogReport], beside: Beside | None) -> list[tuple[str, bool]]:
     out = [("rebuilt A identical to B, same quality", all(r.identical and r.rebuilt == r.direct for r in reports)),
            (f"rebuild scans/s >= {TARGET_RATE:g}x in-process", all(r.rate_ratio >= TARGET_RATE for r in reports)),
-           (f"rebuild >= {TARGET_SPEED:g}x the log's duration", all(r.speed >= TARGET_SPEED for r in reports))]
+           (f"rebuild >= {TARGET_SPEED:g}x the duration of the logs with real stamps",
+            all(r.speed >= TARGET_SPEED for r in reports if not r.numbered))]
     if beside is not None:
         out.append((f"innocent p99 <= {TARGET_P99:g}x unloaded", beside.met))
     return out
