@@ -42,10 +42,12 @@ LEVEL_TOLERANCE_RAD = math.radians(3.0)
 class NotLevel(ValueError):
     """A scanner tilted more than ``LEVEL_TOLERANCE_RAD`` from level; ``degrees`` says how far."""
 
-    def __init__(self, degrees: float) -> None:
-        super().__init__(f"the scanner is tilted {degrees:.1f} degrees from level (its z axis against the "
+    def __init__(self, degrees: float, index: int | None = None) -> None:
+        where = "" if index is None else f"pose {index}: "
+        super().__init__(f"{where}the scanner is tilted {degrees:.1f} degrees from level (its z axis against the "
                          f"vertical), more than {math.degrees(LEVEL_TOLERANCE_RAD):g}")
         self.degrees = degrees
+        self.index = index
 
 
 def level_heading(quaternion_xyzw: object) -> tuple[float, float]:

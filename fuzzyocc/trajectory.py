@@ -28,6 +28,7 @@ from scipy.spatial.transform import Rotation, Slerp
 from fuzzyocc.scans import LaserScan, PointCloud
 from fuzzyocc.tf import (
     UNIT_QUATERNION_TOLERANCE,
+    NotLevel,
     Transform,
     interpolate,
     level_heading,
@@ -35,7 +36,7 @@ from fuzzyocc.tf import (
     yaw_quaternion,
 )
 
-__all__ = ["PosesAt", "Trajectory", "repose"]
+__all__ = ["PosesAt", "Trajectory", "laser_poses", "repose"]
 
 
 def _stamps(name: str, value: object) -> np.ndarray:
@@ -188,6 +189,56 @@ class Trajectory:
         return PosesAt(inside, positions, quaternions)
 
 
+#: How far (in units in the last place) around the yaw read off a quaternion ``laser_poses`` looks for the yaw
+#: ``yaw_quaternion`` writes it of, bit for bit.
+_YAW_ULPS = 4
+
+
+def _exact_yaws(quaternions: np.ndarray, yaws: np.ndarray, near: np.ndarray) -> np.ndarray:
+    """For each quaternion that ``yaw_quaternion`` writes exactly of some yaw near ``yaw`` (within ``_YAW_ULPS``, or
+    whole turns away, towards ``near``: a log's headings need not lie in [-pi, pi]), that yaw; else ``yaw``.
+
+    A yaw read back from ``yaw_quaternion(theta)`` is wrapped, or off in its last bits, for 20 to 70 % of a shared
+    CARMEN log's poses, and a map moves with one ulp of pose: so a trajectory published as yaw quaternions of the
+    poses a map should have brings back those very poses. Neighbouring yaws can make the same quaternion: the one
+    with the shortest decimal form wins (a log's ``1.52705``, not ``1.5270499999999998``), then the nearest.
+    """
+    out = yaws.copy()
+    digits = np.full(yaws.size, np.iinfo(np.int64).max)
+    level = (quaternions[:, 0] == 0.0) & (quaternions[:, 1] == 0.0)
+    turns = np.round((near - yaws) / (2.0 * np.pi))
+    for extra in (0.0, 1.0, -1.0):
+        for step in sorted(range(-_YAW_ULPS, _YAW_ULPS + 1), key=abs):
+            candidate = yaws + (turns + extra) * (2.0 * np.pi)
+            for _ in range(abs(step)):
+                candidate = np.nextafter(candidate, np.inf if step > 0 else -np.inf)
+            half = 0.5 * candidate
+            for i in np.flatnonzero(level & (np.sin(half) == quaternions[:, 2]) & (np.cos(half) == quaternions[:, 3])):
+                length = len(repr(float(candidate[i])))
+                if length < digits[i]:
+                    out[i], digits[i] = candidate[i], length
+    return out
+
+
+def laser_poses(positions: object, quaternions_xyzw: object, near_yaws: object = None) -> np.ndarray:
+    """The ``(x, y, theta)`` a LaserScan takes at each sensor pose (``positions`` (N, 3), ``quaternions_xyzw`` (N, 4)):
+    ``theta`` the heading of the sensor's x axis (:func:`fuzzyocc.tf.level_heading`, the rule a LaserScan posted with
+    a 3-D pose meets), ``z`` dropped; a quaternion ``yaw_quaternion`` writes exactly of some theta gives that theta
+    bit for bit, the whole turns added that bring it nearest ``near_yaws`` (the scans' headings before, which
+    may run past pi; None: within [-pi, pi]; ``_exact_yaws``). Raises ``NotLevel`` (naming the first index) for a
+    pose tilted off level."""
+    positions = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
+    quaternions = np.asarray(quaternions_xyzw, dtype=np.float64).reshape(-1, 4)
+    yaws = np.empty(len(quaternions))
+    for i, quaternion in enumerate(quaternions):
+        try:
+            yaws[i], _ = level_heading(quaternion)  # the turn is in the stored beams already
+        except NotLevel as exc:
+            raise NotLevel(exc.degrees, index=i) from None
+    near = yaws if near_yaws is None else np.asarray(near_yaws, dtype=np.float64).reshape(-1)
+    return np.column_stack([positions[:, 0], positions[:, 1], _exact_yaws(quaternions, yaws, near)])
+
+
 def repose(scan: LaserScan | PointCloud, position: object, quaternion_xyzw: object) -> LaserScan:
     """``scan`` taken from the sensor pose ``T_map_sensor`` (``position``, ``quaternion_xyzw``) instead: the same
     beams, stamp and settings, a new pose.
@@ -214,9 +265,9 @@ def repose(scan: LaserScan | PointCloud, position: object, quaternion_xyzw: obje
     if isinstance(scan, PointCloud):
         raise NotImplementedError("a stored PointCloud cannot be re-posed: it keeps its points in the map frame and "
                                   "its sensor's origin, not the orientation they were placed with")
-    x, y, _ = _rows("position", [position], 1, 3)[0]
-    quaternion = _rows("quaternion_xyzw", [quaternion_xyzw], 1, 4)[0]
-    theta, _ = level_heading(quaternion)  # the turn is in the stored beams already
-    if tuple(quaternion.tolist()) == yaw_quaternion(scan.pose[2]):
-        theta = scan.pose[2]
-    return dataclasses.replace(scan, pose=(float(x), float(y), theta))
+    position_row = _rows("position", [position], 1, 3)
+    quaternion = _rows("quaternion_xyzw", [quaternion_xyzw], 1, 4)
+    if tuple(quaternion[0].tolist()) == yaw_quaternion(scan.pose[2]):
+        return dataclasses.replace(scan, pose=(float(position_row[0, 0]), float(position_row[0, 1]), scan.pose[2]))
+    x, y, theta = laser_poses(position_row, quaternion, [scan.pose[2]])[0]
+    return dataclasses.replace(scan, pose=(float(x), float(y), float(theta)))

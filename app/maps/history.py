@@ -15,6 +15,7 @@ from dataclasses import dataclass
 from app.maps.entry import MapEntry
 from app.maps.stored import npz, restore
 from app.storage import Storage, StoredMap
+from app.storage.corrections import PENDING
 
 #: A fold keeps the newest history up to this share of the budget, so that folds are rare (each
 #: re-fuses the batches it folds).
@@ -31,10 +32,12 @@ def rebuild(history: StoredMap, up_to: int | None = None) -> MapEntry:
 @dataclass(frozen=True)
 class Fold:
     """The history up to ``version`` folded into a base: ``payload`` the map at ``version`` (None: the restart
-    snapshot, which is at ``version``)."""
+    snapshot, which is at ``version``), planned from the map at ``planned_at`` (a correction's switch since then moved
+    the history's poses: ``Storage.write_base`` then refuses it)."""
 
     version: int
     payload: bytes | None
+    planned_at: int
 
 
 def plan_fold(storage: Storage, name: str, incarnation: str | None, *, budget: int, replay: bool) -> Fold | None:
@@ -47,14 +50,17 @@ def plan_fold(storage: Storage, name: str, incarnation: str | None, *, budget: i
     head = storage.map_head(name)
     if head is None or head.incarnation != incarnation or head.history_bytes <= budget:
         return None
+    pending = storage.correction(name)
+    if pending is not None and pending.state == PENDING:
+        return None  # its batches stay re-posable until the correction is applied (``write_base`` checks it too)
     version = storage.fold_point(name, int(budget * FOLD_DOWN_TO))
     if version <= head.base_version:
         return None
     if version == head.snapshot_version:
-        return Fold(version, None)  # the restart snapshot is that map: nothing to fuse
+        return Fold(version, None, head.version)  # the restart snapshot is that map: nothing to fuse
     if not replay:
         return None
     history = storage.load_history(name, up_to=version)
     if history is None or history.incarnation != incarnation:
         return None
-    return Fold(version, npz(rebuild(history, up_to=version).map.to_arrays()))
+    return Fold(version, npz(rebuild(history, up_to=version).map.to_arrays()), head.version)

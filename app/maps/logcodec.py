@@ -14,7 +14,7 @@ import json
 import math
 import struct
 import zlib
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, TypeVar
 
@@ -52,8 +52,19 @@ class SetForget:
     metres: float | None
 
 
+@dataclass(frozen=True)
+class Reposed:
+    """The map rebuilt at a corrected trajectory (``correction``, its id): the scans of versions up to ``through``
+    were given new poses (``scans`` of them), stored with their batches; the restart snapshot written with this record
+    is the rebuilt map. Replayed as nothing: the batches before it replay at their new poses already."""
+
+    correction: str
+    through: int
+    scans: int
+
+
 #: An edit of a map, logged and replayed in its place among the scans.
-Edit = Clear | SetForget
+Edit = Clear | SetForget | Reposed
 #: What a batch record holds.
 Batch = list[Scan] | Prior | Edit
 
@@ -210,6 +221,8 @@ def encode_edit(edit: Edit) -> bytes:
     """An edit as bytes that :func:`decode` turns back into an equal one."""
     if isinstance(edit, Clear):
         body = {"op": "clear", "low": list(edit.low), "high": list(edit.high)}
+    elif isinstance(edit, Reposed):
+        body = {"op": "reposed", "correction": edit.correction, "through": edit.through, "scans": edit.scans}
     else:
         body = {"op": "forget_beyond", "metres": edit.metres}
     return _EDIT_MAGIC + json.dumps(body).encode()
@@ -222,6 +235,8 @@ def _decode_edit(payload: bytes) -> Edit:
         if len(low) not in (2, 3) or len(high) != len(low):
             raise CorruptBatch(f"stored clear has malformed corners {body!r}")
         return Clear(low, high)
+    if body.get("op") == "reposed":
+        return Reposed(str(body["correction"]), int(body["through"]), int(body["scans"]))
     if body.get("op") == "forget_beyond":
         metres = body["metres"]
         return SetForget(None if metres is None else float(metres))
@@ -254,6 +269,15 @@ def _take(payload: bytes, offset: int, dtype: np.dtype, count: int) -> np.ndarra
 def _frames(payload: bytes) -> Iterator[tuple[dict[str, Any], np.ndarray, np.ndarray]]:
     """Each scan of a framed record: its header entry, its scalars and its values (views of ``payload``, as stored),
     bounds-checked."""
+    for item, scalars_at, values_at in _layout(payload):
+        count, shape = int(item["scalars"]), tuple(int(n) for n in item["shape"])
+        scalars = _take(payload, scalars_at, np.dtype("<f8"), count)
+        yield item, scalars, _take(payload, values_at, _VALUE_DTYPES[item["dtype"]], math.prod(shape)).reshape(shape)
+
+
+def _layout(payload: bytes) -> list[tuple[dict[str, Any], int, int]]:
+    """Each scan of a framed record: its header entry and the byte offsets of its scalars and of its values, checked
+    against the record's length."""
     offset = len(_MAGIC)
     (length,) = _HEADER_LENGTH.unpack_from(payload, offset)
     offset += _HEADER_LENGTH.size
@@ -261,6 +285,7 @@ def _frames(payload: bytes) -> Iterator[tuple[dict[str, Any], np.ndarray, np.nda
         raise CorruptBatch("stored batch is truncated inside its header")
     header = json.loads(payload[offset:offset + length])
     offset += length
+    layout = []
     for item in header["scans"]:
         kind, count, shape = str(item["kind"]), int(item["scalars"]), tuple(int(n) for n in item["shape"])
         if count not in _SCALARS.get(kind, ()) or any(n < 0 for n in shape) or len(shape) != (1 if kind == "laser" else 2):
@@ -268,13 +293,69 @@ def _frames(payload: bytes) -> Iterator[tuple[dict[str, Any], np.ndarray, np.nda
         stamp = item.get("stamp_ns")
         if stamp is not None and (isinstance(stamp, bool) or not isinstance(stamp, int) or stamp < 0):
             raise CorruptBatch(f"stored batch has a malformed stamp: {item!r}")
-        scalars = _take(payload, offset, np.dtype("<f8"), count)
-        offset += scalars.nbytes
-        values = _take(payload, offset, _VALUE_DTYPES[item["dtype"]], math.prod(shape)).reshape(shape)
-        offset += values.nbytes
-        yield item, scalars, values
+        if item["dtype"] not in _VALUE_DTYPES:
+            raise CorruptBatch(f"stored batch has a malformed scan header: {item!r}")
+        scalars_at = offset
+        offset += count * 8
+        values_at = offset
+        offset += math.prod(shape) * _VALUE_DTYPES[item["dtype"]].itemsize
+        if offset > len(payload):
+            raise CorruptBatch(f"stored batch is truncated or its header is wrong ({item!r} ends at byte {offset})")
+        layout.append((item, scalars_at, values_at))
     if offset != len(payload):
         raise CorruptBatch(f"stored batch has {len(payload) - offset} bytes after its last scan")
+    return layout
+
+
+#: A batch's scans' current poses, where a corrected trajectory moved them: one ``(x, y, theta)`` row of
+#: little-endian float64 per scan of the batch, in order; NaN rows keep the scan's own pose (a point cloud's).
+POSE_DTYPE = np.dtype("<f8")
+
+
+def encode_poses(poses: np.ndarray) -> bytes:
+    """A batch's scans' poses (``(n, 3)`` float64, NaN rows: kept as stored) as a batch row's ``poses``."""
+    return np.ascontiguousarray(poses, dtype=POSE_DTYPE).tobytes()
+
+
+def decode_poses(data: bytes) -> np.ndarray:
+    """The ``(n, 3)`` poses of :func:`encode_poses`."""
+    if len(data) % (3 * POSE_DTYPE.itemsize):
+        raise CorruptBatch(f"stored poses are {len(data)} bytes, not rows of three float64")
+    return np.frombuffer(data, dtype=POSE_DTYPE).reshape(-1, 3)
+
+
+def with_poses(payload: bytes, poses: bytes) -> bytes:
+    """``payload`` with its LaserScans at the poses of ``poses`` (:func:`encode_poses`; NaN rows and point clouds keep
+    theirs), everything else as stored, bit for bit: what the batch replays as once a correction moved it.
+
+    Raises :class:`CorruptBatch` when ``poses`` does not hold one row per scan.
+    """
+    return _guarded(lambda data: _with_poses(data, decode_poses(poses)), payload)
+
+
+def moved(batches: Sequence[tuple[int, bytes]], poses: Mapping[int, bytes]) -> list[tuple[int, bytes]]:
+    """A map's stored (version, payload) batches as they replay: each at the poses a correction gave it, if any
+    (``StoredMap.poses``; :func:`with_poses`)."""
+    if not poses:
+        return list(batches)
+    return [(version, payload if version not in poses else with_poses(payload, poses[version]))
+            for version, payload in batches]
+
+
+def _with_poses(payload: bytes, poses: np.ndarray) -> bytes:
+    if not payload.startswith(_MAGIC):  # a batch stored before the framed record: written again as one
+        batch = _decode_any(payload)
+        if not isinstance(batch, list):
+            raise CorruptBatch(f"stored poses for a {type(batch).__name__.lower()}, which has no scans")
+        return _with_poses(encode(batch), poses)
+    layout = _layout(payload)
+    if len(layout) != len(poses):
+        raise CorruptBatch(f"stored poses hold {len(poses)} rows for a batch of {len(layout)} scans")
+    patched = bytearray(payload)
+    for (item, scalars_at, _), pose in zip(layout, poses, strict=True):
+        if item["kind"] == "laser" and not np.isnan(pose).any():
+            patched[scalars_at:scalars_at + 3 * POSE_DTYPE.itemsize] = pose.astype(POSE_DTYPE).tobytes()
+    return bytes(patched)
 
 
 def _decode_framed(payload: bytes) -> list[Scan]:

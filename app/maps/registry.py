@@ -86,6 +86,11 @@ class MapRegistry:
                               "seconds": round(time.perf_counter() - started, 3)}},
         )
 
+    def holding(self, name: str) -> MapEntry | None:
+        """The map held here under ``name``, if any (never loads one)."""
+        entry = self._maps.get(name)
+        return None if entry is None or entry.deleted else entry
+
     def entry(self, name: str) -> MapEntry:
         """The map held under ``name`` (with a shared database, maybe behind it: see ``held``)."""
         entry = self._maps.get(name)

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import io
 import logging
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any, cast
 
@@ -17,7 +17,7 @@ import numpy as np
 
 from app.maps import logcodec
 from app.maps.entry import UNLIMITED_CELLS, MapEntry, OccupancyMap, spec_of
-from app.maps.logcodec import Batch, Clear, Prior, SetForget
+from app.maps.logcodec import Batch, Clear, Prior, Reposed, SetForget
 from app.scans import Scan
 from app.schemas import engine_choice
 from app.storage import StoredMap
@@ -62,6 +62,8 @@ def integrate(built: OccupancyMap, batch: Batch) -> IntegrationStats:
     if isinstance(batch, SetForget):
         built.forget_beyond = batch.metres
         return IntegrationStats(scans=0, rays=0, cells_updated=0)
+    if isinstance(batch, Reposed):  # the batches before it were replayed at their new poses
+        return IntegrationStats(scans=0, rays=0, cells_updated=0)
     return built.integrate_batch(batch)
 
 
@@ -69,16 +71,17 @@ def batch_work(spec: GridSpec | LatticeSpec, batch: Batch) -> int:
     """The cells fusing ``batch`` walks (``cast_work`` of scans; a prior's cells, once a scan it stands for)."""
     if isinstance(batch, Prior):
         return int(np.abs(batch.levels[batch.levels != PRIOR_UNSEEN].astype(np.int64)).sum())
-    if isinstance(batch, (Clear, SetForget)):
+    if isinstance(batch, (Clear, SetForget, Reposed)):
         return 0  # a clear walks the map's blocks once, not rays
     return cast_work(spec, batch)
 
 
-def restore(stored: StoredMap, up_to: int | None = None) -> MapEntry:
+def restore(stored: StoredMap, up_to: int | None = None, progress: Callable[[int], None] | None = None) -> MapEntry:
     """A map from its snapshot and the batches after it (replayed in order: bit-identical risk).
 
     ``up_to``: replay only the batches up to that version (a live map's rebuild: later batches
-    may be committed and still waiting for their turn to be applied).
+    may be committed and still waiting for their turn to be applied). ``progress``: called with the
+    scans of each batch once it is fused (an exception it raises stops the replay).
     """
     if stored.damage:
         raise RuntimeError(f"map {stored.name!r}: {'; '.join(stored.damage)}")
@@ -98,11 +101,11 @@ def restore(stored: StoredMap, up_to: int | None = None) -> MapEntry:
         dict(stored.meta), built, stored.snapshot_version, stored.snapshot_version, built.scans_fused,
         stored.stamps.get(stored.snapshot_version, stored.updated),
     )
-    progress = replay(entry.map, stored, after=entry.version, up_to=up_to)
-    entry.version, entry.scans_fused, entry.updated = progress.version or entry.version, built.scans_fused, \
-        progress.updated or entry.updated
-    entry.last_scan = progress.last_scan
-    entry.log.extend(progress.log)
+    done = replay(entry.map, stored, after=entry.version, up_to=up_to, progress=progress)
+    entry.version, entry.scans_fused, entry.updated = done.version or entry.version, built.scans_fused, \
+        done.updated or entry.updated
+    entry.last_scan = done.last_scan
+    entry.log.extend(done.log)
     # versions up to the stored one that were not replayed are discarded batches (tombstones)
     entry.checked = stored.version if up_to is None else min(stored.version, up_to)
     return entry
@@ -119,29 +122,35 @@ class Replayed:
     log: list[tuple[int, int, int]] = field(default_factory=list)
 
 
-def replay(built: OccupancyMap, stored: StoredMap, *, after: int, up_to: int | None = None) -> Replayed:
-    """Fuse ``stored``'s batches above version ``after`` (and at most ``up_to``) into ``built``, in order."""
-    progress = Replayed()
+def replay(built: OccupancyMap, stored: StoredMap, *, after: int, up_to: int | None = None,
+           progress: Callable[[int], None] | None = None) -> Replayed:
+    """Fuse ``stored``'s batches above version ``after`` (and at most ``up_to``) into ``built``, in order, each at the
+    poses a correction gave it (``stored.poses``); ``progress`` as ``restore``'s."""
+    replayed = Replayed()
     for version, payload in stored.batches:
         if version <= after:
             continue
         if up_to is not None and version > up_to:
             break
         try:
+            if version in stored.poses:  # moved by a correction: replayed at its new poses
+                payload = logcodec.with_poses(payload, stored.poses[version])
             batch = logcodec.decode(payload)
         except logcodec.CorruptBatch as exc:
             # an acknowledged batch: never dropped silently; the service refuses to start and says where
             raise RuntimeError(f"map {stored.name!r}: stored batch {version} is corrupt ({exc}); the database "
                                f"needs repair (restore a backup, or delete that row to drop the batch)") from exc
-        progress.log.append((version, len(payload), batch_work(built.spec, batch)))
+        replayed.log.append((version, len(payload), batch_work(built.spec, batch)))
         try:
             integrate(built, batch)
         except ValueError:
             # cannot happen for a batch that was acknowledged (it was applied before the 200)
             LOG.exception("map %s: batch %d cannot be replayed; skipped", stored.name, version)
             continue
-        progress.version = version
+        replayed.version = version
         if isinstance(batch, list) and batch:  # a prior or an edit fuses no scan
-            progress.last_scan = batch[-1]
-        progress.updated = stored.stamps.get(version, stored.updated)
-    return progress
+            replayed.last_scan = batch[-1]
+        replayed.updated = stored.stamps.get(version, stored.updated)
+        if progress is not None:
+            progress(len(batch) if isinstance(batch, list) else 0)
+    return replayed

@@ -189,7 +189,7 @@ class WritePath:
             if fold is None:
                 return
             done = await self._workers.run_admin(
-                self.storage.write_base, entry.name, fold.version, fold.payload, entry.incarnation)
+                self.storage.write_base, entry.name, fold.version, fold.payload, entry.incarnation, fold.planned_at)
         except Exception as exc:
             self.metrics.history_fold_failures.inc()
             LOG.warning("the history could not be folded; it stays as it is and the fold is tried again after the "
@@ -515,6 +515,44 @@ class WritePath:
             # applied, or not (a failed catch-up leaves it in the log for the next one to apply)
             entry.inflight.discard(version)
             entry.line.done(ticket)
+
+    async def replace_by_rebuild(self, name: str, incarnation: str | None, rebuilt: MapEntry,
+                                 switch: Callable[[], int | None], catch_up: Callable[[], None]) -> int:
+        """Replace map ``name`` by ``rebuilt`` (the same history fused again, caught up to the version it names),
+        stored by ``switch`` (blocking: the rebuilt map's snapshot and the store's switch; None when a batch was
+        stored since) after ``catch_up`` (blocking: the rebuilt map brought to the newest stored version) as often
+        as it takes; the new version.
+
+        Where this replica holds the map, in the map's line as a writer: no batch of it commits meanwhile, the
+        batches committed before are applied to the current map first, and the rebuilt one takes its place under
+        the apply lock, so a reader sees one or the other, whole. Where it does not, the holders catch up from the
+        stored snapshot, as after another replica's snapshot.
+        """
+        entry = self._registry.holding(name)
+        if entry is not None and entry.incarnation != incarnation:
+            entry = None
+        ticket = None if entry is None else entry.line.take()
+        try:
+            if entry is not None and ticket is not None:
+                await entry.line.commit.wait(ticket)
+            while (version := await self._workers.run_heavy(switch)) is None:
+                await self._workers.run_heavy(catch_up)
+            if entry is None or ticket is None:
+                return version
+            entry.line.commit.done(ticket)  # the next batch commits as the next version
+            await entry.line.apply.wait(ticket)
+            async with entry.apply_lock:
+                entry.map, entry.updated, entry.scans_fused = rebuilt.map, rebuilt.updated, rebuilt.map.scans_fused
+                entry.version = entry.snapshot_version = entry.checked = version
+                entry.log.clear()  # a restart starts from the snapshot the switch stored
+                entry.last_view = None
+                self._grids.retire(entry.uid, below=version)
+                if entry.last_scan is not None:
+                    self._notify("batch_applied", entry.name, entry.version, entry.last_scan, entry.frame_id)
+            return version
+        finally:
+            if entry is not None and ticket is not None:
+                entry.line.done(ticket)
 
     async def current(self, name: str) -> MapEntry:
         """The map for a read: with every batch acknowledged (by this replica or another) before the call applied.

@@ -77,6 +77,10 @@ class Metrics:
         self.history_folds = Counter(
             "fuzzyrisk_history_folds", "Oldest batches of a map's history folded into its base snapshot", registry=r
         )
+        self.rebuilds = Counter(
+            "fuzzyrisk_rebuilds", "Rebuilds of a map at a corrected trajectory, by how they ended (done, failed, "
+            "superseded: a newer correction or the map's deletion stopped it)", ["result"], registry=r
+        )
         self.history_fold_failures = Counter(
             "fuzzyrisk_history_fold_failures", "Folds of a map's history that failed (tried again after the next "
             "snapshot)", registry=r

@@ -248,5 +248,6 @@ def export(grid: GridSnapshot, stored: StoredMap, *, media_type: str, max_bytes:
     etag = grid.etag(variant)
     if etags.matches(if_none_match, etag):
         return Recording(grid, variant, etag, stored.snapshot_version, None)
-    data = mcap_file(grid, stored.batches, since_version=stored.snapshot_version, max_bytes=max_bytes)
+    data = mcap_file(grid, logcodec.moved(stored.batches, stored.poses), since_version=stored.snapshot_version,
+                     max_bytes=max_bytes)
     return Recording(grid, variant, etag, stored.snapshot_version, data)

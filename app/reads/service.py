@@ -181,7 +181,7 @@ class MapReads:
         (version, frame_id, updated), stored = await self._with_log(name, await self._current(name), copy,
                                                                     self.storage.load_history)
         made = await self._workers.run_read(functools.partial(
-            trajectory.trajectory_json, stored.batches, frame_id=frame_id, stamp=msgtypes.ros_time_of_iso(updated),
+            trajectory.trajectory_json, stored.batches, moved=stored.poses, frame_id=frame_id, stamp=msgtypes.ros_time_of_iso(updated),
             version=version, from_version=stored.snapshot_version, max_poses=self.settings.max_trajectory_poses),
             heavy=True)
         return made, version

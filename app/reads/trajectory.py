@@ -10,7 +10,7 @@ and a 2-D cloud's z is 0. A scan stored before scans kept stamps is stamped 0 (R
 from __future__ import annotations
 
 import json
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 from app.errors import TooLarge, Unavailable
@@ -22,12 +22,15 @@ from app.schemas import Trajectory
 _IDENTITY = {"x": 0.0, "y": 0.0, "z": 0.0, "w": 1.0}
 
 
-def scan_poses(log: Sequence[tuple[int, bytes]], max_poses: int) -> list[logcodec.ScanPose]:
-    """The poses of the log's scans, in version order and in order within a batch; ``TooLarge`` past ``max_poses``
-    (``FUZZYRISK_MAX_TRAJECTORY_POSES``), as soon as the count passes it."""
+def scan_poses(log: Sequence[tuple[int, bytes]], max_poses: int,
+               moved: Mapping[int, bytes] | None = None) -> list[logcodec.ScanPose]:
+    """The poses of the log's scans, in version order and in order within a batch, where ``moved`` (``StoredMap.poses``)
+    put them; ``TooLarge`` past ``max_poses`` (``FUZZYRISK_MAX_TRAJECTORY_POSES``), as soon as the count passes it."""
     poses: list[logcodec.ScanPose] = []
     for version, payload in log:
         try:
+            if moved and version in moved:
+                payload = logcodec.with_poses(payload, moved[version])
             poses += logcodec.scan_poses(payload)
         except logcodec.CorruptBatch as exc:
             raise Unavailable(f"the map's stored batch {version} is corrupt ({exc}): its trajectory cannot be "
@@ -50,15 +53,16 @@ _CHUNK = 4096
 _NO_POSES = b'"poses":[]'
 
 
-def trajectory_json(log: Sequence[tuple[int, bytes]], *, frame_id: str, stamp: dict[str, int], version: int,
-                    from_version: int, max_poses: int) -> bytes:
-    """``Trajectory`` of the batches of ``log`` (version, payload), as JSON bytes (module doc).
+def trajectory_json(log: Sequence[tuple[int, bytes]], *, moved: Mapping[int, bytes], frame_id: str,
+                    stamp: dict[str, int], version: int, from_version: int, max_poses: int) -> bytes:
+    """``Trajectory`` of the batches of ``log`` (version, payload), at the poses ``moved`` gave them, as JSON bytes (module
+    doc).
 
     The small fields go through the model; the poses, built in its shape by ``_pose_stamped``, are written by
     ``json`` a chunk at a time (what the model reads back, every number as stored: tested): validating 100,000
     of them through the model took 4 s, the rest of the answer 2.
     """
-    poses = scan_poses(log, max_poses)
+    poses = scan_poses(log, max_poses, moved)
     head = Trajectory.model_validate({
         "header": {"stamp": stamp, "frame_id": frame_id},
         "poses": [],

@@ -107,7 +107,7 @@ from app.schemas.system import (
     Health,
     Readiness,
 )
-from app.schemas.trajectory import Trajectory
+from app.schemas.trajectory import CorrectedPath, RebuildAccepted, RebuildState, RebuildStatus, Trajectory
 
 __all__ = [
     "BagImportResult",
@@ -188,6 +188,10 @@ __all__ = [
     "Time",
     "TrapezoidIn",
     "Trajectory",
+    "CorrectedPath",
+    "RebuildAccepted",
+    "RebuildState",
+    "RebuildStatus",
     "TriangleIn",
     "Vector",
     "WHOLE_MAP",

@@ -28,6 +28,7 @@ from app.storage.diskreserve import DiskReserve
 from app.ops.process_setup import give_back_freed_memory
 from app.maps import MapObserver, MapRegistry, PlanGrids, WritePath
 from app.maps.shared_grids import DIRECTORY as PLAN_GRIDS_DIRECTORY
+from app.maps.refusion import Refusions
 from app.ops.metrics import Metrics
 from app.plans.path_check import PathChecks
 from app.plans.service import MapPlans
@@ -63,6 +64,7 @@ class MapService:
         self.plans = MapPlans(settings, metrics, self.writes.current, self.reads, self._grids, self._pool,
                               self._notify)
         self.path_checks = PathChecks(settings, self.reads)
+        self.refusions = Refusions(settings, storage, metrics, self._workers, self.maps, self.writes)
         metrics.batches_in_line.set_function(self.maps.batches_in_line)
         metrics.longest_fusion_job.set_function(self._workers.longest_fusion_job_s)
         self._kernels: asyncio.Task[None] | None = None
@@ -84,6 +86,7 @@ class MapService:
         await self._workers.run(self._grids.open)  # and remove what a killed run left
         await self._workers.run(self._reserve.hold)
         await self.maps.load_all()
+        self.refusions.start()  # corrections left pending by a killed run resume once their lease runs out
         # in the background: /health answers meanwhile, /ready once they are done; a scan that comes first
         # waits for the kernel it needs (numba compiles one at a time), not for all of them
         self._kernels = asyncio.get_running_loop().create_task(self._warm_kernels())
@@ -152,6 +155,7 @@ class MapService:
         """Wait for batches in flight, snapshot every map with unsnapshotted batches, release everything."""
         if self._evictor is not None:
             self._evictor.cancel()
+        await self.refusions.stop()
         await self.writes.stop()
         if self._kernels is not None:
             self._kernels.cancel()  # a compilation under way still ends in its thread (below)

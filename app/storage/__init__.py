@@ -37,6 +37,7 @@ from app.storage.base import (
     head_of,
     read_map,
 )
+from app.storage.corrections import StoredCorrection, Superseded, Switch
 from app.storage.sqlite import SqliteStorage, payload_directory
 
 __all__ = [
@@ -50,7 +51,10 @@ __all__ = [
     "SqliteStorage",
     "Storage",
     "StorageUnavailable",
+    "StoredCorrection",
     "StoredMap",
+    "Superseded",
+    "Switch",
     "checksum",
     "head_of",
     "payload_directory",

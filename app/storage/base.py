@@ -11,10 +11,13 @@ import json
 import zlib
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
-from typing import Any, NamedTuple, Protocol
+from typing import TYPE_CHECKING, Any, NamedTuple, Protocol
 
 from app.errors import CommitUncertain, StorageUnavailable
 from app.storage.payloadfiles import PayloadSource, PayloadUnreadable
+
+if TYPE_CHECKING:
+    from app.storage.corrections import StoredCorrection, Switch
 
 __all__ = [
     "INLINE_BYTES",
@@ -77,6 +80,9 @@ class StoredMap:
     #: version -> ``updated`` of that batch (or of the snapshot's version), where stored: the map's
     #: ``updated`` at that version, the same on every replica
     stamps: dict[int, str] = field(default_factory=dict)
+    #: version -> the poses a correction gave that batch's scans (``logcodec.encode_poses``; opaque here): the batch
+    #: replays at them (``logcodec.moved``)
+    poses: dict[int, bytes] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -124,9 +130,10 @@ class Storage(Protocol):
     def load_map(self, name: str) -> StoredMap | None:
         """One map with its snapshot and every batch after it; None when there is none of that name."""
 
-    def load_history(self, name: str, up_to: int | None = None) -> StoredMap | None:
+    def load_history(self, name: str, up_to: int | None = None, after: int | None = None) -> StoredMap | None:
         """The map's base snapshot (None: none yet, the history starts at the creation) and every batch after it,
-        up to ``up_to`` (None: the newest); None when there is no map of that name."""
+        up to ``up_to`` (None: the newest); None when there is no map of that name. ``after``: only the batches
+        after that version (and the base only when it is newer), whatever the restart snapshot."""
 
     def load_since(self, name: str, after: int, up_to: int | None = None) -> StoredMap | None:
         """What a holder of the map at version ``after`` needs to reach ``up_to`` (None: the newest).
@@ -172,12 +179,38 @@ class Storage(Protocol):
         Never above the restart snapshot's version (a restart replays the batches after it).
         """
 
-    def write_base(self, name: str, version: int, payload: bytes | None, incarnation: str | None = None) -> bool:
+    def write_base(self, name: str, version: int, payload: bytes | None, incarnation: str | None = None,
+                   planned_at: int | None = None) -> bool:
         """Fold the history up to ``version``: store ``payload`` (the map at ``version``) as the base snapshot and
         drop the batches it covers, atomically; ``payload`` None: the restart snapshot, which must be at
         ``version``, becomes the base. Whether it was done: not when the base is as new or newer (another
         replica folded first), the restart snapshot is older than ``version``, or the map is gone.
         """
+
+    def put_correction(self, name: str, incarnation: str | None, correction_id: str, through_version: int,
+                       payload: bytes, requested: str, owner: str, lease_until: float) -> None:
+        """Durably store a pending correction of the map (replacing its last one), held by ``owner`` until
+        ``lease_until``; ``MapGone`` when the map is not stored under that incarnation (``app.storage.corrections``)."""
+
+    def correction(self, name: str, *, with_payload: bool = False) -> StoredCorrection | None:
+        """The map's latest correction, if any (its payload while pending, when asked)."""
+
+    def correction_orphans(self, now: float) -> list[tuple[str, str]]:
+        """(map, id) of the pending corrections whose owner's lease ran out before ``now``."""
+
+    def claim_correction(self, name: str, correction_id: str, owner: str, lease_until: float, now: float) -> bool:
+        """Take or keep the pending correction for ``owner``; whether it is ``owner``'s."""
+
+    def report_correction(self, name: str, correction_id: str, owner: str, lease_until: float,
+                          progress: dict[str, Any]) -> bool:
+        """Renew the lease and store the progress; False when the correction is no longer ``owner``'s pending one."""
+
+    def fail_correction(self, name: str, correction_id: str, progress: dict[str, Any]) -> None:
+        """Mark the pending correction failed, its report saying why."""
+
+    def switch_reposed(self, name: str, incarnation: str | None, change: Switch, snapshot: bytes) -> int | None:
+        """Replace the map by its rebuild at the correction, in one transaction (``corrections.switch``): the new
+        version, or None when a batch was stored after ``change.expect_version``. ``Superseded``, ``MapGone``."""
 
     def close(self) -> None:
         """Flush and release the store."""
@@ -280,14 +313,16 @@ def read_map(query: Callable[[str, tuple[Any, ...]], Iterable[Sequence[Any]]], n
     # (a recorded snapshot or base whose row is gone is reported as such below, not again as the batches it held)
     recorded = (base_version or 0) if from_base else max(snapshot_version or 0, base_version or 0)
     previous = max(after or 0, start, recorded)
-    for seq, stored_payload, crc, stamp, file in query(
-            f"SELECT seq, payload, crc, updated, {file_column} FROM batches WHERE map = ? AND seq > ? AND seq <= ? "
-            "ORDER BY seq", (name, lower, NO_LIMIT if up_to is None else up_to)):
+    for seq, stored_payload, crc, stamp, file, poses in query(
+            f"SELECT seq, payload, crc, updated, {file_column}, poses FROM batches WHERE map = ? AND seq > ? "
+            "AND seq <= ? ORDER BY seq", (name, lower, NO_LIMIT if up_to is None else up_to)):
         _check_gap(stored, previous, seq, stamp)
         previous = seq
         payload = _payload(stored, f"its stored batch {seq}", stored_payload, file, files)
         if payload is not None:
             _take_batch(stored, seq, payload, crc)
+        if poses is not None:
+            stored.poses[seq] = bytes(poses)
         if stamp is not None:
             stored.stamps[seq] = stamp
     if up_to is not None and previous < up_to:  # a gap just below up_to shows only in the row above it

@@ -21,6 +21,8 @@ import psycopg
 import psycopg.errors
 from psycopg_pool import ConnectionPool
 
+from app.storage import corrections
+from app.storage.corrections import StoredCorrection, Switch
 from app.storage.base import (
     BATCH_BYTES,
     HISTORY_OF_ROWS,
@@ -82,6 +84,7 @@ _ADDED_COLUMNS = (
     ("maps", "history_bytes", "BIGINT NOT NULL DEFAULT 0"),
     ("maps", "history_scans", "BIGINT NOT NULL DEFAULT 0"),
     ("batches", "bytes", "BIGINT"),
+    ("batches", "poses", "BYTEA"),
 )
 
 _HEAD = ("SELECT name, meta, updated, version, snapshot_version, scans, incarnation, base_version, history_bytes, "
@@ -123,6 +126,7 @@ class PostgresStorage:
                                        "AND table_name = 'maps' AND column_name = 'history_bytes'").fetchone()
                 for statement in _SCHEMA:
                     conn.execute(statement)
+                conn.execute(corrections.SCHEMA.format(blob="BYTEA", int="BIGINT", real="DOUBLE PRECISION"))
                 present = {(str(t), str(c)) for t, c in conn.execute(
                     "SELECT table_name, column_name FROM information_schema.columns WHERE table_schema = current_schema()")}
                 for table, column, definition in _ADDED_COLUMNS:
@@ -190,8 +194,8 @@ class PostgresStorage:
     def load_since(self, name: str, after: int, up_to: int | None = None) -> StoredMap | None:
         return self._read(lambda conn: _consistent_read(conn, name, after, up_to))
 
-    def load_history(self, name: str, up_to: int | None = None) -> StoredMap | None:
-        return self._read(lambda conn: _consistent_read(conn, name, None, up_to, from_base=True))
+    def load_history(self, name: str, up_to: int | None = None, after: int | None = None) -> StoredMap | None:
+        return self._read(lambda conn: _consistent_read(conn, name, after, up_to, from_base=True))
 
     def create_map(self, name: str, meta: dict[str, Any], updated: str) -> None:
         try:
@@ -277,13 +281,15 @@ class PostgresStorage:
 
         return self._read(point)
 
-    def write_base(self, name: str, version: int, payload: bytes | None, incarnation: str | None = None) -> bool:
+    def write_base(self, name: str, version: int, payload: bytes | None, incarnation: str | None = None,
+                   planned_at: int | None = None) -> bool:
         with self._connection() as conn, conn.transaction():
             # under the map's row lock, as every write: the first replica to fold does it, the others find it done
             row = conn.execute("SELECT base_version, (SELECT version FROM snapshots WHERE map = maps.name) FROM maps "
                                "WHERE name = %s AND (%s::text IS NULL OR incarnation = %s) FOR UPDATE",
                                (name, incarnation, incarnation)).fetchone()
-            if row is None or not may_fold(row[0], row[1], version, moving=payload is None):
+            if row is None or not may_fold(row[0], row[1], version, moving=payload is None) \
+                    or corrections.blocks_fold(_dialect(conn), name, planned_at):
                 return False
             base = None if payload is None else (
                 "INSERT INTO bases (map, version, payload, crc, updated) VALUES (?, ?, ?, ?, "
@@ -293,8 +299,64 @@ class PostgresStorage:
                       "map, version, payload, crc, updated")
             return True
 
+    def put_correction(self, name: str, incarnation: str | None, correction_id: str, through_version: int,
+                       payload: bytes, requested: str, owner: str, lease_until: float) -> None:
+        with self._connection() as conn, conn.transaction():
+            conn.execute(_LOCK_MAP, (name, incarnation, incarnation))  # the map's row lock, as every write
+            corrections.put(_dialect(conn), name, incarnation, correction_id, through_version, payload, requested,
+                            owner, lease_until)
+
+    def correction(self, name: str, *, with_payload: bool = False) -> StoredCorrection | None:
+        return self._read(lambda conn: corrections.read(_dialect(conn), name, with_payload=with_payload))
+
+    def correction_orphans(self, now: float) -> list[tuple[str, str]]:
+        return self._read(lambda conn: corrections.orphans(_dialect(conn), now))
+
+    def claim_correction(self, name: str, correction_id: str, owner: str, lease_until: float, now: float) -> bool:
+        with self._connection() as conn:
+            return corrections.claim(_dialect(conn), name, correction_id, owner, lease_until, now)
+
+    def report_correction(self, name: str, correction_id: str, owner: str, lease_until: float,
+                          progress: dict[str, Any]) -> bool:
+        with self._connection() as conn:
+            return corrections.report(_dialect(conn), name, correction_id, owner, lease_until, progress)
+
+    def fail_correction(self, name: str, correction_id: str, progress: dict[str, Any]) -> None:
+        with self._connection() as conn:
+            corrections.fail(_dialect(conn), name, correction_id, progress)
+
+    def switch_reposed(self, name: str, incarnation: str | None, change: Switch, snapshot: bytes) -> int | None:
+        committing = False
+        try:
+            with self._connection() as conn, conn.transaction():
+                row = conn.execute("SELECT version, base_version FROM maps WHERE name = %s "
+                                   "AND incarnation IS NOT DISTINCT FROM %s::text FOR UPDATE",
+                                   (name, incarnation)).fetchone()
+                if row is None:
+                    raise MapGone(name)
+
+                def store_snapshot(version: int) -> None:
+                    conn.execute("INSERT INTO snapshots (map, version, payload, crc, updated) VALUES (%s, %s, %b, %s, %s) "
+                                 "ON CONFLICT (map) DO UPDATE SET version = excluded.version, "
+                                 "payload = excluded.payload, crc = excluded.crc, updated = excluded.updated",
+                                 (name, version, snapshot, checksum(snapshot), change.updated))
+                    conn.execute("UPDATE maps SET snapshot_version = %s WHERE name = %s", (version, name))
+
+                version = corrections.switch(_dialect(conn), name, int(row[0]), int(row[1]), change, store_snapshot)
+                committing = version is not None
+                return version
+        except StorageUnavailable as exc:
+            if committing:  # the server may have committed before the connection went
+                raise CommitUncertain(str(exc)) from exc
+            raise
+
     def close(self) -> None:
         self._pool.close()
+
+
+def _dialect(conn: psycopg.Connection[Any]) -> corrections.Execute:
+    """``execute`` with the shared statements' ``?`` placeholders."""
+    return lambda sql, args: conn.execute(sql.replace("?", "%s"), args)
 
 
 def _consistent_read(conn: psycopg.Connection[Any], name: str, after: int | None,

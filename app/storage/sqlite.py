@@ -31,6 +31,8 @@ from app.storage.base import (
     read_map,
     start_of,
 )
+from app.storage import corrections
+from app.storage.corrections import StoredCorrection, Switch
 from app.storage.payloadfiles import PayloadFiles, Prefetched
 
 T = TypeVar("T")
@@ -74,7 +76,8 @@ _ADDED_COLUMNS = {
     "maps": {"version": "INTEGER", "snapshot_version": "INTEGER", "incarnation": "TEXT",
              "scans": "INTEGER NOT NULL DEFAULT 0", "base_version": "INTEGER NOT NULL DEFAULT 0",
              "history_bytes": "INTEGER NOT NULL DEFAULT 0", "history_scans": "INTEGER NOT NULL DEFAULT 0"},
-    "batches": {"crc": "INTEGER", "scans": "INTEGER", "updated": "TEXT", "file": "TEXT", "bytes": "INTEGER"},
+    "batches": {"crc": "INTEGER", "scans": "INTEGER", "updated": "TEXT", "file": "TEXT", "bytes": "INTEGER",
+                "poses": "BLOB"},
     "snapshots": {"crc": "INTEGER", "updated": "TEXT", "file": "TEXT"},
 }
 
@@ -115,6 +118,7 @@ class SqliteStorage:
             self._db.execute("PRAGMA synchronous=FULL")
             self._db.execute("PRAGMA foreign_keys=ON")
             self._db.executescript(_SCHEMA)
+            self._db.execute(corrections.SCHEMA.format(blob="BLOB", int="INTEGER", real="REAL"))
             # an old database: its rows keep NULL there (a crc: not verifiable; a version: not checked until
             # the next write; an incarnation: matched by None), new ones get a value
             counted = "history_bytes" in {row[1] for row in self._db.execute("PRAGMA table_info(maps)")}
@@ -127,7 +131,8 @@ class SqliteStorage:
                 self._db.execute(f"UPDATE maps SET (history_bytes, history_scans) = {HISTORY_OF_ROWS}")
             # files of writes that never committed, or whose rows went before them, go (if no other store is open)
             self._files.attach(lambda: {file for (file,) in self._db.execute(
-                "SELECT file FROM batches WHERE file IS NOT NULL UNION SELECT file FROM snapshots WHERE file IS NOT NULL")})
+                "SELECT file FROM batches WHERE file IS NOT NULL UNION SELECT file FROM snapshots WHERE file IS NOT NULL "
+                "UNION SELECT file FROM bases WHERE file IS NOT NULL")})
 
     def _stage(self, payload: bytes) -> str | None:
         """A big payload written to its file (outside the lock); None for one that goes in its row."""
@@ -221,8 +226,8 @@ class SqliteStorage:
     def load_since(self, name: str, after: int, up_to: int | None = None) -> StoredMap | None:
         return self._load(name, after, up_to)
 
-    def load_history(self, name: str, up_to: int | None = None) -> StoredMap | None:
-        return self._load(name, None, up_to, from_base=True)
+    def load_history(self, name: str, up_to: int | None = None, after: int | None = None) -> StoredMap | None:
+        return self._load(name, after, up_to, from_base=True)
 
     def _load(self, name: str, after: int | None, up_to: int | None, *, from_base: bool = False) -> StoredMap | None:
         """``read_map`` with the map's payload files read between two holds of the lock, not under it: 256 MiB
@@ -346,7 +351,8 @@ class SqliteStorage:
                                      (name,))
             return fold_point_of(sizes, keep_bytes, head[0])
 
-    def write_base(self, name: str, version: int, payload: bytes | None, incarnation: str | None = None) -> bool:
+    def write_base(self, name: str, version: int, payload: bytes | None, incarnation: str | None = None,
+                   planned_at: int | None = None) -> bool:
         file = None if payload is None else self._stage(payload)
         staged = [] if file is None else [file]
         crc = None if payload is None else checksum(payload)
@@ -354,7 +360,8 @@ class SqliteStorage:
         def fold(db: sqlite3.Connection) -> tuple[bool, list[str]]:
             row = db.execute("SELECT base_version, (SELECT version FROM snapshots WHERE map = maps.name) FROM maps "
                              "WHERE name = ? AND (? IS NULL OR incarnation = ?)", (name, incarnation, incarnation)).fetchone()
-            if row is None or not may_fold(row[0], row[1], version, moving=payload is None):
+            if row is None or not may_fold(row[0], row[1], version, moving=payload is None) \
+                    or corrections.blocks_fold(db.execute, name, planned_at):
                 return False, staged
             dropped = [f for (f,) in db.execute("SELECT file FROM bases WHERE map = ? AND file IS NOT NULL UNION ALL "
                                                 "SELECT file FROM batches WHERE map = ? AND seq <= ? AND file IS NOT NULL",
@@ -368,6 +375,55 @@ class SqliteStorage:
             return True, dropped
 
         return self._with_files(staged, fold)
+
+    def put_correction(self, name: str, incarnation: str | None, correction_id: str, through_version: int,
+                       payload: bytes, requested: str, owner: str, lease_until: float) -> None:
+        self._transaction(lambda db: corrections.put(db.execute, name, incarnation, correction_id, through_version,
+                                                     payload, requested, owner, lease_until))
+
+    def correction(self, name: str, *, with_payload: bool = False) -> StoredCorrection | None:
+        with self._lock:
+            return corrections.read(self._db.execute, name, with_payload=with_payload)
+
+    def correction_orphans(self, now: float) -> list[tuple[str, str]]:
+        with self._lock:
+            return corrections.orphans(self._db.execute, now)
+
+    def claim_correction(self, name: str, correction_id: str, owner: str, lease_until: float, now: float) -> bool:
+        return self._transaction(lambda db: corrections.claim(db.execute, name, correction_id, owner, lease_until, now))
+
+    def report_correction(self, name: str, correction_id: str, owner: str, lease_until: float,
+                          progress: dict[str, Any]) -> bool:
+        return self._transaction(lambda db: corrections.report(db.execute, name, correction_id, owner, lease_until,
+                                                               progress))
+
+    def fail_correction(self, name: str, correction_id: str, progress: dict[str, Any]) -> None:
+        self._transaction(lambda db: corrections.fail(db.execute, name, correction_id, progress))
+
+    def switch_reposed(self, name: str, incarnation: str | None, change: Switch, snapshot: bytes) -> int | None:
+        file = self._stage(snapshot)
+        staged = [] if file is None else [file]
+        crc = checksum(snapshot)
+
+        def run(db: sqlite3.Connection) -> tuple[int | None, list[str]]:
+            row = db.execute(f"SELECT {_SQLITE_NEWEST}, base_version FROM maps WHERE name = ? AND incarnation IS ?",
+                             (name, incarnation)).fetchone()
+            if row is None:
+                raise MapGone(name)
+            replaced = [f for (f,) in db.execute("SELECT file FROM snapshots WHERE map = ? AND file IS NOT NULL",
+                                                 (name,))]
+
+            def store_snapshot(version: int) -> None:
+                db.execute("INSERT INTO snapshots (map, version, payload, crc, updated, file) VALUES (?, ?, ?, ?, ?, ?) "
+                           "ON CONFLICT(map) DO UPDATE SET version = excluded.version, payload = excluded.payload, "
+                           "crc = excluded.crc, updated = excluded.updated, file = excluded.file",
+                           (name, version, snapshot if file is None else b"", crc, change.updated, file))
+                db.execute("UPDATE maps SET snapshot_version = ? WHERE name = ?", (version, name))
+
+            version = corrections.switch(db.execute, name, int(row[0]), int(row[1]), change, store_snapshot)
+            return version, staged if version is None else replaced
+
+        return self._with_files(staged, run)
 
     def close(self) -> None:
         with self._lock:

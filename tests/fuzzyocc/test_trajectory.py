@@ -12,7 +12,7 @@ from scipy.spatial.transform import Rotation
 from fuzzyocc import FuzzyMap, GridSpec, LaserScan, PointCloud
 from fuzzyocc.carmen import grid_for_scans, read_carmen
 from fuzzyocc.tf import NotLevel, level_heading, yaw_quaternion
-from fuzzyocc.trajectory import Trajectory, repose
+from fuzzyocc.trajectory import Trajectory, laser_poses, repose
 
 CARMEN = Path(__file__).resolve().parents[1] / "data" / "carmen"
 #: Past float64's exact integers (2**53): the interpolation must work on nanoseconds since the first stamp.
@@ -226,3 +226,23 @@ def test_a_log_reposed_on_its_own_trajectory_gets_every_pose_back_exactly(log: s
         out = repose(scan, p, q)
         assert np.array(out.pose).tobytes() == np.array(scan.pose).tobytes(), scan.stamp_ns
         assert out.stamp_ns == scan.stamp_ns and out.ranges.tobytes() == scan.ranges.tobytes()
+
+
+@pytest.mark.parametrize("log", ["seattle-corrected.log.gz", "orebro-corrected.log.gz", "csail-corrected.log.gz"])
+def test_yaw_quaternions_of_a_logs_headings_give_the_headings_back_bit_for_bit(log: str) -> None:
+    # a SLAM node publishes the corrected poses as yaw quaternions, whatever the scans' poses were before: the
+    # map must get those very headings (not the ones a quaternion's yaw rounds or wraps to)
+    scans = read_carmen(CARMEN / log)
+    thetas = np.array([s.pose[2] for s in scans])
+    quaternions = np.array([yaw_quaternion(t) for t in thetas])
+    positions = np.array([[s.pose[0], s.pose[1], 0.0] for s in scans])
+    drifted = thetas + np.random.default_rng(3).normal(0.0, 0.3, thetas.size)  # the headings the map had before
+    got = laser_poses(positions, quaternions, drifted)
+    assert np.array_equal(got[:, 2].view(np.uint64), thetas.view(np.uint64))
+    assert np.array_equal(got[:, :2], positions[:, :2])
+
+
+def test_laser_poses_name_the_first_tilted_pose() -> None:
+    tilted = Rotation.from_euler("x", math.radians(10.0)).as_quat()
+    with pytest.raises(NotLevel, match="pose 1: "):
+        laser_poses(np.zeros((2, 3)), [[0.0, 0.0, 0.0, 1.0], tilted])

@@ -23,7 +23,7 @@ def test_the_answer_is_a_trajectory_with_every_number_as_stored() -> None:
                         stamp_ns=int(rng.integers(0, 2**62)) if k % 3 else None) for k in range(5000)]
     cloud = PointCloud(points=[[1.0, 2.0, 3.0]], origin=(0.5, -0.25, 1.75), range_max=9.0, stamp_ns=12)
     log = [(3, logcodec.encode(lasers[:4500])), (5, logcodec.encode([cloud])), (6, logcodec.encode(lasers[4500:]))]
-    made = trajectory.trajectory_json(log, frame_id="robot1/map", stamp={"sec": 17, "nanosec": 4}, version=6,
+    made = trajectory.trajectory_json(log, moved={}, frame_id="robot1/map", stamp={"sec": 17, "nanosec": 4}, version=6,
                                       from_version=2, max_poses=5001)
     parsed = Trajectory.model_validate_json(made)  # the model's shape
     assert (parsed.version, parsed.from_version) == (6, 2)
@@ -43,11 +43,11 @@ def test_the_answer_is_a_trajectory_with_every_number_as_stored() -> None:
 
     assert json.loads(made)["poses"] == [expected(s) for s in [*lasers[:4500], cloud, *lasers[4500:]]]
     with pytest.raises(TooLarge, match="FUZZYRISK_MAX_TRAJECTORY_POSES"):
-        trajectory.trajectory_json(log, frame_id="map", stamp={"sec": 0, "nanosec": 0}, version=6, from_version=2,
+        trajectory.trajectory_json(log, moved={}, frame_id="map", stamp={"sec": 0, "nanosec": 0}, version=6, from_version=2,
                                    max_poses=5000)
 
 
 def test_a_map_without_scans_has_no_poses() -> None:
-    made = trajectory.trajectory_json([], frame_id="map", stamp={"sec": 1, "nanosec": 0}, version=0, from_version=0,
+    made = trajectory.trajectory_json([], moved={}, frame_id="map", stamp={"sec": 1, "nanosec": 0}, version=0, from_version=0,
                                       max_poses=1)
     assert Trajectory.model_validate_json(made).poses == [] and json.loads(made)["poses"] == []

@@ -91,6 +91,24 @@ def test_files_go_with_the_rows_that_name_them(store: SqliteStorage, path: Path)
     assert _files(path) == []
 
 
+def test_a_base_snapshots_file_stays_when_the_store_opens_again(path: Path) -> None:
+    # the sweep at open removes files no row names: a base's row names its file too
+    first = SqliteStorage(path)
+    first.create_map("m", {"name": "m"}, "t0")
+    for k in range(3):
+        _append(first, _payload(BIG, k))
+    first.write_snapshot("m", 3, _payload(BIG, 10))
+    assert first.write_base("m", 2, _payload(BIG, 12))
+    first.close()
+    reopened = SqliteStorage(path)
+    try:
+        history = reopened.load_history("m")
+        assert history is not None and not history.damage
+        assert (history.snapshot_version, history.snapshot) == (2, _payload(BIG, 12))
+    finally:
+        reopened.close()
+
+
 def test_a_failed_commit_leaves_no_file(store: SqliteStorage, path: Path) -> None:
     with pytest.raises(MapGone):
         store.append_batches([BatchRecord("m", None, _payload(BIG, 1), "t", 1),
