@@ -113,7 +113,13 @@ class Settings(BaseSettings):
     max_trajectory_poses: int = Field(
         1_000_000, ge=1,
         description="Most poses in a map's trajectory (GET /maps/{name}/trajectory: one per stored scan; 413 "
-        "beyond): about 200 bytes of JSON each.",
+        "beyond): about 200 bytes of JSON each; and in a corrected one (PUT /maps/{name}/trajectory).",
+    )
+    rebuild_lease_s: float = Field(
+        10.0, ge=0.5, le=3600.0,
+        description="Seconds a replica holds a map's rebuild at a corrected trajectory without reporting progress "
+        "(it reports every second): after a kill -9, the restarted service (or, on a fleet, another replica) resumes "
+        "the rebuild once this has run out.",
     )
     max_plan_time_s: float = Field(30.0, gt=0.0, le=3600.0, description="Largest plan time_limit, seconds.")
     plan_workers: int = Field(2, ge=1, le=64, description="Planner worker processes.")

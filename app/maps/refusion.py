@@ -11,7 +11,7 @@ at it, in one transaction; the live map is then replaced under its apply lock. U
 served from the current map.
 
 One job per map: a new correction supersedes the pending one (its job stops at its next batch). The job holds the
-correction by a lease in the store (``LEASE_S``, renewed with each progress report), so that after a ``kill -9`` (or
+correction by a lease in the store (``FUZZYRISK_REBUILD_LEASE_S``, renewed with each progress report), so that after a ``kill -9`` (or
 on a fleet, the death of the replica running it) the first replica to find the lease run out (``SWEEP_S``) resumes
 it, from the start of the history; a correction is applied once, by whoever switches first.
 """
@@ -44,9 +44,6 @@ from fuzzyocc.tf import NotLevel
 
 LOG = logging.getLogger("fuzzyrisk.maps")
 
-#: Seconds a replica holds a correction it works on without reporting: after a kill, another (or the restarted one)
-#: resumes it once this has run out.
-LEASE_S = 10.0
 #: Seconds between a job's progress reports (each renews its lease; the status of other replicas reads them).
 REPORT_S = 1.0
 #: Seconds between two looks for corrections whose owner is gone.
@@ -154,7 +151,7 @@ class Refusions:
         try:
             await self._workers.run_admin(
                 self.storage.put_correction, name, incarnation, correction_id, through, correction.encode(change),
-                requested, self.owner, time.time() + LEASE_S)
+                requested, self.owner, time.time() + self.settings.rebuild_lease_s)
         except MapGone:
             raise NotFound(f"no map named {name!r}; GET /maps lists them") from None
         LOG.info("trajectory correction stored; rebuilding", extra={"fields": {
@@ -198,7 +195,7 @@ class Refusions:
             await asyncio.sleep(REPORT_S)
             try:
                 mine = await self._workers.run_admin(self.storage.report_correction, job.name, job.id, self.owner,
-                                                     time.time() + LEASE_S, job.report())
+                                                     time.time() + self.settings.rebuild_lease_s, job.report())
             except StorageUnavailable:
                 continue  # the lease may run out: another replica then takes over, and this one stops at its switch
             if not mine:
@@ -207,7 +204,7 @@ class Refusions:
 
     async def _rebuild(self, job: _Job) -> str:
         claimed = await self._workers.run_admin(self.storage.claim_correction, job.name, job.id, self.owner,
-                                                time.time() + LEASE_S, time.time())
+                                                time.time() + self.settings.rebuild_lease_s, time.time())
         stored = await self._workers.run_read(functools.partial(self.storage.correction, job.name, with_payload=True))
         if not claimed or stored is None or stored.id != job.id or stored.state != PENDING or stored.payload is None:
             raise _Stopped(job.name)

@@ -246,7 +246,6 @@ def held_rebuild(monkeypatch: pytest.MonkeyPatch) -> threading.Event:
         return restore(stored, up_to, progress)
 
     monkeypatch.setattr(refusion, "restore", held)
-    monkeypatch.setattr(refusion, "LEASE_S", 1.0)
     return release
 
 
@@ -270,12 +269,12 @@ def test_reads_are_the_current_maps_until_the_rebuilt_one_replaces_it_whole(
 
 def test_a_rebuild_stopped_by_a_restart_resumes_and_completes(
         make_client: Callable[..., TestClient], log: list[LaserScan], held_rebuild: threading.Event) -> None:
-    client = make_client()
+    client = make_client(rebuild_lease_s=1.0)
     expected = fresh_map(client, "direct", log)
     drifted_grid = fresh_map(client, "robot", drifted(log))
     correction = client.put("/maps/robot/trajectory", json=path_of(log)).json()["rebuild"]["id"]
     client.__exit__(None, None, None)  # the rebuild stops with the service; its correction stays pending
-    again = make_client()
+    again = make_client(rebuild_lease_s=1.0)
     assert grid_of(again, "robot") == drifted_grid
     assert again.get("/maps/robot/rebuild").json()["state"] == "running"
     held_rebuild.set()
@@ -294,3 +293,31 @@ def test_a_map_of_point_clouds_cannot_be_corrected_yet(client: TestClient, kit: 
     response = client.put("/maps/hall/trajectory", json={"header": one["header"], "poses": [one]})
     assert response.status_code == 409 and "point cloud" in error_message(response)
     assert client.get("/maps/hall/rebuild").json()["state"] == "none"
+
+
+def _history(client: TestClient, name: str, scans: Sequence[LaserScan]) -> None:
+    """Scans, a region cleared, forgetting changed, more scans: a history of every kind of batch, in order."""
+    post_log(client, name, scans[:25])
+    assert client.post(f"/maps/{name}/clear", json={"min": [0.0, -1.0], "max": [2.0, 1.0]}).status_code == 200
+    if client.get(f"/maps/{name}").json()["extent"] == "growing":
+        assert client.patch(f"/maps/{name}", json={"forget_beyond": 6.0}).status_code == 200
+    post_log(client, name, scans[25:])
+
+
+def test_the_rebuild_replays_priors_clears_and_forgetting_in_their_place(
+        client: TestClient, log: list[LaserScan]) -> None:
+    # a saved map to start from: the building's first scans, as a Nav2 user would have it
+    fresh_map(client, "survey", log[:15])
+    saved = client.get("/maps/survey/occupancy_grid").json()
+    for name, scans in (("direct", log), ("robot", drifted(log))):
+        assert client.post("/maps/import", params={"name": name}, json=saved).status_code == 201
+        _history(client, name, scans)
+        assert client.post("/maps", json={**GROWING, "name": f"{name}-growing", "forget_beyond": 8.0}
+                           ).status_code == 201
+        _history(client, f"{name}-growing", scans)
+    for name in ("robot", "robot-growing"):
+        response = client.put(f"/maps/{name}/trajectory", json=path_of(log))
+        assert response.status_code == 202, response.text
+        assert rebuilt(client, name, response.json()["rebuild"]["id"])["state"] == "done"
+    assert grid_of(client, "robot") == grid_of(client, "direct")  # the prior as imported, the clear in its place
+    assert grid_of(client, "robot-growing") == grid_of(client, "direct-growing")  # forgetting at the new poses
