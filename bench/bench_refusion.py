@@ -74,8 +74,10 @@ FRAME = "map"
 QUICK_LOGS = ("orebro", "seattle")
 WINDOW_S = 30.0  # the innocent's unloaded window, and the least its loaded one lasts
 QUICK_WINDOW_S = 10.0
-POLL_S = 0.05  # GET .../rebuild while a timed rebuild runs (the server's CPU answering it is counted as the rebuild's)
-POLL_LOADED_S = 0.2  # ... while the innocent is measured (our polling is not its load)
+#: GET .../rebuild while a timed rebuild runs: half its eta_s, within these seconds (few polls, whose CPU the
+#: server's counts as the rebuild's, and the end seen within 20 ms)
+POLL_S = (0.02, 1.0)
+POLL_LOADED_S = (0.2, 1.0)  # ... while the innocent is measured (our polling is not its load)
 REBUILD_TIMEOUT_S = 600.0
 TARGET_RATE = 0.9  # the rebuild's scans/s, at least this share of in-process fusion's
 TARGET_SPEED = 100.0  # the rebuild, at least this many times faster than the log was recorded
@@ -183,14 +185,16 @@ class Refusion:
         _, data = self.client.call("PUT", f"/maps/{name}/trajectory", json.dumps(path).encode(), ok=(202,))
         return dict(json.loads(data)["rebuild"])
 
-    def wait(self, name: str, rebuild_id: str, poll_s: float = POLL_S) -> dict[str, Any]:
-        """Poll the map's rebuild until the correction ``rebuild_id`` is done (or failed): its last status."""
+    def wait(self, name: str, rebuild_id: str, poll_s: tuple[float, float] = POLL_S) -> dict[str, Any]:
+        """Poll the map's rebuild until the correction ``rebuild_id`` is done (or failed): its last status. The next
+        poll comes after half the rebuild's ``eta_s``, within ``poll_s`` (least, most)."""
         deadline = time.monotonic() + REBUILD_TIMEOUT_S
         while time.monotonic() < deadline:
             status = dict(json.loads(self.client.call("GET", f"/maps/{name}/rebuild")[1]))
             if status["id"] == rebuild_id and status["state"] in ("done", "failed"):
                 return status
-            time.sleep(poll_s)
+            eta = status.get("eta_s") if status["id"] == rebuild_id else None
+            time.sleep(min(max(eta / 2 if eta is not None else poll_s[0], poll_s[0]), poll_s[1]))
         raise RuntimeError(f"{name}: rebuild {rebuild_id} not done within {REBUILD_TIMEOUT_S:g} s")
 
     def delete(self, name: str) -> None:

@@ -1,9 +1,11 @@
 """The instruments of ``bench/bench_refusion.py``, CI-sized and without times: the drift it simulates, and the
 corrected trajectory it PUTs, which must be what ``GET /maps/{name}/trajectory`` gives of the same scans and must
-re-pose drifted scans into the corrected map bit for bit (so that the bench's "identical" can hold)."""
+place drifted scans, as the service places them, into the corrected map bit for bit (so that the bench's
+"identical" can hold)."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -15,7 +17,7 @@ from app.schemas import Trajectory
 from bench import _logmaps, bench_refusion
 from fuzzyocc import FuzzyMap
 from fuzzyocc.trajectory import Trajectory as SensorTrack
-from fuzzyocc.trajectory import repose
+from fuzzyocc.trajectory import laser_poses
 from tests.conftest import carmen_log
 
 SCANS = 60  # orebro's first scans: a second of fusion
@@ -73,7 +75,7 @@ def test_a_log_drifts_the_same_on_every_run_and_differently_for_each_log(orebro:
 
 def test_the_path_put_is_the_trajectory_the_service_gives_of_the_same_scans(orebro: list) -> None:  # type: ignore[type-arg]
     log = [(1, logcodec.encode(orebro[:32])), (2, logcodec.encode(orebro[32:]))]
-    given = Trajectory.model_validate_json(trajectory_json(log, frame_id="map", stamp={"sec": 0, "nanosec": 0},
+    given = Trajectory.model_validate_json(trajectory_json(log, moved={}, frame_id="map", stamp={"sec": 0, "nanosec": 0},
                                                            version=2, from_version=0, max_poses=1000))
     put = Trajectory.model_validate({**bench_refusion.sensor_path(orebro), "version": 2, "from_version": 0,
                                      "unstamped": 0})
@@ -89,7 +91,9 @@ def test_drifted_scans_reposed_on_the_path_fuse_into_the_corrected_map(orebro: l
     moved = bench_refusion.drifted(orebro, bench_refusion.log_seed("orebro")).scans
     at = track.poses_at([s.stamp_ns for s in moved])
     assert at.inside.all()
-    reposed = [repose(s, p, q) for s, p, q in zip(moved, at.positions, at.quaternions)]
+    # as the service places them (app.maps.correction): the heading nearest the scan's before
+    poses = laser_poses(at.positions, at.quaternions, [s.pose[2] for s in moved])
+    reposed = [dataclasses.replace(s, pose=(float(x), float(y), float(t))) for s, (x, y, t) in zip(moved, poses)]
     maps = [FuzzyMap(spec) for _ in range(3)]
     for m, scans in zip(maps, (orebro, reposed, moved)):
         _logmaps.fuse(m, scans, batch=bench_refusion.BATCH)
