@@ -21,7 +21,7 @@ from app.ops.metrics import Metrics
 from app.ops.version import package_version
 from app.api.middleware import ApiKeyMiddleware, BodyBudgetMiddleware, BodyLimitMiddleware, ObserveMiddleware
 from app.api.routes import bags, docs, maps, plans, recordings, risk, scans, system, trajectory, ui
-from app.schemas import OccupancyGridMessage, RiskGridJSON, ScanBatch
+from app.schemas import CorrectedPath, OccupancyGridMessage, RiskGridJSON, ScanBatch
 from app.service.mapservice import MapService
 from app.storage import SqliteStorage, Storage
 
@@ -92,12 +92,13 @@ def _declare_errors(schema: dict[str, Any]) -> None:
 
 
 def _openapi_with_body_schemas(app: FastAPI) -> dict[str, Any]:
-    """OpenAPI plus the schemas that routes reading raw bodies refer to (ScanBatch, RiskGridJSON, OccupancyGridMessage), and
+    """OpenAPI plus the schemas that routes reading raw bodies refer to (ScanBatch, RiskGridJSON, OccupancyGridMessage,
+    CorrectedPath), and
     every operation's error answers declared with the one error body."""
     if app.openapi_schema is None:
         schema = get_openapi(title=app.title, version=app.version, description=app.description, routes=app.routes)
         components = schema.setdefault("components", {}).setdefault("schemas", {})
-        for model in (ScanBatch, RiskGridJSON, OccupancyGridMessage):
+        for model in (ScanBatch, RiskGridJSON, OccupancyGridMessage, CorrectedPath):
             model_schema = model.model_json_schema(ref_template="#/components/schemas/{model}")
             components.update(model_schema.pop("$defs", {}))
             components[model.__name__] = model_schema

@@ -261,13 +261,14 @@ def run_command(prog: str, run: Callable[[], str], source: Path) -> int:
 
 
 def import_main(parser: argparse.ArgumentParser, run: Callable[[argparse.Namespace], str], argv: list[str] | None,
-                *, source: str, own_checks: Callable[[argparse.ArgumentParser, argparse.Namespace], None] | None = None
-                ) -> int:
+                *, source: str | tuple[str, ...],
+                own_checks: Callable[[argparse.ArgumentParser, argparse.Namespace], None] | None = None) -> int:
     """An importer's ``main``: parse ``argv``, check the importer's own options then the shared ones
     (``check_options``), run; the exit code (0 done, 1 failed with a message, 2 bad options, 130 interrupted).
-    ``source``: the name of the input's argument."""
+    ``source``: the name of the input's argument (or of each, the one given being the input)."""
     args = parser.parse_args(argv)
     if own_checks is not None:
         own_checks(parser, args)
     check_options(parser, args)
-    return run_command(parser.prog, lambda: run(args), getattr(args, source))
+    given = [getattr(args, name) for name in ((source,) if isinstance(source, str) else source)]
+    return run_command(parser.prog, lambda: run(args), next(path for path in given if path is not None))

@@ -3,6 +3,7 @@
     python -m app.import_log LOG [--resolution 0.05] [--margin 1] [--every N] [--max-range M]
                              [--model fuzzy|bayes] [--png FILE] [--nav2 FILE.zip] [--npy FILE]
                              [--url http://127.0.0.1:8000 --map NAME [--api-key KEY] [--append]]
+    python -m app.import_log --trajectory FILE --url http://127.0.0.1:8000 --map NAME [--api-key KEY] [--no-wait]
 
 The map's bounds are those of the log's poses and hits, padded by ``--margin`` (see
 :func:`fuzzyocc.carmen.grid_for_scans`). Without ``--url`` the scans are fused here, into
@@ -14,6 +15,14 @@ model) and the scans are posted in order as JSON batches, each with its log stam
 Either way the scans are fused in log order, so a new map's risk is the same bit for bit.
 Progress goes to stderr (``app.cli.progress``: a bar on a terminal, else a line every few seconds; a
 first run says when it compiles the fusion kernels), a one-line summary to stdout; errors exit 1 with a message.
+
+``--trajectory FILE`` corrects a map built from a log, after a SLAM loop closure: FILE is the corrected log, whose
+scans' stamps (the rule of an import, :func:`~fuzzyocc.carmen.log_stamps_ns`) and laser poses make the
+``nav_msgs/Path`` put on ``--map`` (``PUT /maps/{name}/trajectory``, :mod:`app.cli.trajectory`). The service
+re-poses every stored scan whose stamp the path spans and rebuilds the map in the background; the command waits for
+the rebuild (progress on stderr: the scans re-fused of the total) and says how many scans were re-posed and the map's
+new version, or returns once the correction is held (``--no-wait``). A scan imported from the same log, or with
+``--every``, has its stamp in the path, so it takes that pose exactly.
 """
 
 from __future__ import annotations
@@ -47,6 +56,7 @@ from app.cli.common import (
     write_outputs,
 )
 from app.cli.progress import Progress
+from app.cli.trajectory import map_frame, put_trajectory, sensor_path, wait_for_rebuild
 from app.ops.version import add_version_option
 from app.ros.messages_in import stamp_header
 from fuzzyocc import BayesMap, FuzzyMap, GridSpec, LaserScan, LatticeSpec
@@ -176,7 +186,8 @@ def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog=PROG, description="Build a fuzzy occupancy map from a CARMEN laser log (.log or .log.gz), "
         "in-process (default) or through a running service (--url, --map).")
-    p.add_argument("log", type=Path, help="the CARMEN log (FLASER / ROBOTLASER1 lines with corrected poses)")
+    p.add_argument("log", type=Path, nargs="?",
+                   help="the CARMEN log (FLASER / ROBOTLASER1 lines with corrected poses); not with --trajectory")
     g = p.add_argument_group("map")
     g.add_argument("--resolution", type=positive(float), default=0.05, help="cell edge, metres (default 0.05)")
     g.add_argument("--margin", type=non_negative, default=1.0,
@@ -195,12 +206,67 @@ def _parser() -> argparse.ArgumentParser:
     add_output_options(p, nav2="write a Nav2 map_server zip (map.yaml + image) here",
                        nav2_mode="default trinary (scale needs --nav2-format png)",
                        npy="write the risk grid (float32 .npy, index [i, j] along x, y) here")
-    add_service_options(p, append="add the scans to the map if it exists (else 409 is an error)")
+    s = add_service_options(p, append="add the scans to the map if it exists (else 409 is an error)")
+    s.add_argument("--trajectory", type=Path, metavar="FILE",
+                   help="instead of a LOG: put the poses of this CARMEN log (the corrected one) on --map as its "
+                        "corrected trajectory, and wait for the map's rebuild")
+    s.add_argument("--no-wait", action="store_true", help="with --trajectory: return once the service holds the "
+                   "correction, without waiting for the rebuild")
     add_version_option(p)
     return p
 
 
+#: The options of a map built from a log, which a trajectory put on an existing map does not take.
+_MAP_OPTIONS = ("resolution", "margin", "max_range", "every", "model", "growing", "batch", "png", "scale", "nav2",
+                "nav2_mode", "nav2_format", "npy", "append")
+
+
+def _check_trajectory(p: argparse.ArgumentParser, args: argparse.Namespace) -> None:
+    """A LOG, or ``--trajectory`` with ``--url`` and ``--map`` and none of a new map's options."""
+    if args.trajectory is None:
+        if args.log is None:
+            p.error("give a LOG to import, or --trajectory FILE to correct a map's poses")
+        if args.no_wait:
+            p.error("--no-wait goes with --trajectory")
+        return
+    if args.log is not None:
+        p.error("--trajectory FILE takes no LOG: the poses are FILE's")
+    if not (args.url and args.map):
+        p.error("--trajectory needs --url and --map: the service and the map to correct")
+    given = [f"--{name.replace('_', '-')}" for name in _MAP_OPTIONS if getattr(args, name) != p.get_default(name)]
+    if given:
+        p.error(f"{', '.join(given)}: not with --trajectory (it corrects the poses of an existing map)")
+
+
+def _put_trajectory(args: argparse.Namespace) -> str:
+    """Put the log's poses on the map as its corrected trajectory, and wait for the rebuild (unless ``--no-wait``);
+    the summary."""
+    started = time.perf_counter()
+    notes: list[str] = []  # said once the progress is up
+    scans = read_carmen(args.trajectory, say=notes.append)
+    stamps = [s.stamp_ns or 0 for s in scans]  # every scan of a log has one (log_stamps_ns)
+    client = ServiceClient(args.url, args.api_key)
+    source = args.trajectory.name
+    with Progress(PROG) as shown:
+        for note in notes:
+            shown.say(note)
+        path = sensor_path([s.pose for s in scans], stamps, map_frame(client, args.map))
+        shown.say(f"{source}: {len(scans)} poses from {stamps[0] / 1e9:.3f} s to {stamps[-1] / 1e9:.3f} s, put on "
+                  f"{args.map!r} as its corrected trajectory")
+        status = put_trajectory(client, args.map, path)
+        put = (f"{source}: {len(scans)} poses put on map {args.map!r} on {client.url}: "
+               f"{status['scans_reposed']:,} scans re-posed")
+        if args.no_wait:
+            return (f"{put}; the map is rebuilt in the background (correction {status['id']}: GET "
+                    f"/maps/{quote(args.map, safe='')}/rebuild)")
+        status = wait_for_rebuild(client, args.map, status["id"], shown)
+    return (f"{put}, the map rebuilt from {status['scans_total']:,} scans in {status['elapsed_s']:.1f} s: version "
+            f"{status['version']}; {time.perf_counter() - started:.1f} s")
+
+
 def _run(args: argparse.Namespace) -> str:
+    if args.trajectory is not None:
+        return _put_trajectory(args)
     if args.growing and args.model != "fuzzy":
         raise ImportFailed("--growing makes a fuzzy map: a bayes map needs a box (leave --growing out)")
     started = time.perf_counter()
@@ -227,7 +293,7 @@ def _run(args: argparse.Namespace) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     """Run the command; the exit code (0 done, 1 failed with a message, 2 bad options)."""
-    return import_main(_parser(), _run, argv, source="log")
+    return import_main(_parser(), _run, argv, source=("log", "trajectory"), own_checks=_check_trajectory)
 
 
 if __name__ == "__main__":

@@ -25,6 +25,7 @@ from app.maps.snapshot import GridStamp
 from app.scans import Scan, ScanView
 from app.schemas import DEFAULT_FRAME_ID, MapCreate, MapHistory, MapInfo, PlanResult
 from app.schemas import engine_choice
+from app.schemas.common import ros_time_of_ns
 from app.storage import MapHead
 from fuzzyocc import BayesMap, FuzzyMap, GridSpec, LatticeSpec
 from fuzzyocc.config import DEFAULT_MAX_CELLS
@@ -173,14 +174,16 @@ class MapEntry:
 
 
 #: The history of a map just made: nothing stored yet.
-NO_HISTORY = MapHistory(from_version=0, bytes=0, scans=0)
+NO_HISTORY = MapHistory(from_version=0, from_stamp=None, bytes=0, scans=0)
 
 
 def history_of(head: MapHead | None) -> MapHistory:
     """A map's history as its stored row counts it (``NO_HISTORY`` when there is no row)."""
     if head is None:
         return NO_HISTORY
-    return MapHistory(from_version=head.base_version, bytes=head.history_bytes, scans=head.history_scans)
+    stamp = None if head.from_stamp_ns is None else ros_time_of_ns(head.from_stamp_ns)
+    return MapHistory(from_version=head.base_version, from_stamp=stamp, bytes=head.history_bytes,
+                      scans=head.history_scans)
 
 
 def map_info(meta: Mapping[str, Any], spec: GridSpec | LatticeSpec, engine: engine_choice.EngineChoice | None, *,

@@ -28,7 +28,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from app.config import Settings
-from app.errors import Conflict, Invalid, NotFound, Unavailable
+from app.errors import Conflict, Invalid, NotFound, TooLarge, Unavailable
 from app.maps import correction, logcodec
 from app.maps.entry import MapEntry, now
 from app.maps.logcodec import Reposed
@@ -37,7 +37,8 @@ from app.maps.stored import npz, replay, restore
 from app.maps.writepath import WritePath
 from app.ops.metrics import Metrics
 from app.ops.threads import Workers
-from app.schemas import CorrectedPath, RebuildState, RebuildStatus
+from app.ros.path_in import corrected_path
+from app.schemas import RebuildState, RebuildStatus
 from app.storage import MapGone, Storage, StorageUnavailable, StoredMap, Superseded, Switch
 from app.storage.corrections import DONE, FAILED, PENDING, StoredCorrection
 from fuzzyocc.tf import NotLevel
@@ -123,15 +124,20 @@ class Refusions:
 
     # ------------------------------------------------------------------ a correction taken in
 
-    async def correct(self, name: str, path: CorrectedPath, offset: correction.SensorOffset | None) -> RebuildStatus:
-        """Store the correction ``path`` (with the sensor's ``offset`` on the robot, if given) makes to map ``name``'s
-        history and start its rebuild.
+    async def correct(self, name: str, body: bytes, offset: correction.SensorOffset | None) -> RebuildStatus:
+        """Store the correction a ``CorrectedPath`` JSON ``body`` (with the sensor's ``offset`` on the robot, if
+        given) makes to map ``name``'s history and start its rebuild.
 
-        ``Invalid`` for a path that is not a trajectory in the map's frame (``correction.sensor_trajectory``) or a
-        pose in range that tilts the scanner off level; ``Conflict`` when no stored scan has a stamp in its range, or
-        a point cloud does.
+        ``RequestValidationError`` for a body that is not a ``CorrectedPath``; ``TooLarge`` past
+        ``FUZZYRISK_MAX_TRAJECTORY_POSES`` poses; ``Invalid`` for a path that is not a trajectory in the map's frame
+        (``correction.sensor_trajectory``) or a pose in range that tilts the scanner off level; ``Conflict`` when no
+        stored scan has a stamp in its range, or a point cloud does.
         """
         entry = await self._writes.current(name)
+        path = await self._workers.run_parser(corrected_path, body)
+        if len(path.poses) > self.settings.max_trajectory_poses:
+            raise TooLarge(f"poses: {len(path.poses):,} poses, more than FUZZYRISK_MAX_TRAJECTORY_POSES "
+                           f"({self.settings.max_trajectory_poses:,})")
         trajectory = await self._workers.run_parser(correction.sensor_trajectory, path, entry.frame_id, offset)
         through, incarnation = entry.version, entry.incarnation
         history = await self._workers.run_heavy(self.storage.load_history, name, through)
@@ -304,4 +310,6 @@ def _catch_up(storage: Storage, name: str, rebuilt: MapEntry, after: int) -> int
     done = replay(rebuilt.map, stored, after=after)
     if done.version:
         rebuilt.version, rebuilt.updated = done.version, done.updated
+    if done.last_scan is not None:
+        rebuilt.last_scan = done.last_scan
     return max(after, stored.version)

@@ -462,7 +462,9 @@ class WritePath:
                 raise NotFound(f"no map named {entry.name!r}")
             updated = now()
             scans = batch if isinstance(batch, list) else []  # a prior or an edit fuses no scan
-            record = BatchRecord(entry.name, entry.incarnation, payload, updated, len(scans))
+            stamps = [scan.stamp_ns for scan in scans if scan.stamp_ns is not None]
+            record = BatchRecord(entry.name, entry.incarnation, payload, updated, len(scans),
+                                 stamps[0] if stamps else None)
             try:
                 # the store decides the version (with replicas, theirs and ours come in one order);
                 # StorageUnavailable here leaves the map untouched: nothing is applied before the commit
@@ -545,6 +547,8 @@ class WritePath:
                 entry.map, entry.updated, entry.scans_fused = rebuilt.map, rebuilt.updated, rebuilt.map.scans_fused
                 entry.version = entry.snapshot_version = entry.checked = version
                 entry.log.clear()  # a restart starts from the snapshot the switch stored
+                if rebuilt.last_scan is not None:  # at its corrected pose
+                    entry.last_scan = rebuilt.last_scan
                 entry.last_view = None
                 self._grids.retire(entry.uid, below=version)
                 if entry.last_scan is not None:

@@ -11,15 +11,11 @@ from __future__ import annotations
 
 import json
 from collections.abc import Mapping, Sequence
-from typing import Any
 
 from app.errors import TooLarge, Unavailable
 from app.maps import logcodec
-from app.ros.messages_out import yaw_quaternion
-from app.ros.msgtypes import ros_time_of_ns
+from app.ros.messages_out import pose_stamped
 from app.schemas import Trajectory
-
-_IDENTITY = {"x": 0.0, "y": 0.0, "z": 0.0, "w": 1.0}
 
 
 def scan_poses(log: Sequence[tuple[int, bytes]], max_poses: int,
@@ -41,13 +37,6 @@ def scan_poses(log: Sequence[tuple[int, bytes]], max_poses: int,
     return poses
 
 
-def _pose_stamped(pose: logcodec.ScanPose, frame_id: str) -> dict[str, Any]:
-    x, y, *rest = pose.position
-    return {"header": {"stamp": ros_time_of_ns(pose.stamp_ns or 0), "frame_id": frame_id},
-            "pose": {"position": {"x": x, "y": y, "z": rest[0] if rest else 0.0},
-                     "orientation": _IDENTITY if pose.yaw is None else yaw_quaternion(pose.yaw)}}
-
-
 #: Poses serialised at a time: one ``json.dumps`` holds the GIL for its whole call, and every other request with it.
 _CHUNK = 4096
 _NO_POSES = b'"poses":[]'
@@ -58,9 +47,9 @@ def trajectory_json(log: Sequence[tuple[int, bytes]], *, moved: Mapping[int, byt
     """``Trajectory`` of the batches of ``log`` (version, payload), at the poses ``moved`` gave them, as JSON bytes (module
     doc).
 
-    The small fields go through the model; the poses, built in its shape by ``_pose_stamped``, are written by
-    ``json`` a chunk at a time (what the model reads back, every number as stored: tested): validating 100,000
-    of them through the model took 4 s, the rest of the answer 2.
+    The small fields go through the model; the poses, built in its shape by ``messages_out.pose_stamped``, are
+    written by ``json`` a chunk at a time (what the model reads back, every number as stored: tested): validating
+    100,000 of them through the model took 4 s, the rest of the answer 2.
     """
     poses = scan_poses(log, max_poses, moved)
     head = Trajectory.model_validate({
@@ -71,6 +60,7 @@ def trajectory_json(log: Sequence[tuple[int, bytes]], *, moved: Mapping[int, byt
         "unstamped": sum(pose.stamp_ns is None for pose in poses),
     }).model_dump_json().encode()
     assert head.count(_NO_POSES) == 1
-    chunks = (json.dumps([_pose_stamped(pose, frame_id) for pose in poses[i:i + _CHUNK]], separators=(",", ":"))
+    chunks = (json.dumps([pose_stamped(pose.position, pose.yaw, stamp_ns=pose.stamp_ns or 0, frame_id=frame_id)
+                       for pose in poses[i:i + _CHUNK]], separators=(",", ":"))
               for i in range(0, len(poses), _CHUNK))
     return head.replace(_NO_POSES, b'"poses":[' + ",".join(chunk[1:-1] for chunk in chunks).encode() + b"]")

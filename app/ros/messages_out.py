@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 from mcap.writer import CompressionType, Writer
 
-from app.ros.msgtypes import typestore
+from app.ros.msgtypes import ros_time_of_ns, typestore
 from fuzzyocc import tf
 
 OCCUPANCY_GRID = "nav_msgs/msg/OccupancyGrid"
@@ -66,6 +66,19 @@ def zip_date_time(text: str) -> tuple[int, int, int, int, int, int]:
 def yaw_quaternion(yaw: float) -> dict[str, float]:
     """``geometry_msgs/Quaternion`` of a rotation by ``yaw`` about +z (REP 103: counter-clockwise from +x)."""
     return dict(zip("xyzw", tf.yaw_quaternion(yaw), strict=True))
+
+
+#: A point cloud's orientation in a trajectory: a cloud keeps its sensor's origin only.
+_IDENTITY = {"x": 0.0, "y": 0.0, "z": 0.0, "w": 1.0}
+
+
+def pose_stamped(position: Sequence[float], yaw: float | None, *, stamp_ns: int, frame_id: str) -> dict[str, Any]:
+    """``geometry_msgs/PoseStamped`` as JSON of a sensor pose taken at ``stamp_ns``: ``position`` x, y(, z; 0 when
+    left out) and ``yaw`` as a quaternion (None: the identity). A trajectory's pose, out and in."""
+    x, y, *rest = position
+    return {"header": {"stamp": ros_time_of_ns(stamp_ns), "frame_id": frame_id},
+            "pose": {"position": {"x": x, "y": y, "z": rest[0] if rest else 0.0},
+                     "orientation": _IDENTITY if yaw is None else yaw_quaternion(yaw)}}
 
 
 def path_yaws(path: np.ndarray, state_space: str, goal_yaw: float | None = None) -> np.ndarray:

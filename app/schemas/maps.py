@@ -20,6 +20,7 @@ from app.schemas.common import (
     MapName,
     NonNegativeFinite,
     PositiveFinite,
+    Time,
     Vector,
 )
 from app.schemas.engine_definition import EngineField, EnginePreset
@@ -243,9 +244,11 @@ def _read_only(description: str) -> Any:
 class MapHistory(BaseModel):
     """Where a map's history starts and what it takes: the stored batches a rebuild re-fuses from its base."""
 
-    # the version is where the history starts; a stamp (the first batch's scan time) belongs beside it
     from_version: int = Field(description="the version the history starts after: its base snapshot's (0 while no "
                               "batch has left the history: a rebuild starts from the map's creation)")
+    from_stamp: Time | None = Field(description="the stamp of the history's first stamped scan (ROS time: a corrected "
+                                    "trajectory re-poses the scans from there on); null while it holds none "
+                                    "(scans stored before stamps were kept have none)")
     bytes: int = Field(description="bytes of the history's stored batches (FUZZYRISK_MAX_HISTORY_BYTES bounds them)")
     scans: int = Field(description="scans in the history's batches")
 

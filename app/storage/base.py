@@ -99,6 +99,7 @@ class MapHead:
     base_version: int = 0  # the version the history starts after (its base snapshot's; 0: the map's creation)
     history_bytes: int = 0  # payload bytes of the history's batches (every one after the base)
     history_scans: int = 0  # scans in them
+    from_stamp_ns: int | None = None  # the first stamp among them (None: no stamped scan)
 
 
 class BatchRecord(NamedTuple):
@@ -109,6 +110,7 @@ class BatchRecord(NamedTuple):
     payload: bytes
     updated: str  # the map's new ``updated``
     scans: int
+    stamp_ns: int | None = None  # its first stamped scan's stamp (Unix ns), if any: where a history starts
 
 
 class Storage(Protocol):
@@ -233,11 +235,15 @@ HISTORY_OF_ROWS = (f"(SELECT COALESCE(SUM({BATCH_BYTES}), 0), COALESCE(SUM(scans
 NO_LIMIT = 2**62
 
 
+#: The first stamp of a map's history, as a column of the head queries (either dialect).
+HISTORY_FROM_STAMP = "(SELECT first_stamp FROM batches WHERE map = maps.name AND first_stamp IS NOT NULL ORDER BY seq LIMIT 1)"
+
+
 def head_of(row: Sequence[Any]) -> MapHead:
     """A ``MapHead`` from (name, meta, updated, version, snapshot_version, scans, incarnation, base_version,
-    history_bytes, history_scans)."""
+    history_bytes, history_scans, ``HISTORY_FROM_STAMP``)."""
     return MapHead(row[0], json.loads(row[1]), row[2], int(row[3]), int(row[4]), int(row[5]), row[6],
-                   int(row[7] or 0), int(row[8] or 0), int(row[9] or 0))
+                   int(row[7] or 0), int(row[8] or 0), int(row[9] or 0), None if row[10] is None else int(row[10]))
 
 
 def start_of(snapshot_row: int | None, base_row: int | None, *, from_base: bool) -> tuple[int, str | None]:

@@ -25,6 +25,7 @@ from app.storage import corrections
 from app.storage.corrections import StoredCorrection, Switch
 from app.storage.base import (
     BATCH_BYTES,
+    HISTORY_FROM_STAMP,
     HISTORY_OF_ROWS,
     TOMBSTONE,
     BatchRecord,
@@ -85,10 +86,11 @@ _ADDED_COLUMNS = (
     ("maps", "history_scans", "BIGINT NOT NULL DEFAULT 0"),
     ("batches", "bytes", "BIGINT"),
     ("batches", "poses", "BYTEA"),
+    ("batches", "first_stamp", "BIGINT"),
 )
 
 _HEAD = ("SELECT name, meta, updated, version, snapshot_version, scans, incarnation, base_version, history_bytes, "
-         "history_scans FROM maps")
+         "history_scans, " + HISTORY_FROM_STAMP + " FROM maps")
 # one round trip per batch: the UPDATE takes the map's row lock and its next version, the INSERT uses it;
 # no row when the map is not stored under that name and incarnation
 _APPEND = """WITH taken AS (
@@ -96,8 +98,8 @@ _APPEND = """WITH taken AS (
         history_bytes = history_bytes + %(bytes)s, history_scans = history_scans + %(scans)s
     WHERE name = %(name)s AND incarnation IS NOT DISTINCT FROM %(incarnation)s::text
     RETURNING name, version)
-INSERT INTO batches (map, seq, payload, crc, scans, updated, bytes)
-SELECT name, version, %(payload)b, %(crc)s, %(scans)s, %(updated)s, %(bytes)s FROM taken RETURNING seq"""
+INSERT INTO batches (map, seq, payload, crc, scans, updated, bytes, first_stamp)
+SELECT name, version, %(payload)b, %(crc)s, %(scans)s, %(updated)s, %(bytes)s, %(stamp)s::bigint FROM taken RETURNING seq"""
 _LOCK_MAP = "SELECT 1 FROM maps WHERE name = %s AND (%s::text IS NULL OR incarnation = %s) FOR UPDATE"
 
 
@@ -218,7 +220,7 @@ class PostgresStorage:
         order = sorted(range(len(records)), key=lambda i: records[i].name)
         params = [{"name": records[i].name, "incarnation": records[i].incarnation, "payload": records[i].payload,
                    "crc": checksum(records[i].payload), "updated": records[i].updated, "scans": records[i].scans,
-                   "bytes": len(records[i].payload)}
+                   "bytes": len(records[i].payload), "stamp": records[i].stamp_ns}
                   for i in order]
         versions = [0] * len(records)
         committing = False

@@ -11,6 +11,7 @@ from typing import Any, TypeVar
 
 from app.storage.base import (
     BATCH_BYTES,
+    HISTORY_FROM_STAMP,
     HISTORY_OF_ROWS,
     INLINE_BYTES,
     NO_LIMIT,
@@ -77,7 +78,7 @@ _ADDED_COLUMNS = {
              "scans": "INTEGER NOT NULL DEFAULT 0", "base_version": "INTEGER NOT NULL DEFAULT 0",
              "history_bytes": "INTEGER NOT NULL DEFAULT 0", "history_scans": "INTEGER NOT NULL DEFAULT 0"},
     "batches": {"crc": "INTEGER", "scans": "INTEGER", "updated": "TEXT", "file": "TEXT", "bytes": "INTEGER",
-                "poses": "BLOB"},
+                "poses": "BLOB", "first_stamp": "INTEGER"},
     "snapshots": {"crc": "INTEGER", "updated": "TEXT", "file": "TEXT"},
 }
 
@@ -87,7 +88,7 @@ _SQLITE_NEWEST = ("COALESCE(maps.version, MAX(COALESCE(maps.snapshot_version, 0)
                   " COALESCE((SELECT version FROM snapshots WHERE map = maps.name), 0)))")
 _SQLITE_HEAD = ("SELECT name, meta, updated, " + _SQLITE_NEWEST + ", COALESCE(maps.snapshot_version, "
                 "(SELECT version FROM snapshots WHERE map = maps.name), 0), scans, incarnation, base_version, history_bytes, "
-                "history_scans FROM maps")
+                "history_scans, " + HISTORY_FROM_STAMP + " FROM maps")
 
 _SQLITE_CREATE = ("INSERT INTO maps (name, meta, updated, version, snapshot_version, incarnation, scans) "
                   "VALUES (?, ?, ?, 0, 0, ?, 0)")
@@ -291,10 +292,10 @@ class SqliteStorage:
                                    (r.updated, r.scans, len(r.payload), r.scans, r.name, r.incarnation)).fetchall()
                 if not taken:
                     raise MapGone(r.name)
-                db.execute("INSERT INTO batches (map, seq, payload, crc, scans, updated, file, bytes) "
-                           "VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
+                db.execute("INSERT INTO batches (map, seq, payload, crc, scans, updated, file, bytes, first_stamp) "
+                           "VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)",
                            (r.name, taken[0][0], r.payload if file is None else b"", crc, r.scans, r.updated, file,
-                            len(r.payload)))
+                            len(r.payload), r.stamp_ns))
                 versions.append(taken[0][0])
             return versions, []
 

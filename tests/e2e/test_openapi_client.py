@@ -14,6 +14,7 @@ import io
 import json
 import subprocess
 import sys
+import time
 import zipfile
 from collections.abc import Iterator
 from types import ModuleType
@@ -215,6 +216,20 @@ def test_the_generated_client_drives_every_operation(generated: tuple[ModuleType
                                               body=m.ClearRegion.from_dict({"min": [4.0, 0.0], "max": [6.0, 6.0]}))
     assert isinstance(cleared, m.Cleared) and cleared.cells_cleared > 0
     assert op("maps", "delete_map").sync_detailed("roam", client=client).status_code == 204
+
+    # a correction (the first pose moved; the scans of a batch posted without stamps share the time it arrived):
+    # the map rebuilt in the background, one version on
+    before = op("maps", "get_map").sync("hall", client=client)
+    moved = path.poses[0].to_dict()
+    moved["pose"]["position"]["x"] += 0.05
+    corrected = m.CorrectedPath.from_dict({"header": path.header.to_dict(), "poses": [moved]})
+    accepted = op("trajectory", "put_trajectory").sync("hall", client=client, body=corrected)
+    assert isinstance(accepted, m.RebuildAccepted) and accepted.rebuild.scans_reposed >= 1
+    deadline = time.monotonic() + 60
+    while (status := op("trajectory", "get_rebuild").sync("hall", client=client)).state != "done":
+        assert status.state == "running" and time.monotonic() < deadline, status
+        time.sleep(0.05)
+    assert status.id == accepted.rebuild.id and status.version == before.version + 1
 
     # the key, and a deletion
     anonymous = package.Client(base_url=server.url)

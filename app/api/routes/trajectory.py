@@ -5,14 +5,13 @@ from __future__ import annotations
 
 from typing import Annotated
 
-from fastapi import APIRouter, Depends, Query, Response
+from fastapi import APIRouter, Depends, Query, Request, Response
 
 from app.api.deps import MapNamePath, ServiceDep
 from app.api.largebody import bytes_response
-from app.errors import TooLarge
 from app.formats import etags
 from app.maps.correction import SensorOffset
-from app.schemas import CorrectedPath, RebuildAccepted, RebuildStatus, Trajectory
+from app.schemas import RebuildAccepted, RebuildStatus, Trajectory
 
 router = APIRouter(prefix="/maps", tags=["trajectory"])
 
@@ -59,6 +58,8 @@ def _offset(
 @router.put(
     "/{name}/trajectory",
     status_code=202,
+    openapi_extra={"requestBody": {"required": True, "content": {
+        "application/json": {"schema": {"$ref": "#/components/schemas/CorrectedPath"}}}}},
     responses={
         404: {"description": "no map of that name"},
         409: {"description": "no stored scan has a stamp in the path's range, or a point cloud does"},
@@ -67,7 +68,7 @@ def _offset(
                              "not a unit one, a pose in range that tilts the scanner off level"},
     },
 )
-async def put_trajectory(name: MapNamePath, body: CorrectedPath, service: ServiceDep,
+async def put_trajectory(name: MapNamePath, request: Request, service: ServiceDep,
                          offset: Annotated[SensorOffset | None, Depends(_offset)]) -> RebuildAccepted:
     """Correct the map's past poses (a SLAM node's corrected ``nav_msgs/Path`` after a loop closure): every stored scan
     whose stamp lies in the path's ``[first, last]`` stamp takes the pose there (translation linear, rotation slerp,
@@ -79,10 +80,8 @@ async def put_trajectory(name: MapNamePath, body: CorrectedPath, service: Servic
     background (``GET /maps/{name}/rebuild`` follows it) and replaces the current map when complete (its version + 1);
     until then reads and plans are served from the current map. A new PUT supersedes a rebuild under way.
     """
-    if len(body.poses) > service.settings.max_trajectory_poses:
-        raise TooLarge(f"poses: {len(body.poses):,} poses, more than FUZZYRISK_MAX_TRAJECTORY_POSES "
-                       f"({service.settings.max_trajectory_poses:,})")
-    return RebuildAccepted(rebuild=await service.refusions.correct(name, body, offset))
+    # the body as a CorrectedPath (its schema below), validated in a parse thread a chunk at a time
+    return RebuildAccepted(rebuild=await service.refusions.correct(name, await request.body(), offset))
 
 
 @router.get("/{name}/rebuild", responses={404: {"description": "no map of that name"}})

@@ -1,4 +1,4 @@
-// fuzzyrisk operator page: maps, their risk, the last scan, and plans on them.
+// fuzzyrisk operator page: maps, their risk, the last scan, the trajectory and its rebuild, and plans on them.
 // Plain browser JavaScript, no build step; everything it loads comes from this service.
 "use strict";
 
@@ -7,6 +7,12 @@
   const API_ROOT = new URL("..", document.baseURI);
   const KEY_STORE = "fuzzyrisk.apiKey";
   const POLL_MS = 1000;
+  // a big map's trajectory is megabytes of JSON: read again for a new version at most this often
+  const TRAJECTORY_EVERY_MS = 10000;
+  // poses drawn at most (every k-th beyond): a 100,000-pose trajectory stays light to draw
+  const TRAJECTORY_MAX_DRAWN = 5000;
+  // a rebuild is read every poll while it runs; otherwise this often, to see a new correction come in
+  const REBUILD_IDLE_MS = 5000;
 
   const $ = (id) => document.getElementById(id);
   const enc = encodeURIComponent;
@@ -19,6 +25,12 @@
     imageOrigin: null,   // map-frame corner of the image's first cell (a growing map's moves as it grows)
     shownVersion: null,  // map version the image shows
     scan: null,          // GET /maps/{name}/scans/last, or null before the first scan
+    trajectory: null,    // {points: [[x, y], ...] drawn, total, step, problem} of GET /maps/{name}/trajectory
+    trajectoryVersion: null,  // map version the trajectory was last read at (null: read it at the next poll)
+    trajectoryAt: 0,     // Date.now() of that read
+    trajectoryLoading: false,
+    rebuild: null,       // GET /maps/{name}/rebuild (RebuildStatus), or null when the service has none
+    rebuildAt: 0,        // Date.now() of its last read
     start: null,         // [x, y(, z)] world metres
     goal: null,
     startHeading: null,  // radians (REP 103: 0 = +x, counter-clockwise), or null when none applies
@@ -221,6 +233,8 @@
           } else {
             state.current = info;
             if (info.version !== state.shownVersion) await loadMap();
+            if (trajectoryDue()) loadTrajectory();  // not awaited: a big one takes seconds, the list must not wait
+            if (rebuildDue()) await loadRebuild();
           }
         } else if (location.hash.length > 1) {
           const wanted = maps.find((m) => m.name === decodeURIComponent(location.hash.slice(1)));
@@ -234,10 +248,18 @@
     }
   }
 
+  // what selectMap and mapGone reset: the shown map's trajectory and rebuild, read again at the next poll
+  const OVERLAYS_UNREAD = {
+    trajectory: null, trajectoryVersion: null, trajectoryAt: 0, trajectoryLoading: false, rebuild: null, rebuildAt: 0,
+  };
+
   function mapGone() {
     const name = state.current.name;
     state.gen += 1;
     Object.assign(state, { current: null, image: null, imageOrigin: null, shownVersion: null, scan: null, path: null });
+    Object.assign(state, OVERLAYS_UNREAD);
+    showTrajectoryText();
+    showRebuild(null);
     $("view-title").textContent = "No map selected";
     $("map-summary").textContent = `Map ${name} was deleted.`;
     draw();
@@ -247,8 +269,10 @@
     state.gen += 1;
     Object.assign(state, {
       current: info, image: null, imageOrigin: null, shownVersion: null, scan: null, path: null, start: null, goal: null,
-      loading: null,
+      loading: null, ...OVERLAYS_UNREAD,
     });
+    showTrajectoryText();
+    showRebuild(null);
     history.replaceState(null, "", `#${enc(info.name)}`);
     for (const tr of $("maps-body").children) {
       if (tr.dataset.name === info.name) tr.setAttribute("aria-current", "true");
@@ -313,6 +337,132 @@
     return job;
   }
 
+  // ---------------------------------------------------------------- trajectory and rebuild
+
+  function trajectoryDue() {
+    if (state.trajectoryLoading || state.trajectoryVersion === state.current.version) return false;
+    return state.trajectoryVersion === null || Date.now() - state.trajectoryAt >= TRAJECTORY_EVERY_MS;
+  }
+
+  // every k-th pose, and the last one always: at most about TRAJECTORY_MAX_DRAWN points
+  function thinTrajectory(poses) {
+    const step = Math.max(1, Math.ceil(poses.length / TRAJECTORY_MAX_DRAWN));
+    const at = (i) => [poses[i].pose.position.x, poses[i].pose.position.y];
+    const points = [];
+    for (let i = 0; i < poses.length; i += step) points.push(at(i));
+    if (poses.length > 1 && (poses.length - 1) % step !== 0) points.push(at(poses.length - 1));
+    return { points, total: poses.length, step, problem: null };
+  }
+
+  async function loadTrajectory() {
+    const gen = state.gen;
+    const info = state.current;
+    Object.assign(state, { trajectoryLoading: true, trajectoryAt: Date.now(), trajectoryVersion: info.version });
+    try {
+      const answer = await api(`maps/${enc(info.name)}/trajectory`);
+      if (gen !== state.gen) return;
+      state.trajectory = thinTrajectory(answer.poses);
+    } catch (error) {
+      if (gen !== state.gen) return;
+      if (error instanceof ApiError) {
+        // e.g. 413: more poses than the service reads out (FUZZYRISK_MAX_TRAJECTORY_POSES)
+        state.trajectory = { points: [], total: null, step: 1, problem: error.message };
+      } else {
+        state.trajectoryVersion = null;  // the service does not answer (the poll says so): read it again later
+      }
+    } finally {
+      if (gen === state.gen) state.trajectoryLoading = false;
+    }
+    showTrajectoryText();
+    draw();
+  }
+
+  function showTrajectoryText() {
+    const t = state.trajectory;
+    let text = "No trajectory yet.";
+    if (t && t.problem) text = `The trajectory cannot be shown: ${t.problem}`;
+    else if (t && t.total === 0) text = "No trajectory: the map holds no stored scan.";
+    else if (t) {
+      const thinned = t.step > 1 ? `, every ${ordinal(t.step)} drawn` : "";
+      text = `Trajectory: ${t.total.toLocaleString("en")} poses${thinned}, one per stored scan.`;
+    }
+    $("trajectory-text").textContent = text;
+  }
+
+  const ordinal = (k) => `${k}${k % 10 === 1 && k % 100 !== 11 ? "st" : k % 10 === 2 && k % 100 !== 12 ? "nd"
+    : k % 10 === 3 && k % 100 !== 13 ? "rd" : "th"}`;
+
+  function rebuildDue() {
+    const running = state.rebuild && state.rebuild.state === "running";
+    return running || Date.now() - state.rebuildAt >= REBUILD_IDLE_MS;
+  }
+
+  async function loadRebuild() {
+    const gen = state.gen;
+    state.rebuildAt = Date.now();
+    let status;
+    try {
+      status = await api(`maps/${enc(state.current.name)}/rebuild`);
+    } catch (error) {
+      // 404: a service without re-fusion (or the map just deleted: the next poll says so)
+      if (!(error instanceof ApiError && error.status === 404)) throw error;
+      status = null;
+    }
+    if (gen !== state.gen) return;
+    const before = state.rebuild;
+    state.rebuild = status;
+    // a new correction, or its rebuild done: the poses changed, so the trajectory is read again now
+    if (before && status && (before.id !== status.id || before.state !== status.state)) state.trajectoryVersion = null;
+    showRebuild(status);
+  }
+
+  // seconds in words: 4.2 s, 3 min 05 s
+  function fmtSeconds(s) {
+    if (typeof s !== "number" || !Number.isFinite(s)) return "?";
+    if (s < 60) return `${s.toFixed(1)} s`;
+    const whole = Math.round(s);
+    return `${Math.floor(whole / 60)} min ${String(whole % 60).padStart(2, "0")} s`;
+  }
+
+  const fmtClock = (iso) => (iso ? new Date(iso).toLocaleTimeString("en-GB") : "?");
+
+  function showRebuild(r) {
+    const box = $("rebuild");
+    box.hidden = !r;
+    if (!r) return;
+    box.dataset.state = r.state;
+    const bar = $("rebuild-bar");
+    const count = (n) => Number(n).toLocaleString("en");
+    const reposed = `${count(r.scans_reposed)} scans re-posed`;
+    const refused = `${count(r.scans_done)} of ${count(r.scans_total)} scans re-fused`;
+    let said = "";
+    let figures = "";
+    if (r.state === "none") {
+      said = "No corrected trajectory yet.";
+      figures = `A SLAM node's PUT /maps/${state.current.name}/trajectory re-poses the stored scans and rebuilds `
+        + "the map here, in the background.";
+    } else if (r.state === "running") {
+      said = `Rebuilding on the corrected trajectory of ${fmtClock(r.requested)}…`;
+      const left = r.eta_s === null || r.eta_s === undefined ? "time left unknown" : `${fmtSeconds(r.eta_s)} left`;
+      figures = `${refused}, ${fmtSeconds(r.elapsed_s)} elapsed, ${left}; ${reposed} (of version `
+        + `${r.from_version}). The map shown is the current one until the rebuild replaces it.`;
+    } else if (r.state === "done") {
+      said = `Rebuilt on the corrected trajectory of ${fmtClock(r.requested)}: map version ${r.version}.`;
+      figures = `${reposed}; ${count(r.scans_total)} scans re-fused in ${fmtSeconds(r.elapsed_s)}.`;
+    } else {
+      said = `The rebuild on the corrected trajectory of ${fmtClock(r.requested)} failed; the map is as it was.`;
+      figures = `${refused}, ${fmtSeconds(r.elapsed_s)} elapsed; ${reposed}.`;
+    }
+    if ($("rebuild-state").textContent !== said) $("rebuild-state").textContent = said;
+    $("rebuild-figures").textContent = figures;
+    bar.hidden = r.state !== "running";
+    bar.max = Math.max(1, r.scans_total);
+    bar.value = r.scans_done;
+    bar.setAttribute("aria-valuetext", refused);
+    $("rebuild-error").hidden = r.state !== "failed";
+    $("rebuild-error").textContent = r.state === "failed" ? `Why: ${r.error}` : "";
+  }
+
   // ---------------------------------------------------------------- drawing
 
   const canvas = $("map-canvas");
@@ -320,6 +470,7 @@
   const PATH_COLOUR = "#ff00ff";   // magenta: on no risk colour scale, so a path always stands out
   const BEAM_COLOUR = "rgba(0, 120, 255, 0.3)";
   const HIT_COLOUR = "#0032a0";   // dark blue: reads on the white-to-crimson ramp and on unknown grey-blue
+  const TRAJECTORY_COLOUR = "#00a050";  // green: on no risk colour scale, apart from the path's magenta
 
   function gridSize() {
     return state.image ? [state.image.width, state.image.height] : [0, 0];
@@ -370,6 +521,9 @@
     }
     ctx.imageSmoothingEnabled = false;
     ctx.drawImage(state.image, 0, 0, canvas.width, canvas.height);
+    if (state.trajectory && state.trajectory.points.length && $("show-trajectory").checked) {
+      drawTrajectory(state.trajectory.points);
+    }
     if (state.scan && $("show-scan").checked) drawScan(state.scan);
     if (state.path && state.path.length > 1) drawPath(state.path);
     if (state.start) drawMarker(state.start, "S", state.startHeading);
@@ -409,6 +563,19 @@
     ctx.stroke();
   }
 
+  // the sensor's way through the map: a thin green line on a white casing, the newest pose a dot
+  function drawTrajectory(points) {
+    strokeCased(points, "#fff", 4, TRAJECTORY_COLOUR, 2);
+    const [cx, cy] = toCanvas(points[points.length - 1]);
+    ctx.beginPath();
+    ctx.arc(cx, cy, 4, 0, 2 * Math.PI);
+    ctx.fillStyle = TRAJECTORY_COLOUR;
+    ctx.fill();
+    ctx.lineWidth = 1.5;
+    ctx.strokeStyle = "#fff";
+    ctx.stroke();
+  }
+
   function tracePath(points) {
     ctx.beginPath();
     points.forEach((p, i) => {
@@ -417,18 +584,22 @@
     });
   }
 
-  function drawPath(points) {
+  // a line on a wider casing, so that it reads on light and dark cells alike
+  function strokeCased(points, casing, casingWidth, colour, width) {
     ctx.lineJoin = "round";
     ctx.lineCap = "round";
-    // a dark casing first, so the path reads on light and dark cells alike
     tracePath(points);
-    ctx.strokeStyle = "#000";
-    ctx.lineWidth = 6;
+    ctx.strokeStyle = casing;
+    ctx.lineWidth = casingWidth;
     ctx.stroke();
     tracePath(points);
-    ctx.strokeStyle = PATH_COLOUR;
-    ctx.lineWidth = 3;
+    ctx.strokeStyle = colour;
+    ctx.lineWidth = width;
     ctx.stroke();
+  }
+
+  function drawPath(points) {
+    strokeCased(points, "#000", 6, PATH_COLOUR, 3);
   }
 
   // the heading as an arrow from the marker's centre: black, edged in white so that it reads
@@ -508,6 +679,9 @@
     if (state.start) text += `; start ${fmtPoint(state.start)}${heading(state.startHeading)}`;
     if (state.goal) text += `; goal ${fmtPoint(state.goal)}${heading(state.goalHeading)}`;
     if (state.path && state.path.length > 1) text += `; a path of ${state.path.length} points is drawn`;
+    if (state.trajectory && state.trajectory.total && $("show-trajectory").checked) {
+      text += `; the trajectory of ${state.trajectory.total} poses is drawn`;
+    }
     return text;
   }
 
@@ -838,6 +1012,7 @@
   $("plan-form").addEventListener("change", (event) => event.target.removeAttribute("aria-invalid"));
   $("plan-form").addEventListener("submit", plan);
   $("show-scan").addEventListener("change", draw);
+  $("show-trajectory").addEventListener("change", draw);
   $("forget-key").addEventListener("click", () => {
     sessionStorage.removeItem(KEY_STORE);
     updateKeyButton();

@@ -170,12 +170,16 @@ def test_a_kill_during_a_fold_leaves_the_map_at_its_acknowledged_version(make_cl
     kit.snapshots_stored(client)
     folded = client.get("/maps/lab").json()
     assert (folded["version"], folded["history"]["from_version"]) == (4, 3)
+    # the history starts at the first scan it still holds: batch 4's (stamped when the service received it)
+    assert folded["history"]["from_stamp"] == client.get("/maps/lab/trajectory").json()["poses"][0]["header"]["stamp"]
     risk = kit.risk_npy(client, "lab")
     monkeypatch.undo()
 
     with TestClient(create_app(Settings(data_dir=killed, plan_warmup=False))) as restarted:
         info = restarted.get("/maps/lab").json()
-        assert info["version"] == 4 and info["history"] == {"from_version": 0, "bytes": 4 * size, "scans": 4}
+        first = restarted.get("/maps/lab/trajectory").json()["poses"][0]["header"]["stamp"]
+        assert info["version"] == 4 and info["history"] == {"from_version": 0, "from_stamp": first, "bytes": 4 * size,
+                                                            "scans": 4}
         assert kit.risk_npy(restarted, "lab").tobytes() == risk.tobytes()
         assert _rebuilt_arrays(_storage(restarted)) == _live_arrays(restarted)
     client.__exit__(None, None, None)

@@ -112,6 +112,8 @@ def test_a_corrected_trajectory_rebuilds_the_map_fused_at_the_corrected_poses(
     assert grid_of(client, "robot") == expected  # bit for bit, origin and shape too
     poses = client.get("/maps/robot/trajectory").json()["poses"]
     assert poses == path_of(log)["poses"]  # the corrected poses, exactly, with the scans' stamps
+    last = client.get("/maps/robot/scans/last").json()
+    assert last["version"] == before + 1 and last["origin"] == list(log[-1].pose[:2])  # the last scan, corrected
 
 
 def test_scans_outside_the_paths_range_keep_their_poses_and_an_offset_places_the_sensor(
