@@ -52,10 +52,9 @@ from typing import Any
 import numpy as np
 import psutil
 
+from app.cli import trajectory
 from app.cli.common import ServiceClient, create_map
 from app.cli.import_log import scan_json
-from app.ros.messages_out import yaw_quaternion
-from app.ros.msgtypes import ros_time_of_ns
 from bench import _data, _logmaps
 from bench._abuse_clients import Innocent, InnocentSetup
 from bench._client import Fleet, ServerProcess, chunks, machine
@@ -143,11 +142,9 @@ def log_seed(name: str) -> int:
 
 def sensor_path(scans: Sequence[LaserScan]) -> dict[str, Any]:
     """``nav_msgs/Path`` JSON of the scans' sensor poses at their stamps, as a SLAM node publishes a corrected
-    trajectory and as ``GET /maps/{name}/trajectory`` gives a map's: z 0, the heading a yaw quaternion."""
-    return {"header": {"stamp": ros_time_of_ns(0), "frame_id": FRAME},
-            "poses": [{"header": {"stamp": ros_time_of_ns(s.stamp_ns or 0), "frame_id": FRAME},
-                       "pose": {"position": {"x": s.pose[0], "y": s.pose[1], "z": 0.0},
-                                "orientation": yaw_quaternion(s.pose[2])}} for s in scans]}
+    trajectory and as ``GET /maps/{name}/trajectory`` gives a map's (``app.cli.trajectory.sensor_path``, what
+    ``python -m app.import_log --trajectory`` puts)."""
+    return trajectory.sensor_path([s.pose for s in scans], [s.stamp_ns or 0 for s in scans], FRAME)
 
 
 # ---------------------------------------------------------------- the service
@@ -182,12 +179,12 @@ class Refusion:
 
     def correct(self, name: str, path: dict[str, Any]) -> dict[str, Any]:
         """PUT the trajectory; the RebuildStatus of the 202."""
-        _, data = self.client.call("PUT", f"/maps/{name}/trajectory", json.dumps(path).encode(), ok=(202,))
-        return dict(json.loads(data)["rebuild"])
+        return trajectory.put_trajectory(self.client, name, path)
 
     def wait(self, name: str, rebuild_id: str, poll_s: tuple[float, float] = POLL_S) -> dict[str, Any]:
         """Poll the map's rebuild until the correction ``rebuild_id`` is done (or failed): its last status. The next
-        poll comes after half the rebuild's ``eta_s``, within ``poll_s`` (least, most)."""
+        poll comes after half the rebuild's ``eta_s``, within ``poll_s`` (least, most): the importer's
+        ``wait_for_rebuild`` polls every 0.5 s, too coarse a clock for a rebuild of half a second."""
         deadline = time.monotonic() + REBUILD_TIMEOUT_S
         while time.monotonic() < deadline:
             status = dict(json.loads(self.client.call("GET", f"/maps/{name}/rebuild")[1]))
