@@ -20,7 +20,8 @@ log's corrected poses and hits (``bench maps``' box). For each log (``--logs``, 
 3. print the held-out beam quality (``bench maps``' metric) of A drifted, A rebuilt and B, whether A's
    and B's ``risk.npy`` are identical (bit for bit), the rebuild's time (the status's ``elapsed_s``,
    and PUT to done on our clock) and scans/s beside ``FuzzyMap.integrate_batch`` of the same scans in
-   this process, just after (target >= 0.9x), and its speed as a multiple of the log's duration (its
+   this process, just after, by the wall clock and by CPU (the server process's CPU seconds from the
+   PUT to done against ours; target >= 0.9x), and its speed as a multiple of the log's duration (its
    last stamp less its first; target >= 100x where the stamps are real: a log whose stamps do not
    increase is numbered at 5 Hz, and its row says so and is not judged).
 
@@ -29,7 +30,8 @@ process) posts a binary 1080-beam scan every 0.1 s to a map of its own and reads
 every 0.1 s, unloaded for ``--window`` seconds, then while A is rebuilt again and again (the drifted
 and the corrected poses in turn, each PUT once the last rebuild is done, until ``--window`` has
 passed and the corrected poses were the last), then unloaded for half ``--window``: its p99 during the
-rebuilds against unloaded, the two quiet windows pooled (target <= 2x). ``--quick``: orebro and seattle (478 scans), 10 s windows.
+rebuilds against unloaded, the two quiet windows pooled (target <= 2x). ``--quick``: orebro and seattle
+(478 scans), 10 s windows.
 """
 
 from __future__ import annotations
