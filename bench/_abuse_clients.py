@@ -8,7 +8,7 @@
   a server that answers early (401 before the body) looks to it like a broken pipe.
 * :class:`Innocent`: a client minding its own small map from a separate process (the
   attackers' threads and GIL must not be what is measured): one thread posts a binary 1080-beam
-  scan, one reads ``risk.npy``, one asks for a plan now and then, each on its own keep-alive
+  scan, one reads ``risk.npy``, one asks for a plan now and then (``kinds``: the ones it runs), each on its own keep-alive
   connection, each request retried after ``Retry-After`` on a 503 as a well-behaved client
   does (the latency is the time until it is served). Samples are (start, end, kind, status,
   retries); it counts the scans acknowledged, so that the map's version can be checked.
@@ -221,6 +221,7 @@ class InnocentSetup:
     scan_every_s: float = 0.1
     read_every_s: float = 0.1
     plan_every_s: float = 1.0
+    kinds: tuple[str, ...] = ("scan", "read", "plan")  # what it does, each in a thread of its own
 
 
 class _Lean:
@@ -305,7 +306,7 @@ def _innocent_main(setup: InnocentSetup, run: Any, stop: Any, busy: Any, conn: A
     samples: list = []
     acked: list[int] = []
     threads = [threading.Thread(target=_loop, args=(setup, kind, run, stop, busy, samples, acked), daemon=True)
-               for kind in ("scan", "read", "plan")]
+               for kind in setup.kinds]
     for t in threads:
         t.start()
     for t in threads:

@@ -33,7 +33,10 @@ failing mid-apply, cannot be caused by a client: ``tests/app/test_storage.py``):
     origin 1e300, a size that overflows, range_sigma 1e308 (and HEAD /health);
 9.  10 clients flooding one map with 1 s RRTstar plans for 30 s;
 10. the 16 M-cell map's ``occupancy_grid`` as JSON (refused now: 422 above 4 M cells, naming the .cdr
-    and .mcap forms), then two clients reading it as CDR (16 MB) back to back for 30 s.
+    and .mcap forms), then two clients reading it as CDR (16 MB) back to back for 30 s;
+11. re-fusion: a 16 M-cell map of 3 long LaserScans (a rebuild of several seconds) given a corrected
+    trajectory (``PUT /maps/a11/trajectory``), its rebuild waited for, then for 30 s a PUT a second after
+    the last was answered, each superseding the rebuild the one before started; the last must be done.
 
 Attacks that take a moment (rows 1, 2, 4, 5, 6, 8) are repeated for 30 s (``MIN_WINDOW_S``), so that
 a row's p99 rests on about as many of the innocent's requests as the unloaded one. The attacking threads run at niceness 10 (``_attack_from_afar``): the server
@@ -42,7 +45,7 @@ server's RSS growth (psutil: the server and its children, sampled every 0.1 s; p
 minus the value at its start) against the budget the settings give that scenario, the innocent
 client's p99 scan and read latency (and plan p99) during the attack and the ratio to its unloaded
 p99, the load average, and a verdict: the attacker answered with a 4xx/503 naming the limit (or
-served within its limits: rows 6, 7, 10), RSS within budget, the innocent's p99 within 2x and none
+served within its limits: rows 6, 7, 10, 11), RSS within budget, the innocent's p99 within 2x and none
 of its requests failed, the server's pid unchanged. At the end the innocent map's version must
 equal the scans it had acknowledged, before and after a kill -9 and restart.
 """
@@ -50,6 +53,7 @@ equal the scans it had acknowledged, before and after a kill -9 and restart.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import math
 import os
@@ -85,6 +89,7 @@ API_KEY = secrets.token_urlsafe(24)
 MB = 1e6
 MiB = 2**20
 CELL_BYTES = 13  # the README's bound on a fuzzy map of the default engine, bytes a cell
+SNAPSHOT_CELL_BYTES = 12  # a fuzzy map's to_arrays (its snapshot before deflate): 11 bytes of state, 1 observed
 SLACK = 64 * MiB  # working memory beside what a scenario's budget names (threads, caches, allocator)
 LIMIT = re.compile(r"FUZZYRISK_[A-Z_]+")
 HEAVY_ROOM = {"dimensions": 2, "resolution": 0.05, "origin": [-10.0, -10.0], "size": [20.0, 20.0]}
@@ -137,6 +142,10 @@ class RssSampler:
                     self.samples.append((time.time(), rss))
             self._stop.wait(0.1)
 
+    def at(self, when: float) -> int:
+        """The first sample taken at or after ``when`` (now, if none is yet)."""
+        return next((v for t, v in self.samples if t >= when), 0) or self.now()
+
     def growth(self, start: float, end: float, at_start: int) -> tuple[int, int]:
         """(peak in [start, end] - ``at_start``, peak)."""
         peak = max([v for t, v in self.samples if start <= t <= end] + [at_start])
@@ -157,6 +166,9 @@ class Outcome:
     budget_note: str
     notes: list[str] = field(default_factory=list)
     plans_matter: bool = False  # the innocent's plans must all be served (rows 7 and 9)
+    #: when the attack proper began (``time.time()``), after a set-up that is not the attack (row 11's map): the row's
+    #: window, RSS growth and the innocent's latency, start there; None: with the scenario
+    attack_from: float | None = None
 
 
 @dataclass
@@ -612,6 +624,89 @@ def s10_big_reads(ctx: Ctx) -> Outcome:
         "none configured (printed only)")
 
 
+REBUILD_SCANS = 3  # row 11: the LaserScans of its map, each walking 44 M cells of it (a rebuild of 7 s, load 4)
+REBUILD_BEAMS = 16_384
+REBUILD_PUT_EVERY_S = 1.0  # row 11: a PUT this long after the last was answered, superseding the rebuild it started
+
+
+def _room_scans() -> list[Any]:
+    """Row 11's scans: 360-degree LaserScans of a square room (its walls 1 m inside ``BIG_MAP``'s box), taken 1 s
+    apart on a 5 m circle around its centre (in one batch, within ``FUZZYRISK_MAX_BATCH_CELLS``)."""
+    from fuzzyocc import LaserScan
+
+    half = -BIG_MAP["origin"][0] - 1.0
+    step = 2 * math.pi / REBUILD_BEAMS
+    scans = []
+    for k in range(REBUILD_SCANS):
+        phi = 2 * math.pi * k / REBUILD_SCANS
+        x, y = 5.0 * math.cos(phi), 5.0 * math.sin(phi)
+        angles = phi - math.pi + step * np.arange(REBUILD_BEAMS)
+        d = np.stack([np.cos(angles), np.sin(angles)])
+        with np.errstate(divide="ignore", invalid="ignore"):
+            to_wall = np.where(d != 0.0, (np.sign(d) * half - np.array([[x], [y]])) / d, np.inf)
+        scans.append(LaserScan(pose=(x, y, phi), angle_min=-math.pi, angle_increment=step, ranges=to_wall.min(axis=0),
+                               range_min=0.05, range_max=40.0, stamp_ns=(1_800_000_000 + k) * 10**9))
+    return scans
+
+
+def s11_rebuilds(ctx: Ctx) -> Outcome:
+    # bench_refusion imports this module: its path is imported when the row runs
+    from app.cli.import_log import scan_json
+    from bench.bench_refusion import sensor_path
+
+    scans = _room_scans()
+    ctx.create("a11", BIG_MAP).raise_for_status()
+    ctx.client.post("/maps/a11/scans", json={"scans": [scan_json(s) for s in scans]}).raise_for_status()
+    time.sleep(2.0)  # the map's fusion (its cast's memory) settles: the attack is what follows
+    attack_from = time.time()
+    moved = [dataclasses.replace(s, pose=(s.pose[0] + 0.05, s.pose[1], s.pose[2] + 0.01)) for s in scans]
+    paths = [sensor_path(moved), sensor_path(scans)]
+    answers: list[tuple[int, str]] = []
+    took: list[float] = []
+
+    def put(i: int) -> str | None:
+        t0 = time.perf_counter()
+        response = ctx.client.put("/maps/a11/trajectory", json=paths[i % 2])
+        took.append(time.perf_counter() - t0)
+        answers.append((response.status_code, message_of(response) if response.status_code != 202 else ""))
+        return str(response.json()["rebuild"]["id"]) if response.status_code == 202 else None
+
+    def done(rebuild_id: str | None) -> dict[str, Any]:
+        deadline = time.monotonic() + 300.0
+        while True:
+            status = dict(ctx.client.get("/maps/a11/rebuild").json())
+            if rebuild_id is None or (status["id"] == rebuild_id and status["state"] in ("done", "failed")):
+                return status
+            if time.monotonic() > deadline:
+                raise RuntimeError(f"rebuild {rebuild_id} of a11 not done in 300 s: {status}")
+            time.sleep(0.2)
+
+    t0 = time.perf_counter()
+    alone = done(put(0))
+    alone_s = time.perf_counter() - t0
+    puts, last = 1, None
+    until = time.monotonic() + MIN_WINDOW_S
+    while time.monotonic() < until:
+        time.sleep(REBUILD_PUT_EVERY_S)
+        last = put(puts)
+        puts += 1
+    t0 = time.perf_counter()
+    final = done(last)
+    final_s = time.perf_counter() - t0
+    ok = (all(st == 202 for st, _ in answers) and alone["state"] == "done" and final["state"] == "done"
+          and final["id"] == last)
+    why = f" ({final['error']})" if final["state"] == "failed" else ""
+    return Outcome(
+        f"{status_summary(answers)} in {min(took):.1f}-{max(took):.1f} s: a rebuild alone {alone_s:.1f} s "
+        f"({alone.get('scans_total')} scans of {REBUILD_BEAMS:,} beams, the 16 M-cell map), then for {MIN_WINDOW_S:g} s "
+        f"a PUT {REBUILD_PUT_EVERY_S:g} s after the last was answered, each superseding the running rebuild; the last "
+        f"{final['state']} {final_s:.1f} s after the window{why}; a11 at version {ctx.version('a11')} (the row from "
+        f"the first PUT: the map was made and fused before it)",
+        ok, 16e6 * (2 * CELL_BYTES + SNAPSHOT_CELL_BYTES) + SLACK,
+        "the 16 M-cell map and one rebuild of it (13 B/cell each), the rebuild's snapshot arrays (12 B/cell) + 64 MB",
+        attack_from=attack_from)
+
+
 SCENARIOS: list[tuple[str, str, Callable[[Ctx], Outcome]]] = [
     ("1", "small batch of long rays, 16 M-cell map", s1_batch_work),
     ("2", "66 MB query bodies, wrong key, 6 at once", s2_keyless_bodies),
@@ -624,6 +719,7 @@ SCENARIOS: list[tuple[str, str, Callable[[Ctx], Outcome]]] = [
     ("8", "odd input", s8_odd_input),
     ("9", "10 clients flooding one map with plans", s9_plan_flood),
     ("10", "occupancy_grid of the 16 M-cell map (JSON refused, CDR), 2 readers", s10_big_reads),
+    ("11", "corrected trajectories PUT again and again on a 16 M-cell map, each superseding its rebuild", s11_rebuilds),
 ]
 
 
@@ -735,6 +831,8 @@ def main(argv: list[str] | None = None) -> int:
             except Exception as exc:  # noqa: BLE001 - a scenario that breaks is a row that says so
                 outcome = Outcome(f"bench error: {type(exc).__name__}: {str(exc)[:200]}", False, None, "")
             end = time.time()
+            if outcome.attack_from is not None:
+                start, at_start = outcome.attack_from, rss.at(outcome.attack_from)
             time.sleep(0.3)
             growth, _ = rss.growth(start, end + 0.3, at_start)
             row = Row(key, title, outcome, start, end, growth, server.alive() and server.pid == pid,
