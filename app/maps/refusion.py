@@ -172,14 +172,20 @@ class Refusions:
             before.stop = True
         job = _Job(name, correction_id, reposed=reposed)
         self._jobs[name] = job
-        job.task = asyncio.get_running_loop().create_task(self._run(job))
+        job.task = asyncio.get_running_loop().create_task(self._run(job, None if before is None else before.task))
 
     # ------------------------------------------------------------------ the job
 
-    async def _run(self, job: _Job) -> None:
+    async def _run(self, job: _Job, before: asyncio.Task[None] | None) -> None:
         result = "superseded"
         reporter = asyncio.get_running_loop().create_task(self._report(job))
         try:
+            if before is not None:
+                # the superseded rebuild stops at its next batch: one rebuilt copy of the map at a time (five PUTs
+                # in a row on a map of one long batch held five copies side by side)
+                await asyncio.wait([before])
+            if job.stop:
+                raise _Stopped(job.name)
             result = await self._rebuild(job)
         except (_Stopped, Superseded, MapGone):
             pass
