@@ -63,4 +63,4 @@ def plan_fold(storage: Storage, name: str, incarnation: str | None, *, budget: i
     history = storage.load_history(name, up_to=version)
     if history is None or history.incarnation != incarnation:
         return None
-    return Fold(version, npz(rebuild(history, up_to=version).map.to_arrays()), head.version)
+    return Fold(version, npz(rebuild(history, up_to=version).map.snapshot_arrays()), head.version)

@@ -246,7 +246,7 @@ class Refusions:
                 raise _Stopped(job.name)
             if rebuilt_at.version not in snapshots:
                 snapshots.clear()
-                snapshots[rebuilt_at.version] = npz(rebuilt.map.to_arrays())
+                snapshots[rebuilt_at.version] = npz(rebuilt.map.snapshot_arrays())
             updated = now()
             report = job.report(stored)
             version = self.storage.switch_reposed(

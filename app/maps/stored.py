@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import io
 import logging
+import zipfile
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any, cast
@@ -27,11 +28,20 @@ from fuzzyocc.maps import PRIOR_UNSEEN
 LOG = logging.getLogger("fuzzyrisk.maps")
 
 
+#: The deflate level of a snapshot's arrays: 1 deflated a 6.9 M-cell map's blocks in 0.09 s to 1.4 MB, the default 6
+#: (``np.savez_compressed``'s) in 0.35 s to 1.0 MB; a snapshot is written beside the line, and the switch of a rebuild
+#: at a corrected trajectory waits for its own.
+SNAPSHOT_DEFLATE_LEVEL = 1
+
+
 def npz(arrays: Mapping[str, np.ndarray]) -> bytes:
-    """A map's arrays (``to_arrays``) as a snapshot's bytes."""
+    """A map's arrays (``snapshot_arrays``) as a snapshot's bytes: an ``.npz`` (``np.load`` reads it)."""
     out = io.BytesIO()
-    # snapshots are mostly unknown cells: deflate shrinks them many times over
-    np.savez_compressed(out, allow_pickle=False, **arrays)
+    # snapshots are mostly uniform blocks and runs of one state: deflate shrinks them many times over
+    with zipfile.ZipFile(out, "w", compression=zipfile.ZIP_DEFLATED, compresslevel=SNAPSHOT_DEFLATE_LEVEL) as archive:
+        for key, value in arrays.items():
+            with archive.open(f"{key}.npy", "w", force_zip64=True) as member:
+                np.lib.format.write_array(member, np.asanyarray(value), allow_pickle=False)
     return out.getvalue()
 
 

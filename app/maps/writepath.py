@@ -144,7 +144,7 @@ class WritePath:
     async def _copy(self, entry: MapEntry) -> tuple[int, dict[str, np.ndarray]]:
         """The map's version and a copy of its arrays, taken under the apply lock: one version's map."""
         async with entry.apply_lock:  # batches and readers wait for the copy only, not for deflate and fsync
-            return entry.version, await self._workers.run(entry.map.to_arrays)
+            return entry.version, await self._workers.run(entry.map.snapshot_arrays)
 
     async def _store_snapshot(self, entry: MapEntry, version: int, arrays: dict[str, np.ndarray], *,
                               replay_fold: bool) -> None:

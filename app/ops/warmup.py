@@ -32,6 +32,7 @@ def _fuse_2d(model: type[FuzzyMap] | type[BayesMap]) -> None:
     flat.plane_lookup(exports.occupancy_lut(), -1)  # a 2-D map's OccupancyGrid (a read-only table, as served)
     # a map's first snapshot copies it: compiled there, 0.3-0.7 s of the GIL that every request waited for
     model.from_arrays(spec, SensorModel(), flat.to_arrays())
+    model.from_arrays(spec, SensorModel(), flat.snapshot_arrays())
 
 
 def _fuse_3d(model: type[FuzzyMap] | type[BayesMap]) -> None:
@@ -44,6 +45,7 @@ def _fuse_3d(model: type[FuzzyMap] | type[BayesMap]) -> None:
     solid.risk()
     solid.observed()
     model.from_arrays(spec, SensorModel(), solid.to_arrays())
+    model.from_arrays(spec, SensorModel(), solid.snapshot_arrays())
 
 
 def _check_paths() -> None:

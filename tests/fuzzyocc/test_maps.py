@@ -509,3 +509,28 @@ def test_beam_angles_past_float_range_are_refused_before_any_cast() -> None:
     with pytest.raises(ValueError, match="finite"):
         cast_rays(spec, np.array([[1.0, 1.0]]), np.array([[np.nan, 0.0]]), t_end=np.array([1.0]),
                   measured=np.array([0.5]), sigma=np.array([0.05]), ray_offsets=np.array([0, 1]), unknown_from=1.5)
+
+
+@pytest.mark.parametrize("dims", [2, 3])
+def test_a_fixed_maps_snapshot_holds_its_blocks_and_restores_it_bit_for_bit(dims: int) -> None:
+    # a snapshot costs what the map holds: its blocks, not every cell of its box
+    if dims == 2:
+        spec = GridSpec(origin=(-20.0, -20.0), size=(40.0, 40.0), resolution=0.05)
+        scans = [LaserScan(pose=(0.1 * k, 0.0, 0.3 * k), angle_min=-1.0, angle_increment=0.01,
+                           ranges=np.full(201, 3.0), range_min=0.1, range_max=10.0) for k in range(5)]
+    else:
+        spec = GridSpec(origin=(-10.0, -10.0, -2.0), size=(20.0, 20.0, 4.0), resolution=0.1)
+        rng = np.random.default_rng(3)
+        scans = [PointCloud(points=rng.uniform(-3.0, 3.0, (500, 3)), origin=(0.0, 0.0, 0.0), range_max=10.0)]
+    live = FuzzyMap(spec, SensorModel())
+    live.integrate_batch(scans)
+    snapshot = live.snapshot_arrays()
+    assert "state" not in snapshot and snapshot["slabs"].nbytes < live.to_arrays()["state"].nbytes / 10
+    restored = FuzzyMap.from_arrays(spec, SensorModel(), snapshot)
+    for key, value in live.to_arrays().items():
+        assert restored.to_arrays()[key].tobytes() == value.tobytes(), key
+    # and both go on alike
+    more = scans[:1]
+    live.integrate_batch(more)
+    restored.integrate_batch(more)
+    assert restored.risk().tobytes() == live.risk().tobytes() and restored.scans_fused == live.scans_fused
