@@ -262,13 +262,7 @@ class PostgresStorage:
                                (name, incarnation, incarnation)).fetchone()
             if row is None or row[0] >= version:
                 return  # as new or newer already stored (another replica's), or folded into the base
-            # the snapshot keeps its version's ``updated``
-            conn.execute("INSERT INTO snapshots (map, version, payload, crc, updated) VALUES (%s, %s, %b, %s, "
-                         "(SELECT updated FROM batches WHERE map = %s AND seq = %s)) "
-                         "ON CONFLICT (map) DO UPDATE SET version = excluded.version, "
-                         "payload = excluded.payload, crc = excluded.crc, updated = excluded.updated",
-                         (name, version, payload, checksum(payload), name, version))
-            conn.execute("UPDATE maps SET snapshot_version = %s WHERE name = %s", (version, name))
+            _store_snapshot(conn, name, version, payload)
 
     def fold_point(self, name: str, keep_bytes: int) -> int:
         def point(conn: psycopg.Connection[Any]) -> int:
@@ -337,14 +331,8 @@ class PostgresStorage:
                 if row is None:
                     raise MapGone(name)
 
-                def store_snapshot(version: int) -> None:
-                    conn.execute("INSERT INTO snapshots (map, version, payload, crc, updated) VALUES (%s, %s, %b, %s, %s) "
-                                 "ON CONFLICT (map) DO UPDATE SET version = excluded.version, "
-                                 "payload = excluded.payload, crc = excluded.crc, updated = excluded.updated",
-                                 (name, version, snapshot, checksum(snapshot), change.updated))
-                    conn.execute("UPDATE maps SET snapshot_version = %s WHERE name = %s", (version, name))
-
-                version = corrections.switch(_dialect(conn), name, int(row[0]), int(row[1]), change, store_snapshot)
+                version = corrections.switch(_dialect(conn), name, int(row[0]), int(row[1]), change,
+                                             lambda new: _store_snapshot(conn, name, new, snapshot))
                 committing = version is not None
                 return version
         except StorageUnavailable as exc:
@@ -354,6 +342,16 @@ class PostgresStorage:
 
     def close(self) -> None:
         self._pool.close()
+
+
+def _store_snapshot(conn: psycopg.Connection[Any], name: str, version: int, payload: bytes) -> None:
+    """The map's restart snapshot row replaced by ``payload`` at ``version``, with that version's batch's ``updated``."""
+    conn.execute("INSERT INTO snapshots (map, version, payload, crc, updated) VALUES (%s, %s, %b, %s, "
+                 "(SELECT updated FROM batches WHERE map = %s AND seq = %s)) "
+                 "ON CONFLICT (map) DO UPDATE SET version = excluded.version, "
+                 "payload = excluded.payload, crc = excluded.crc, updated = excluded.updated",
+                 (name, version, payload, checksum(payload), name, version))
+    conn.execute("UPDATE maps SET snapshot_version = %s WHERE name = %s", (version, name))
 
 
 def _dialect(conn: psycopg.Connection[Any]) -> corrections.Execute:

@@ -94,6 +94,17 @@ _SQLITE_CREATE = ("INSERT INTO maps (name, meta, updated, version, snapshot_vers
                   "VALUES (?, ?, ?, 0, 0, ?, 0)")
 
 
+def _store_snapshot(db: sqlite3.Connection, name: str, version: int, payload: bytes, crc: int, file: str | None) -> None:
+    """The map's restart snapshot row replaced by ``payload`` at ``version`` (its bytes in ``file`` when staged), with
+    that version's batch's ``updated``."""
+    db.execute("INSERT INTO snapshots (map, version, payload, crc, updated, file) VALUES (?, ?, ?, ?, "
+               "(SELECT updated FROM batches WHERE map = ? AND seq = ?), ?) "
+               "ON CONFLICT(map) DO UPDATE SET version = excluded.version, payload = excluded.payload, "
+               "crc = excluded.crc, updated = excluded.updated, file = excluded.file",
+               (name, version, payload if file is None else b"", crc, name, version, file))
+    db.execute("UPDATE maps SET snapshot_version = ? WHERE name = ?", (version, name))
+
+
 def payload_directory(database: Path) -> Path:
     """Where the SQLite store at ``database`` keeps its big payloads: ``<database>-payloads``, beside its ``-wal``."""
     return database.with_name(database.name + "-payloads")
@@ -332,13 +343,7 @@ class SqliteStorage:
             if row is None or row[0] >= version:
                 return None, staged
             replaced = db.execute("SELECT file FROM snapshots WHERE map = ? AND file IS NOT NULL", (name,)).fetchall()
-            # the snapshot keeps its version's ``updated``
-            db.execute("INSERT INTO snapshots (map, version, payload, crc, updated, file) VALUES (?, ?, ?, ?, "
-                       "(SELECT updated FROM batches WHERE map = ? AND seq = ?), ?) "
-                       "ON CONFLICT(map) DO UPDATE SET version = excluded.version, payload = excluded.payload, "
-                       "crc = excluded.crc, updated = excluded.updated, file = excluded.file",
-                       (name, version, payload if file is None else b"", crc, name, version, file))
-            db.execute("UPDATE maps SET snapshot_version = ? WHERE name = ?", (version, name))
+            _store_snapshot(db, name, version, payload, crc, file)
             return None, [f for (f,) in replaced]
 
         self._with_files(staged, snapshot)
@@ -413,15 +418,8 @@ class SqliteStorage:
                 raise MapGone(name)
             replaced = [f for (f,) in db.execute("SELECT file FROM snapshots WHERE map = ? AND file IS NOT NULL",
                                                  (name,))]
-
-            def store_snapshot(version: int) -> None:
-                db.execute("INSERT INTO snapshots (map, version, payload, crc, updated, file) VALUES (?, ?, ?, ?, ?, ?) "
-                           "ON CONFLICT(map) DO UPDATE SET version = excluded.version, payload = excluded.payload, "
-                           "crc = excluded.crc, updated = excluded.updated, file = excluded.file",
-                           (name, version, snapshot if file is None else b"", crc, change.updated, file))
-                db.execute("UPDATE maps SET snapshot_version = ? WHERE name = ?", (version, name))
-
-            version = corrections.switch(db.execute, name, int(row[0]), int(row[1]), change, store_snapshot)
+            version = corrections.switch(db.execute, name, int(row[0]), int(row[1]), change,
+                                         lambda new: _store_snapshot(db, name, new, snapshot, crc, file))
             return version, staged if version is None else replaced
 
         return self._with_files(staged, run)
