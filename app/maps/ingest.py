@@ -19,6 +19,7 @@ from app.scans import BINARY_TYPES, Limits, Scan, from_binary, from_json
 from app.ros import messages_in
 from app.errors import Invalid, TooLarge, UnsupportedMediaType
 from app.schemas import ScanBatch, ScanQuery
+from app.schemas.common import located_errors
 from fuzzyocc import GridSpec, LaserScan, LatticeSpec, allocation_bound, cast_work
 from fuzzyocc.maps import scan_parts
 
@@ -30,7 +31,7 @@ def parse(body: bytes, content_type: str, query: Mapping[str, str], dims: int,
     try:
         params = ScanQuery.model_validate(dict(query)).model_dump()
     except ValidationError as exc:
-        raise RequestValidationError(_errors(exc, "query")) from None
+        raise RequestValidationError(located_errors(exc, ("query",), hidden=_HIDDEN)) from None
     media = media_of(content_type)
     if media in BINARY_TYPES:
         return from_binary(body, params, dims, limits)
@@ -47,15 +48,13 @@ def parse(body: bytes, content_type: str, query: Mapping[str, str], dims: int,
     try:
         batch = ScanBatch.model_validate_json(body)
     except ValidationError as exc:
-        raise RequestValidationError(_errors(exc, "body")) from None
+        raise RequestValidationError(located_errors(exc, ("body",), hidden=_HIDDEN)) from None
     return from_json(batch, dims, limits)
 
 
-def _errors(exc: ValidationError, where: str) -> list[dict[str, object]]:
-    """pydantic's errors under ``where``, without inputs that are not scalars: a bad scan's input is all of its
-    ranges, which the answer never echoes, and which a parse process would pickle back for nothing."""
-    return [{k: v for k, v in {**e, "loc": (where, *e["loc"])}.items()
-             if k != "input" or not isinstance(v, dict | list | bytes)} for e in exc.errors(include_url=False)]
+#: Inputs an error of a scan body does not echo: a bad scan's input is all of its ranges, which the answer never
+#: echoes, and which a parse process would pickle back for nothing.
+_HIDDEN = (dict, list, bytes)
 
 
 def media_of(content_type: str) -> str:

@@ -20,6 +20,7 @@ from app.formats.saved_maps import MapCells, SavedMap, check_geometry
 from app.ros.messages_in import decode
 from app.ros.messages_out import OCCUPANCY_GRID
 from app.schemas import OccupancyGridMessage
+from app.schemas.common import located_errors
 
 #: The rotation an origin's quaternion may hold and still count as none (float noise of a yaw of 0), radians.
 _MAX_ROTATION_RAD = 1e-9
@@ -33,9 +34,7 @@ def open_json(body: bytes, *, max_cells: int) -> SavedMap:
         msg = OccupancyGridMessage.model_validate_json(body)
     except ValidationError as exc:
         # the whole input of a bad message is its data: never echoed
-        raise RequestValidationError([{k: v for k, v in {**e, "loc": ("body", *e["loc"])}.items()
-                                       if k != "input" or not isinstance(v, dict | list | str | bytes)}
-                                      for e in exc.errors(include_url=False)]) from None
+        raise RequestValidationError(located_errors(exc, ("body",), hidden=(dict, list, str, bytes))) from None
     info, origin = msg.info, msg.info.origin
     return _saved(width=info.width, height=info.height, resolution=info.resolution,
                   position=(origin.position.x, origin.position.y),

@@ -16,6 +16,7 @@ from pydantic import TypeAdapter, ValidationError
 from app.errors import Invalid
 from app.ros.messages_out import YAW_SPACES
 from app.schemas import CorrectedPath, Header, PoseStamped, Quaternion
+from app.schemas.common import located_errors
 
 #: Poses validated in one call: pydantic holds the GIL for a whole call (100,000 poses, 20 MB, took 3 s in
 #: one on a loaded 2-core machine), so the event loop and the other threads get it between chunks of 15 ms instead.
@@ -52,14 +53,7 @@ def _validated(adapter: TypeAdapter[Any], value: object, where: tuple[Any, ...],
     try:
         return adapter.validate_python(value)
     except ValidationError as exc:
-        errors = []
-        for e in exc.errors(include_url=False):
-            loc = list(e["loc"])
-            if offset and loc and isinstance(loc[0], int):
-                loc[0] += offset
-            errors.append({k: v for k, v in {**e, "loc": (*where, *loc)}.items()
-                           if k != "input" or not isinstance(v, dict | list | str | bytes)})
-        raise RequestValidationError(errors) from None
+        raise RequestValidationError(located_errors(exc, where, hidden=(dict, list, str, bytes), offset=offset)) from None
 
 
 def yaw_of(q: Quaternion) -> float:

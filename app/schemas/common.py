@@ -8,11 +8,26 @@ import re
 from collections.abc import Mapping
 from typing import Annotated, Any
 
-from pydantic import AfterValidator, BaseModel, ConfigDict, Field, FiniteFloat
+from pydantic import AfterValidator, BaseModel, ConfigDict, Field, FiniteFloat, ValidationError
 
 NAME_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$"
 _NAME_RE = re.compile(NAME_PATTERN)
 NAME_RULE = "1 to 64 characters from A-Z a-z 0-9 _ . -, starting with a letter or a digit"
+
+
+def located_errors(exc: ValidationError, where: tuple[Any, ...], *, hidden: tuple[type, ...],
+                   offset: int = 0) -> list[dict[str, Any]]:
+    """pydantic's errors as a ``RequestValidationError`` carries them: each ``loc`` under ``where`` (its first index
+    moved by ``offset``: a chunk of a list validated alone), and no ``input`` of the ``hidden`` types (a bad scan's or
+    grid's input is all of its numbers, which the answer never echoes)."""
+    located = []
+    for e in exc.errors(include_url=False):
+        loc = list(e["loc"])
+        if offset and loc and isinstance(loc[0], int):
+            loc[0] += offset
+        located.append({k: v for k, v in {**e, "loc": (*where, *loc)}.items()
+                        if k != "input" or not isinstance(v, hidden)})
+    return located
 
 
 def check_map_name(name: str) -> str:
