@@ -146,6 +146,11 @@ class Settings(BaseSettings):
         description="Scan batches one map may hold in line (bodies arriving, parsed, committing or fusing) before 503.",
     )
     fusion_threads: int = Field(2, ge=1, le=64, description="Threads that fuse scans (different maps in parallel).")
+    split_threads: int = Field(
+        0, ge=0, le=64,
+        description="Threads one batch's fusion is split between (its rays, then its cells), at the priority of the "
+        "thread fusing it; 0: one per CPU. The map is the same, bit for bit, for any value.",
+    )
     read_threads: int = Field(
         2, ge=1, le=64,
         description="Threads that read and encode grids (risk, exports, queries): apart from fusion's, so that a "

@@ -7,9 +7,8 @@ slots live in plain arrays so the compiled kernels of :mod:`fuzzyocc.blockgrid` 
 hash of Teschner et al., "Optimized spatial hashing for collision detection of deformable
 objects" (2003).
 
-:func:`insert` never grows the table: its caller makes room first (``BlockIndex.reserve``, or the
-cast kernel, which doubles a full index itself), and a deletion moves later entries of its probe
-run back (no tombstones), so lookups stay short however many blocks come and go.
+:func:`insert` never grows the table: its caller makes room first (``BlockIndex.reserve``), and a deletion
+moves later entries of its probe run back (no tombstones), so lookups stay short however many blocks come and go.
 """
 
 from __future__ import annotations
@@ -107,15 +106,12 @@ def rebuild(coords, n, capacity):  # pragma: no cover - compiled
 class BlockIndex:
     """Blocks of a lattice by integer coordinates, each stored at a slot ``0..n-1`` (slots stay packed).
 
-    ``coords[s]`` are the coordinates of the block at slot ``s``; ``touch`` is scratch for a
-    cast (``-1`` everywhere between casts). Arrays grow by :meth:`reserve`, or in the cast kernel,
-    which hands back the doubled arrays.
+    ``coords[s]`` are the coordinates of the block at slot ``s``. Arrays grow by :meth:`reserve`.
     """
 
     def __init__(self, capacity: int = 64) -> None:
         self.n = 0
         self.coords = np.zeros((capacity, 3), dtype=np.int32)
-        self.touch = np.full(capacity, EMPTY, dtype=np.int32)
         self.keys, self.slots = new_table(_table_size(capacity))
 
     @property
@@ -131,9 +127,7 @@ class BlockIndex:
         capacity = max(need, 2 * self.capacity)
         coords = np.zeros((capacity, 3), dtype=np.int32)
         coords[: self.n] = self.coords[: self.n]
-        touch = np.full(capacity, EMPTY, dtype=np.int32)
-        touch[: self.n] = self.touch[: self.n]
-        self.coords, self.touch = coords, touch
+        self.coords = coords
         self.keys, self.slots = rebuild(self.coords, self.n, _table_size(capacity))
 
     def find(self, coords: np.ndarray) -> np.ndarray:
@@ -155,8 +149,8 @@ class BlockIndex:
         return last
 
     def nbytes(self) -> int:
-        """Bytes of the index: coordinates, cast scratch and table."""
-        return int(self.coords.nbytes + self.touch.nbytes + self.keys.nbytes + self.slots.nbytes)
+        """Bytes of the index: coordinates and table."""
+        return int(self.coords.nbytes + self.keys.nbytes + self.slots.nbytes)
 
 
 def _table_size(capacity: int) -> int:

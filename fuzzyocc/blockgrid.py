@@ -28,6 +28,7 @@ from collections.abc import Callable
 import numpy as np
 from numba import njit
 
+from fuzzyocc import parallel
 from fuzzyocc._block_table import BlockIndex, find, insert, rebuild
 from fuzzyocc._engine_kernels import SLOPED, evidence_class, fuse_row, fuzzify_into
 from fuzzyocc.engine import Fuzzifier
@@ -186,22 +187,55 @@ class BlockGrid:
         if distance_sigmas.shape != keys.shape:
             raise ValueError(f"distance_sigmas must have shape {keys.shape}, got {distance_sigmas.shape}")
         rules, float_ops = row_fusion
-        touched = np.empty(keys.size, dtype=np.int64)
-        start = n_touched = 0
-        while True:  # the pool grows only when a uniform block must be expanded and no slab is left
-            start, self._n_dense, n_touched = _fuse_write(
-                keys, self._bits, distance_sigmas, *fuzzifier, rules, float_ops, start, touched,
-                n_touched, self._ref, self._urow, self._urisk, self._pool.reshape(-1, self._width), self._prisk,
-                self._owner, self._n_dense)
-            if start == keys.size:
-                break
-            self._grow_pool(self._n_dense + max(64, self._n_dense // 2))
-        if n_touched == 0:
+        parts = _block_parts(keys, self._bits, parallel.walks_for(keys.size))
+        if len(parts) > 2:
+            touched = self._fuse_apart(keys, distance_sigmas, fuzzifier, rules, float_ops, parts)
+        else:
+            touched = np.empty(keys.size, dtype=np.int64)
+            start = n_touched = 0
+            while True:  # the pool grows only when a uniform block must be expanded and no slab is left
+                start, self._n_dense, n_touched = _fuse_write(
+                    keys, self._bits, distance_sigmas, *fuzzifier, rules, float_ops, start, keys.size, touched,
+                    n_touched, self._ref, self._urow, self._urisk, self._pool.reshape(-1, self._width), self._prisk,
+                    self._owner, self._n_dense, self._prisk.shape[0])
+                if start == keys.size:
+                    break
+                self._grow_pool(self._n_dense + max(64, self._n_dense // 2))
+            touched = touched[:n_touched]
+        if touched.size == 0:
             return
-        self._n_dense = _collapse(touched[:n_touched], self.index.coords, self._box3, self._shift, self._ref,
+        self._n_dense = _collapse(touched, self.index.coords, self._box3, self._shift, self._ref,
                                   self._urow, self._urisk, self._pool, self._prisk, self._owner, self._n_dense)
         self._give_back_slack()
         self._any_stale = True
+
+    def _fuse_apart(self, keys: np.ndarray, distance_sigmas: np.ndarray, fuzzifier: Fuzzifier, rules: np.ndarray,
+                    float_ops: np.ndarray, parts: np.ndarray) -> np.ndarray:
+        """``fuse``'s writes in threads, each over its own blocks (``parts`` bounds runs of whole blocks); the blocks
+        they touched, in key order.
+
+        Each part takes its slabs from a range of the pool of its own, as many as it has uniform blocks (the most it
+        can expand); the parts' slabs are then packed in part order: the slabs come out numbered as one pass over
+        the keys numbers them, so the grid is the same, bit for bit, however the keys were split."""
+        bounds = np.array([_uniform_blocks(keys, self._bits, self._ref, lo, hi) for lo, hi in zip(parts, parts[1:])])
+        firsts = self._n_dense + np.concatenate([[0], np.cumsum(bounds)])
+        if firsts[-1] > self._prisk.shape[0]:
+            self._grow_pool(int(firsts[-1]))
+        touched = np.empty(keys.size, dtype=np.int64)
+        rows = self._pool.reshape(-1, self._width)
+
+        def write(p: int) -> tuple[int, int]:
+            lo, hi = int(parts[p]), int(parts[p + 1])
+            _, dense, n_touched = _fuse_write(
+                keys, self._bits, distance_sigmas, *fuzzifier, rules, float_ops, lo, hi, touched[lo:hi], 0,
+                self._ref, self._urow, self._urisk, rows, self._prisk, self._owner, int(firsts[p]), int(firsts[p + 1]))
+            return dense, n_touched
+
+        done = parallel.run(write, range(len(parts) - 1))
+        ends = np.array([dense for dense, _ in done], dtype=np.int64)
+        self._n_dense = _pack_slabs(firsts[:-1].astype(np.int64), ends, self._ref, self._pool, self._prisk,
+                                    self._owner)
+        return np.concatenate([touched[lo: lo + n] for lo, (_, n) in zip(parts, done)])
 
     def _give_back_slack(self) -> None:
         if 2 * self._n_dense < self._pool.shape[0] and self._pool.shape[0] > 64:
@@ -504,9 +538,10 @@ def _same_row(row, table, i):  # pragma: no cover - compiled
 
 
 @njit(cache=True, nogil=True)
-def _fuse_write(keys, bits, distances, xs, ys, counts, const_rows, bounds, rules, float_ops, start, touched,
-                n_touched, ref, urow, urisk, rows, prisk, owner, n_dense):  # pragma: no cover - compiled
-    """Fuse from cell ``start`` on, writing the rows that change and expanding their uniform blocks.
+def _fuse_write(keys, bits, distances, xs, ys, counts, const_rows, bounds, rules, float_ops, start, stop, touched,
+                n_touched, ref, urow, urisk, rows, prisk, owner, n_dense, capacity):  # pragma: no cover - compiled
+    """Fuse cells ``start:stop``, writing the rows that change and expanding their uniform blocks into slabs
+    ``n_dense:capacity``.
 
     ``rows`` is the pool as (slabs * block cells, L). Fused cells of dense blocks and changed
     cells of uniform ones are written, their risk goes stale and their blocks are appended
@@ -518,7 +553,6 @@ def _fuse_write(keys, bits, distances, xs, ys, counts, const_rows, bounds, rules
     width = urow.shape[1]
     mask = (1 << bits) - 1
     block_cells = prisk.shape[1]
-    capacity = prisk.shape[0]
     out = np.empty(width, np.uint8)
     acc = np.zeros(width)
     active = np.empty(width, np.int64)
@@ -534,7 +568,7 @@ def _fuse_write(keys, bits, distances, xs, ys, counts, const_rows, bounds, rules
     noop_block = -1
     noop_class = -1
     n = start - 1
-    while n + 1 < keys.shape[0]:
+    while n + 1 < stop:
         n += 1
         v = distances[n]
         e = evidence_class(v, bounds)
@@ -546,7 +580,7 @@ def _fuse_write(keys, bits, distances, xs, ys, counts, const_rows, bounds, rules
         if s < 0:
             if b == noop_block and e == noop_class:
                 continue
-            if e != SLOPED and n + block_cells <= keys.shape[0] and keys[n + block_cells - 1] >> bits == b:
+            if e != SLOPED and n + block_cells <= stop and keys[n + block_cells - 1] >> bits == b:
                 # Every cell of the block is here (keys are unique, a block's together). If all take this
                 # constant evidence the block stays uniform, with the fused row: it is neither expanded,
                 # fused cell by cell, nor collapsed (in front of a robot whole blocks step from one free
@@ -593,7 +627,56 @@ def _fuse_write(keys, bits, distances, xs, ys, counts, const_rows, bounds, rules
         if n_touched == 0 or touched[n_touched - 1] != b:
             touched[n_touched] = b
             n_touched += 1
-    return keys.shape[0], n_dense, n_touched
+    return stop, n_dense, n_touched
+
+
+def _block_parts(keys: np.ndarray, bits: int, n: int) -> np.ndarray:
+    """Bounds of ``n`` runs of ``keys`` (a block's together) of about equal length, each of whole blocks."""
+    if n <= 1:
+        return np.array([0, keys.size], dtype=np.int64)
+    cuts = [0]
+    for p in range(1, n):
+        at = max(int(keys.size * p // n), cuts[-1])
+        block = keys[at] >> bits if at < keys.size else None
+        while at < keys.size and keys[at] >> bits == block:  # keys are sorted by block: no split inside one
+            at += 1
+        cuts.append(at)
+    cuts.append(keys.size)
+    return np.unique(np.array(cuts, dtype=np.int64))
+
+
+@njit(cache=True, nogil=True)
+def _uniform_blocks(keys, bits, ref, lo, hi):  # pragma: no cover - compiled
+    """Uniform blocks among the cells ``keys[lo:hi]`` (a block's together): the most slabs their fusion can take."""
+    n = 0
+    last = -1
+    for q in range(lo, hi):
+        b = keys[q] >> bits
+        if b != last:
+            last = b
+            if ref[b] < 0:
+                n += 1
+    return n
+
+
+@njit(cache=True, nogil=True)
+def _pack_slabs(firsts, ends, ref, pool, prisk, owner):  # pragma: no cover - compiled
+    """Move the slabs parts took from ranges ``firsts[p]:ends[p]`` of the pool down, in part order, next to each other;
+    the dense count."""
+    n = ends[0]
+    for p in range(1, firsts.shape[0]):
+        for s in range(firsts[p], ends[p]):
+            if s != n:
+                for o in range(pool.shape[1]):
+                    for k in range(pool.shape[2]):
+                        pool[n, o, k] = pool[s, o, k]
+                for o in range(prisk.shape[1]):
+                    prisk[n, o] = prisk[s, o]
+                b = owner[s]
+                owner[n] = b
+                ref[b] = n
+            n += 1
+    return n
 
 
 @njit(cache=True, nogil=True, inline="always")

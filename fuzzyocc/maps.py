@@ -48,9 +48,10 @@ Scan = LaserScan | PointCloud
 _BAYES_CHUNK = 1 << 16  # cells per step of a Bayes update (each cell is updated on its own)
 #: (scan, cell) entries one cast of a batch may hold (12 bytes each: about 200 MB); see ``_cast_chunks``
 CAST_CHUNK_ENTRIES = 16_000_000
-#: beams one cast may hold (about 300 bytes each while their rays are made and cast: about 20 MB); a scan with
-#: more is cast part by part (see ``_cast_in_parts``)
-CAST_CHUNK_BEAMS = 65_536
+#: beams one cast may hold (about 300 bytes each while their rays are made and cast: about 40 MB); a scan with
+#: more is cast part by part (see ``_cast_in_parts``). A 128-beam lidar's sweep (131,072 beams) is one cast: cast
+#: in two parts, the Ouster frames spent more time merging the parts' cells than casting them.
+CAST_CHUNK_BEAMS = 131_072
 #: The evidence of one agreeing scan in a prior (``OccupancyMap.integrate_prior``), in sigmas from the measured
 #: surface (eq. 5): an occupied cell's is that of the cell a beam ends in, the surface at its centre; a free
 #: cell's that of a cell a beam crosses far in front of its surface (3 m at the default 0.03 m), where every

@@ -23,7 +23,8 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
-from fuzzyocc._block_table import BlockIndex, find, insert, rebuild
+from fuzzyocc import parallel
+from fuzzyocc._block_table import BlockIndex, _home, find, insert
 from fuzzyocc.config import MAX_COORDINATE_M, GridSpec, LatticeSpec
 
 #: Distance (in sigmas) written for the cells of a no-return beam: free all the way, far to
@@ -125,45 +126,46 @@ WINDOW_LIMIT = 1 << 21
 
 
 @njit(cache=True, nogil=True)
-def _cast_kernel(origins, dirs, t_end, slope, offset, ray_offsets, lower, shape, res, unknown_from,
-                 shift, tkeys, tslots, coords, n_slots, touch, window_limit, planar, bounded):  # pragma: no cover - compiled
-    # ``planar`` is True for a 2-D map (one layer, rays in its plane), None for a 3-D one: numba
-    # prunes the ``planar is None`` branches at compile time, so the 2-D traversal is compiled
-    # without the z axis (a sixth less time on the bench's 2-D scene). ``bounded`` True clips
-    # rays to the box of ``shape`` cells from ``lower``; None walks the unbounded lattice whose
-    # cell 0 starts at ``lower``.
-    # Evidence of a cell is ``slope * midpoint + offset`` (eq. 5 in sigmas; slope 0 for a
-    # no-return). A scan's cells are deduped in a scratch of the blocks it reached (``touch``
-    # numbers them, -1 on entry and on exit), so the cost follows the cells the rays cross,
-    # never the map's extent. A block not yet in the index is added; a full index is doubled here
-    # (a cast stopped and started over from its scan cost the Ouster frame 6.1 s against 2.4)
-    # and returned with the cells.
-    # A ray enters a new block every two cells or so: a dense window over the blocks the scan's
-    # rays span (``window``, -1 between scans) gives a block's scratch row in one read, and the
-    # hash is asked on the block's first touch in the scan only (asking it at every block made
-    # the 3-D bench scene's cast 1.3x slower).
-    n_scans = ray_offsets.shape[0] - 1
+def _walk(origins, dirs, t_end, slope, offset, ray_lo, ray_hi, lower, shape, res, unknown_from, shift, tkeys, tslots,
+          window_limit, planar, bounded):  # pragma: no cover - compiled
+    # One thread's share of a cast: rays ``ray_lo[s]:ray_hi[s]`` of each scan ``s``, each cell's evidence kept in a
+    # scratch row of its block (one row per block a scan reached), the largest of the scan's beams through it. The
+    # map's index is only read here (several walks run at once): a row carries its block's coordinates and slot,
+    # -1 for a block not in the index yet, which ``_combine`` enters.
+    # ``planar`` is True for a 2-D map (one layer, rays in its plane), None for a 3-D one: numba prunes the
+    # ``planar is None`` branches at compile time, so the 2-D traversal is compiled without the z axis (a sixth
+    # less time on the bench's 2-D scene). ``bounded`` True clips rays to the box of ``shape`` cells from
+    # ``lower``; None walks the unbounded lattice whose cell 0 starts at ``lower``.
+    # Evidence of a cell is ``slope * midpoint + offset`` (eq. 5 in sigmas; slope 0 for a no-return).
+    # A ray enters a new block every two cells or so: a dense window over the blocks the scan's rays span
+    # (``window``, -1 between scans) gives a block's row in one read; a block outside it is found in a small
+    # table of the scan's own (``pkeys``), so that the cost follows the cells the rays cross, never the map's extent.
+    n_scans = ray_lo.shape[0]
     nx, ny, nz = shape[0], shape[1], shape[2]
     hx, hy, hz = shift[0], shift[1], shift[2]
     bits = hx + hy + hz
     mx, my, mz = (1 << hx) - 1, (1 << hy) - 1, (1 << hz) - 1
     block_cells = 1 << bits
     scratch = np.full((64, block_cells), np.nan, np.float32)
-    order = np.empty(64, np.int64)  # slot of each block the scan reached, in the order reached
-    entry = np.empty(64, np.int64)  # its window entry, -1 if outside the window
-    window = np.full(0, -1, np.int32)  # per entry: the block's scratch row in this scan, -1 before its first touch
-    cells = np.empty(1024, np.int64)
-    dist = np.empty(1024, np.float32)
-    scan_offsets = np.zeros(n_scans + 1, np.int64)
+    rcoords = np.empty((64, 3), np.int32)
+    rslot = np.empty(64, np.int64)
+    went = np.empty(64, np.int64)  # each row's window entry, -1 outside the window
+    window = np.full(0, -1, np.int32)
+    pkeys = np.empty((256, 3), np.int64)
+    pvals = np.full(256, -1, np.int64)
+    pused = np.empty(128, np.int64)
+    n_pused = 0
+    row_offsets = np.zeros(n_scans + 1, np.int64)
     traversed = np.zeros(n_scans, np.int64)
-    table_room = tslots.shape[0] // 2  # the table stays at most half full
-    n_out = 0
+    nt = 0
+    none = np.int64(-1) << 62
     for s in range(n_scans):
-        scan_offsets[s] = n_out
+        row_offsets[s] = nt
+        first_row = nt
         # The scan's window: the blocks of its segments' ends, one block more on each side (rounding).
         lo_x, lo_y, lo_z = np.int64(1) << 62, np.int64(1) << 62, np.int64(1) << 62
         hi_x, hi_y, hi_z = -lo_x, -lo_y, -lo_z
-        for r in range(ray_offsets[s], ray_offsets[s + 1]):
+        for r in range(ray_lo[s], ray_hi[s]):
             t0, t1 = _clipped(origins, dirs, t_end, r, lower, shape, res, bounded)
             if not t0 < t1:
                 continue
@@ -179,24 +181,22 @@ def _cast_kernel(origins, dirs, t_end, slope, offset, ray_offsets, lower, shape,
             wz0, wnz = 0, 1
         if wnx < 3 or wnx > window_limit or wny > window_limit or wnz > window_limit \
                 or wnx * wny > window_limit or wnx * wny * wnz > window_limit:
-            wnx = wny = wnz = 0  # no ray, or too wide: the hash alone
+            wnx = wny = wnz = 0  # no ray, or too wide: the scan's table alone
         elif wnx * wny * wnz > window.shape[0]:
             window = np.full(wnx * wny * wnz, -1, np.int32)
-        n = 0
-        nt = 0
         visits = 0
-        last_x, last_y, last_z = np.int64(-1) << 62, np.int64(0), np.int64(0)
+        last_x, last_y, last_z = none, np.int64(0), np.int64(0)
         row = 0
-        for r in range(ray_offsets[s], ray_offsets[s + 1]):
+        for r in range(ray_lo[s], ray_hi[s]):
             t0, t1 = _clipped(origins, dirs, t_end, r, lower, shape, res, bounded)
             if not t0 < t1:
                 continue
             # Growing an array inside the walk below would make numba count references at every cell: when
-            # the index or the scratch is full, the walk stops, they grow here, and the ray is walked again
+            # the rows or the table are full, the walk stops, they grow here, and the ray is walked again
             # (a cell's evidence is a maximum: walking a ray twice writes what once does).
             while True:
                 full = 0
-                last_x = np.int64(-1) << 62
+                last_x = none
                 ox, oy, oz = origins[r, 0], origins[r, 1], origins[r, 2]
                 dx, dy, dz = dirs[r, 0], dirs[r, 1], dirs[r, 2]
                 ix, sx, tmx, tdx, px = _axis_setup(ox, dx, t0, lower[0], nx, res)
@@ -229,7 +229,6 @@ def _cast_kernel(origins, dirs, t_end, slope, offset, ray_offsets, lower, shape,
                     qx, qy, qz = bx - wx0, by - wy0, bz - wz0
                     # Unsigned: one compare per axis for the window's two bounds, and numba indexes by an unsigned
                     # integer without its negative-index wraparound (a sixth of the 2-D walk's time, with both).
-                    w = -1
                     if planar is None:
                         inside = _u(qx) < _u(wnx) and _u(qy) < _u(wny) and _u(qz) < _u(wnz)
                     else:
@@ -238,35 +237,42 @@ def _cast_kernel(origins, dirs, t_end, slope, offset, ray_offsets, lower, shape,
                         # In the window: one read, and no branch on the block changing (it does every two cells).
                         w = (qx * wny + qy) * wnz + qz if planar is None else qx * wny + qy
                         row = window[_u(w)]
-                        last_x = np.int64(-1) << 62
-                    elif bx != last_x or by != last_y or bz != last_z:
-                        row = -1
-                    if row < 0:
-                        # The block's first touch in this scan (or one outside the window): the hash.
-                        slot = find(tkeys, tslots, bx, by, bz)
-                        if slot < 0:
-                            if n_slots == coords.shape[0] or n_slots >= table_room:
+                        last_x = none
+                        if row < 0:
+                            if nt == rslot.shape[0]:
                                 full = 1
                                 break
-                            slot = n_slots
-                            insert(tkeys, tslots, bx, by, bz, slot)
-                            coords[slot, 0] = bx
-                            coords[slot, 1] = by
-                            coords[slot, 2] = bz
-                            n_slots += 1
-                        row = touch[slot]
+                            row = nt
+                            nt += 1
+                            rcoords[row, 0], rcoords[row, 1], rcoords[row, 2] = bx, by, bz
+                            rslot[row] = find(tkeys, tslots, bx, by, bz)
+                            went[row] = w
+                            window[_u(w)] = row
+                    elif bx != last_x or by != last_y or bz != last_z:
+                        pmask = pvals.shape[0] - 1
+                        h = _home(bx, by, bz, pmask)
+                        row = -1
+                        while pvals[h] >= 0:
+                            if pkeys[h, 0] == bx and pkeys[h, 1] == by and pkeys[h, 2] == bz:
+                                row = pvals[h]
+                                break
+                            h = (h + 1) & pmask
                         if row < 0:
-                            if nt == order.shape[0]:
+                            if nt == rslot.shape[0]:
+                                full = 1
+                                break
+                            if 2 * (n_pused + 1) > pvals.shape[0]:
                                 full = 2
                                 break
                             row = nt
-                            touch[slot] = nt
-                            order[nt] = slot
-                            entry[nt] = w
                             nt += 1
-                        if w >= 0:
-                            window[w] = row
-                            entry[row] = w
+                            rcoords[row, 0], rcoords[row, 1], rcoords[row, 2] = bx, by, bz
+                            rslot[row] = find(tkeys, tslots, bx, by, bz)
+                            went[row] = -1
+                            pkeys[h, 0], pkeys[h, 1], pkeys[h, 2] = bx, by, bz
+                            pvals[h] = row
+                            pused[n_pused] = h
+                            n_pused += 1
                         last_x, last_y, last_z = bx, by, bz
                     off = ((ix & mx) << hy | (iy & my)) << hz | (iz & mz)
                     v = a_ * (0.5 * (t_in + t_out)) + b_
@@ -274,10 +280,7 @@ def _cast_kernel(origins, dirs, t_end, slope, offset, ray_offsets, lower, shape,
                         v = -np.inf
                     ur, uo = _u(row), _u(off)
                     b = scratch[ur, uo]
-                    if b != b:
-                        n += 1
-                        scratch[ur, uo] = v
-                    elif v > b:
+                    if b != b or v > b:
                         scratch[ur, uo] = v
                     if t_out >= t1:
                         break
@@ -305,69 +308,142 @@ def _cast_kernel(origins, dirs, t_end, slope, offset, ray_offsets, lower, shape,
                     visits += 1 + abs(ix - ix0) + abs(iy - iy0) + abs(iz - iz0)
                     break
                 if full == 1:
-                    coords, touch, tkeys, tslots = _doubled(coords, touch, n_slots)
-                    table_room = tslots.shape[0] // 2
+                    scratch, rcoords, rslot, went = _grown_rows(scratch, rcoords, rslot, went, nt)
                 else:
-                    grown = np.full((2 * nt, block_cells), np.nan, np.float32)
-                    grown_order = np.empty(2 * nt, np.int64)
-                    grown_entry = np.empty(2 * nt, np.int64)
-                    for q in range(nt):
-                        grown_order[q] = order[q]
-                        grown_entry[q] = entry[q]
-                        for o in range(block_cells):
-                            grown[q, o] = scratch[q, o]
-                    scratch = grown
-                    order = grown_order
-                    entry = grown_entry
-        if n_out + n > cells.shape[0]:
-            cap = max(2 * cells.shape[0], n_out + n)
-            grown_c = np.empty(cap, np.int64)
-            grown_d = np.empty(cap, np.float32)
-            # element by element: a slice assignment would compile numba's shape-mismatch error
-            # message formatting into this kernel (seconds more at the first start, on a cold cache)
-            for q in range(n_out):
-                grown_c[q] = cells[q]
-                grown_d[q] = dist[q]
-            cells = grown_c
-            dist = grown_d
-        # Hand the cells out block by block (a block's cells together, by offset): storage then
-        # reads and writes each block once.
-        for q in range(nt):
-            slot = order[q]
-            touch[slot] = -1
-            if entry[q] >= 0:
-                window[entry[q]] = -1
-            base = slot << bits
-            uq = _u(q)
-            for o in range(block_cells):
-                b = scratch[uq, _u(o)]
-                if b == b:
-                    cells[_u(n_out)] = base | o
-                    dist[_u(n_out)] = b
-                    scratch[uq, _u(o)] = np.nan
-                    n_out += 1
+                    pkeys, pvals, pused = _grown_table(pkeys, pvals, pused, n_pused, rcoords, went, first_row, nt)
+        # Leave the window and the table empty for the next scan: the cost follows the rows, not their size.
+        for q in range(first_row, nt):
+            if went[q] >= 0:
+                window[_u(went[q])] = -1
+        for q in range(n_pused):
+            pvals[pused[q]] = -1
+        n_pused = 0
         traversed[s] = visits
-    scan_offsets[n_scans] = n_out
-    # views: a copy would double the peak
-    return cells[:n_out], dist[:n_out], scan_offsets, traversed, n_slots, coords, touch, tkeys, tslots
+    row_offsets[n_scans] = nt
+    return scratch, rcoords, rslot, row_offsets, traversed
 
 
 @njit(cache=True, nogil=True)
-def _doubled(coords, touch, n):  # pragma: no cover - compiled
-    """An index of twice the room holding blocks ``coords[:n]`` (their cast marks in ``touch`` kept)."""
-    capacity = 2 * coords.shape[0]
-    grown = np.zeros((capacity, 3), np.int32)
-    marks = np.full(capacity, -1, np.int32)
+def _grown_rows(scratch, rcoords, rslot, went, n):  # pragma: no cover - compiled
+    """The rows of a walk with room for twice as many (the first ``n`` kept)."""
+    cap = 2 * rslot.shape[0]
+    grown = np.full((cap, scratch.shape[1]), np.nan, np.float32)
+    coords = np.empty((cap, 3), np.int32)
+    slots = np.empty(cap, np.int64)
+    entries = np.empty(cap, np.int64)
+    # element by element: a slice assignment would compile numba's shape-mismatch error message formatting into
+    # the kernel (seconds more at the first start, on a cold cache)
     for q in range(n):
-        grown[q, 0] = coords[q, 0]
-        grown[q, 1] = coords[q, 1]
-        grown[q, 2] = coords[q, 2]
-        marks[q] = touch[q]
-    size = 16
-    while size < 2 * capacity:
-        size *= 2
-    keys, slots = rebuild(grown, n, size)
-    return grown, marks, keys, slots
+        for o in range(scratch.shape[1]):
+            grown[q, o] = scratch[q, o]
+        coords[q, 0], coords[q, 1], coords[q, 2] = rcoords[q, 0], rcoords[q, 1], rcoords[q, 2]
+        slots[q] = rslot[q]
+        entries[q] = went[q]
+    return grown, coords, slots, entries
+
+
+@njit(cache=True, nogil=True)
+def _grown_table(pkeys, pvals, pused, n_pused, rcoords, went, first, n):  # pragma: no cover - compiled
+    """A scan's table of blocks outside its window, twice the size, holding its rows ``first:n`` outside it."""
+    cap = 2 * pvals.shape[0]
+    keys = np.empty((cap, 3), np.int64)
+    vals = np.full(cap, -1, np.int64)
+    used = np.empty(cap // 2, np.int64)
+    mask = cap - 1
+    k = 0
+    for q in range(first, n):
+        if went[q] >= 0:
+            continue
+        h = _home(rcoords[q, 0], rcoords[q, 1], rcoords[q, 2], mask)
+        while vals[h] >= 0:
+            h = (h + 1) & mask
+        keys[h, 0], keys[h, 1], keys[h, 2] = rcoords[q, 0], rcoords[q, 1], rcoords[q, 2]
+        vals[h] = q
+        used[k] = h
+        k += 1
+    return keys, vals, used
+
+
+@njit(cache=True, nogil=True)
+def _new_blocks(rcoords, rslot, n):  # pragma: no cover - compiled
+    """The coordinates of the blocks rows ``:n`` reached that the index lacks, each once, in lexicographic order:
+    the order the index takes them in, whatever the split of the rays between walks."""
+    fresh = np.flatnonzero(rslot[:n] < 0)
+    order = fresh
+    for a in (2, 1, 0):  # a stable sort per axis, last axis first: lexicographic
+        order = order[np.argsort(rcoords[order, a], kind="mergesort")]
+    out = np.empty((order.shape[0], 3), np.int32)
+    k = 0
+    for q in order:
+        if k > 0 and rcoords[q, 0] == out[k - 1, 0] and rcoords[q, 1] == out[k - 1, 1] \
+                and rcoords[q, 2] == out[k - 1, 2]:
+            continue
+        out[k, 0], out[k, 1], out[k, 2] = rcoords[q, 0], rcoords[q, 1], rcoords[q, 2]
+        k += 1
+    return out[:k]
+
+
+@njit(cache=True, nogil=True)
+def _enter(blocks, tkeys, tslots, coords, n_slots):  # pragma: no cover - compiled
+    """Enter ``blocks`` (absent) into the index at the next slots; the index must have room. Its new count."""
+    for q in range(blocks.shape[0]):
+        insert(tkeys, tslots, blocks[q, 0], blocks[q, 1], blocks[q, 2], n_slots)
+        coords[n_slots, 0], coords[n_slots, 1], coords[n_slots, 2] = blocks[q, 0], blocks[q, 1], blocks[q, 2]
+        n_slots += 1
+    return n_slots
+
+
+@njit(cache=True, nogil=True)
+def _combine(scratch, rcoords, rslot, row_offsets, tkeys, tslots, bits):  # pragma: no cover - compiled
+    """The walks' rows as one cast: per scan, its cells by increasing key, a cell reached by several walks with the
+    largest of their evidence. ``row_offsets`` (walks, scans + 1) indexes the rows of walk ``p``, scan ``s``; every
+    block is in the index now."""
+    n_parts, n_scans = row_offsets.shape[0], row_offsets.shape[1] - 1
+    block_cells = scratch.shape[1]
+    n_rows = rslot.shape[0]
+    for q in range(n_rows):
+        if rslot[q] < 0:
+            rslot[q] = find(tkeys, tslots, rcoords[q, 0], rcoords[q, 1], rcoords[q, 2])
+    n_cells = 0
+    for q in range(n_rows):
+        for o in range(block_cells):
+            if scratch[q, o] == scratch[q, o]:
+                n_cells += 1
+    cells = np.empty(n_cells, np.int64)
+    dist = np.empty(n_cells, np.float32)
+    scan_offsets = np.zeros(n_scans + 1, np.int64)
+    n_out = 0
+    for s in range(n_scans):
+        scan_offsets[s] = n_out
+        count = 0
+        for p in range(n_parts):
+            count += row_offsets[p, s + 1] - row_offsets[p, s]
+        rows = np.empty(count, np.int64)
+        k = 0
+        for p in range(n_parts):
+            for q in range(row_offsets[p, s], row_offsets[p, s + 1]):
+                rows[k] = q
+                k += 1
+        rows = rows[np.argsort(rslot[rows], kind="mergesort")]
+        i = 0
+        while i < count:
+            j = i + 1
+            while j < count and rslot[rows[j]] == rslot[rows[i]]:
+                j += 1
+            base = rslot[rows[i]] << bits
+            for o in range(block_cells):
+                b = scratch[rows[i], o]
+                for m in range(i + 1, j):
+                    v = scratch[rows[m], o]
+                    if v == v and (b != b or v > b):
+                        b = v
+                if b == b:
+                    cells[n_out] = base | o
+                    dist[n_out] = b
+                    n_out += 1
+            i = j
+    scan_offsets[n_scans] = n_out
+    return cells[:n_out], dist[:n_out], scan_offsets  # views: a copy would double the peak
 
 
 @dataclass(frozen=True)
@@ -461,11 +537,27 @@ def cast_into(
     no_return = np.isnan(measured)
     slope = np.where(no_return, 0.0, 1.0 / np.asarray(sigma, dtype=np.float64))
     args = (np.ascontiguousarray(origins), np.ascontiguousarray(directions), t_end, slope,
-            np.where(no_return, NO_RETURN_DISTANCE, -measured * slope), offsets)
-    (cells, dist, scan_offsets, traversed, index.n, index.coords, index.touch, index.keys,
-     index.slots) = _cast_kernel(*args, lower, shape, float(lattice.resolution), float(unknown_from), shifts,
-                                 index.keys, index.slots, index.coords, index.n, index.touch, int(window_limit),
-                                 True if d == 2 else None, True if lattice.shape is not None else None)
+            np.where(no_return, NO_RETURN_DISTANCE, -measured * slope))
+    rest = (lower, shape, float(lattice.resolution), float(unknown_from), shifts, index.keys, index.slots,
+            int(window_limit), True if d == 2 else None, True if lattice.shape is not None else None)
+    # Each walk takes a share of every scan's rays (consecutive beams: nearby cells); the cells and their evidence
+    # do not depend on the split (a cell's evidence is a maximum), nor do the slots new blocks get (``_new_blocks``).
+    n_walks = parallel.walks_for(n_rays)
+    counts = np.diff(offsets)
+    walks = parallel.run(lambda p: _walk(*args, offsets[:-1] + counts * p // n_walks,
+                                         offsets[:-1] + counts * (p + 1) // n_walks, *rest), range(n_walks))
+    rows = [int(w[3][-1]) for w in walks]
+    starts = np.concatenate([[0], np.cumsum(rows)])
+    scratch, rcoords, rslot = (np.concatenate([w[k][:n] for w, n in zip(walks, rows)]) if n_walks > 1
+                               else walks[0][k][: rows[0]] for k in range(3))
+    row_offsets = np.stack([w[3] + start for w, start in zip(walks, starts)])
+    traversed = np.sum([w[4] for w in walks], axis=0)
+    del walks
+    new = _new_blocks(rcoords, rslot, rslot.shape[0])
+    index.reserve(new.shape[0])
+    index.n = _enter(new, index.keys, index.slots, index.coords, index.n)
+    cells, dist, scan_offsets = _combine(scratch, rcoords, rslot, row_offsets, index.keys, index.slots,
+                                         int(shifts.sum()))
     return CastResult(cells=cells, distance_sigmas=dist, scan_offsets=scan_offsets, cells_traversed=traversed)
 
 

@@ -37,6 +37,7 @@ from app.reads.service import MapReads
 from app.schemas import Readiness
 from app.storage import Storage
 from app.ops.threads import Workers
+from fuzzyocc import parallel
 
 LOG = logging.getLogger("fuzzyrisk.maps")
 
@@ -49,6 +50,7 @@ class MapService:
         self.storage = storage
         self.metrics = metrics
         self._workers = Workers(fusion_threads=settings.fusion_threads, read_threads=settings.read_threads)
+        parallel.set_threads(settings.split_threads or None)
         self._pool = PlanPool(
             workers=settings.plan_workers, queue=settings.plan_queue, per_map=settings.plan_workers_per_map,
             native=settings.native_planning,

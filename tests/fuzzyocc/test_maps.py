@@ -473,7 +473,7 @@ def test_fusing_a_huge_scan_takes_memory_for_its_readings_not_for_its_rays(usabl
         _, peak = tracemalloc.get_traced_memory()
     finally:
         tracemalloc.stop()
-    # before: about 170 bytes a beam (rays of the whole scan, then their cast); now parts of 65,536 beams
+    # before: about 170 bytes a beam (rays of the whole scan, then their cast); now parts of 131,072 beams
     assert peak < 40 * beams, f"{peak / beams:.0f} bytes a beam"
 
 
