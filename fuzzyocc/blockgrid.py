@@ -23,6 +23,7 @@ row alone, so storage never changes a state or a risk.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 
 import numpy as np
@@ -32,6 +33,7 @@ from fuzzyocc import parallel
 from fuzzyocc._block_table import BlockIndex, find, insert, rebuild
 from fuzzyocc._engine_kernels import SLOPED, evidence_class, fuse_row, fuzzify_into
 from fuzzyocc.engine import Fuzzifier
+from fuzzyocc.reserved import Reserved
 from fuzzyocc.grid import _STALE, RISK_STEP, RiskFn, RowFusion, _check_lut, dequantize_risk, quantize_risk
 
 #: Cells a block holds along each axis, as a power of two: 4 x 4 x 4 in 3-D, 4 x 4 in 2-D (a 2-D grid is
@@ -39,6 +41,9 @@ from fuzzyocc.grid import _STALE, RISK_STEP, RiskFn, RowFusion, _check_lut, dequ
 #: third less resident.
 BLOCK_SHIFT_3D = 2
 BLOCK_SHIFT_2D = 2
+#: Slabs of address space a pool reserves at once (a fixed map's box may need fewer): 1 M slabs of a 3-D default
+#: engine's map is 0.8 GB of address space, none of it memory until written.
+POOL_RESERVE_SLABS = 1 << 20
 #: Box side used for an unbounded lattice in the kernels (cells): no block reaches past it.
 _UNBOUNDED = np.int64(1) << 60
 
@@ -94,6 +99,7 @@ class BlockGrid:
         self._urisk = np.empty(0, dtype=np.uint16)
         self._obs = np.empty((0, max(1, self._block_cells // 8)), dtype=np.uint8)  # observed bits by slot
         self._n_dense = 0
+        self._reserved: tuple[Reserved, Reserved, Reserved] | None = None
         self._alloc_pool(0)
         self._any_stale = False
         self.adopt()
@@ -124,15 +130,29 @@ class BlockGrid:
         return self.index.n
 
     def _alloc_pool(self, capacity: int) -> None:
-        pool = np.empty((capacity, self._block_cells, self._width), dtype=np.uint8)
-        prisk = np.empty((capacity, self._block_cells), dtype=np.uint16)
-        owner = np.empty(capacity, dtype=np.int32)  # slot of each slab's block, to move a slab
+        """Room for ``capacity`` slabs (at least the dense ones): views of the reserved pool, which is mapped anew,
+        with a copy, only when ``capacity`` passes its reservation."""
         n = self._n_dense
-        if n:
-            pool[:n] = self._pool[:n]
-            prisk[:n] = self._prisk[:n]
-            owner[:n] = self._owner[:n]
-        self._pool, self._prisk, self._owner = pool, prisk, owner
+        reserved = self._reserved
+        if reserved is None or capacity > reserved[0].rows:
+            rows = max(capacity, min(POOL_RESERVE_SLABS, self._most_blocks()))
+            reserved = (Reserved(np.uint8, (self._block_cells, self._width), rows),
+                        Reserved(np.uint16, (self._block_cells,), rows),
+                        Reserved(np.int32, (), rows))  # the slot of each slab's block, to move a slab
+            if n:
+                for new, old in zip(reserved, (self._pool, self._prisk, self._owner)):
+                    new.view(n)[:] = old[:n]
+            self._reserved = reserved
+        elif capacity < self._pool.shape[0]:
+            for part in reserved:
+                part.release_from(capacity)
+        self._pool, self._prisk, self._owner = (part.view(capacity) for part in reserved)
+
+    def _most_blocks(self) -> int:
+        """The most blocks this grid can hold: its box's, or any number for a growing one."""
+        if self.box is None:
+            return POOL_RESERVE_SLABS
+        return math.prod(((n - 1) >> s) + 1 for n, s in zip(self.box, self.block_shift))
 
     def _grow_pool(self, capacity: int) -> None:
         self._alloc_pool(max(capacity, self._n_dense))
