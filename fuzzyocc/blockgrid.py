@@ -192,8 +192,8 @@ class BlockGrid:
     # -- fusion ---------------------------------------------------------------------------
     def fuse(self, cells: np.ndarray, distance_sigmas: np.ndarray, fuzzifier: Fuzzifier,
              row_fusion: RowFusion) -> None:
-        """Fuse the evidence at ``distance_sigmas`` ((n,) float, no NaN) into the rows of ``cells``
-        (keys, unique, a block's together).
+        """Fuse the evidence at ``distance_sigmas`` ((n,) float, no NaN; -inf: no evidence, skipped) into the rows of
+        ``cells`` (keys, unique, a block's together).
 
         ``fuzzifier`` is :meth:`fuzzyocc.engine.FuzzyEngine.fuzzifier` and ``row_fusion``
         :meth:`fuzzyocc.engine.FuzzyEngine.row_fusion`: each row becomes what
@@ -591,6 +591,8 @@ def _fuse_write(keys, bits, distances, xs, ys, counts, const_rows, bounds, rules
     while n + 1 < stop:
         n += 1
         v = distances[n]
+        if v == -np.inf:  # reached only past the occupied region: pure unknown, which changes no row
+            continue
         e = evidence_class(v, bounds)
         if e == SLOPED:
             fuzzify_into(v, xs, ys, counts, evidence, e)
@@ -607,7 +609,7 @@ def _fuse_write(keys, bits, distances, xs, ys, counts, const_rows, bounds, rules
                 # level to the next together).
                 whole = True
                 for q in range(n + 1, n + block_cells):
-                    if evidence_class(distances[q], bounds) != e:
+                    if distances[q] == -np.inf or evidence_class(distances[q], bounds) != e:
                         whole = False
                         break
                 if whole:

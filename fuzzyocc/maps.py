@@ -40,7 +40,7 @@ from fuzzyocc._block_table import BlockIndex
 from fuzzyocc.blockgrid import BLOCK_SHIFT_2D, BLOCK_SHIFT_3D, BlockGrid, block_shift_for
 from fuzzyocc.grid import CellGrid
 from fuzzyocc.keys import coords_to_keys, keys_to_flat
-from fuzzyocc.raycast import CastResult, Lattice, cast_into, flat_ids, traversal_cells
+from fuzzyocc.raycast import CastResult, Lattice, cast_into, flat_ids, give_back, traversal_cells
 from fuzzyocc.scans import LaserScan, PointCloud, Rays
 
 Scan = LaserScan | PointCloud
@@ -260,6 +260,12 @@ class OccupancyMap:
         """Fuse one scan's evidence (finite float32 distances, sigmas) into ``cells``; returns how many."""
         raise NotImplementedError
 
+    def _update_scan(self, cells: np.ndarray, distance_sigmas: np.ndarray) -> int:
+        """Fuse a scan's cast (``UNKNOWN_ONLY``, -inf: reached only past the occupied region, no update); how many
+        cells took evidence."""
+        evidence = np.isfinite(distance_sigmas)
+        return self._update(cells[evidence], distance_sigmas[evidence])
+
     def _risk_fn(self) -> Callable[[np.ndarray], np.ndarray]:
         """(n, ...) states -> (n,) float32 risk, as a function that does not hold the map.
 
@@ -319,11 +325,11 @@ class OccupancyMap:
                 cells = self._stored_cells(cast.cells[lo:hi])
                 dist = cast.distance_sigmas[lo:hi]
                 self._grid.mark_observed(cells)
-                evidence = np.isfinite(dist)  # -inf: reached only past the occupied region
-                updated += self._update(cells[evidence], dist[evidence])
+                updated += self._update_scan(cells, dist)
                 if self._forget_beyond is not None:
                     self._forget(scans[first + s])
-            del cast  # the next chunk's cells replace these: memory does not grow with the batch
+            give_back(cast)  # the next chunk's cells take its arrays: memory does not grow with the batch
+            del cast
         self._scans_fused += len(scans)
         return IntegrationStats(
             scans=len(scans),
@@ -450,8 +456,9 @@ class OccupancyMap:
             cast = self._cast([scan], [rays])
             del rays
             traversed += int(cast.cells_traversed.sum())
-            keys.append(cast.cells)
-            dists.append(cast.distance_sigmas)
+            keys.append(cast.cells.copy())  # the next part's cast writes its arrays
+            dists.append(cast.distance_sigmas.copy())
+            give_back(cast)
             del cast
         every = np.concatenate(keys)
         order = np.argsort(every, kind="stable")  # by key: a block's cells together, as a cast hands them out
@@ -508,6 +515,7 @@ class OccupancyMap:
             sigma=sigma,
             ray_offsets=np.concatenate([[0], np.cumsum(counts)]),
             unknown_from=self.occupied_extent,
+            reuse=True,
         )
         self._cast_done()
         return cast
@@ -867,6 +875,12 @@ class FuzzyMap(OccupancyMap):
             raise ValueError("distance_sigmas must not contain NaN")
         self._blocks.fuse(cells, distance_sigmas, self.engine.fuzzifier(), self.engine.row_fusion())
         return int(cells.size)
+
+    def _update_scan(self, cells: np.ndarray, distance_sigmas: np.ndarray) -> int:
+        # the fusion skips the -inf cells itself: filtering a lidar sweep's 7 M cells first copied 90 MB into fresh
+        # memory a sweep
+        self._update(cells, distance_sigmas)
+        return int(cells.size - np.count_nonzero(distance_sigmas == -np.inf))
 
     def _risk_fn(self) -> Callable[[np.ndarray], np.ndarray]:
         return functools.partial(_defuzzified, self.engine)

@@ -18,6 +18,7 @@ distance of eq. 5 is then ``(midpoint - measured_range) / sigma``.
 
 from __future__ import annotations
 
+import threading
 from dataclasses import dataclass
 
 import numpy as np
@@ -120,6 +121,10 @@ def _block_at(o, d, t, lower, n, res, h):  # pragma: no cover - compiled
 
 _u = np.uint64
 
+#: The largest set of a walk's rows kept for the next cast (``_WalkRows``): an Ouster frame's in one walk.
+SPARE_ROWS_BYTES = 64 << 20
+#: The largest arrays of a cast's cells kept for the next (``give_back``): a lidar sweep's at 0.1 m.
+SPARE_CELLS_BYTES = 128 << 20
 #: Most entries of a scan's window of blocks (int32 each, 8 MiB): a scan whose rays span more blocks finds each block
 #: in the hash alone.
 WINDOW_LIMIT = 1 << 21
@@ -127,7 +132,7 @@ WINDOW_LIMIT = 1 << 21
 
 @njit(cache=True, nogil=True)
 def _walk(origins, dirs, t_end, slope, offset, ray_lo, ray_hi, lower, shape, res, unknown_from, shift, tkeys, tslots,
-          window_limit, planar, bounded):  # pragma: no cover - compiled
+          window_limit, planar, bounded, scratch, rcoords, rslot, went):  # pragma: no cover - compiled
     # One thread's share of a cast: rays ``ray_lo[s]:ray_hi[s]`` of each scan ``s``, each cell's evidence kept in a
     # scratch row of its block (one row per block a scan reached), the largest of the scan's beams through it. The
     # map's index is only read here (several walks run at once): a row carries its block's coordinates and slot,
@@ -140,16 +145,13 @@ def _walk(origins, dirs, t_end, slope, offset, ray_lo, ray_hi, lower, shape, res
     # A ray enters a new block every two cells or so: a dense window over the blocks the scan's rays span
     # (``window``, -1 between scans) gives a block's row in one read; a block outside it is found in a small
     # table of the scan's own (``pkeys``), so that the cost follows the cells the rays cross, never the map's extent.
+    # ``scratch`` (all NaN), ``rcoords``, ``rslot`` and ``went`` are the rows to start with (``_WalkRows``); they grow
+    # here and come back with the walk.
     n_scans = ray_lo.shape[0]
     nx, ny, nz = shape[0], shape[1], shape[2]
     hx, hy, hz = shift[0], shift[1], shift[2]
     bits = hx + hy + hz
     mx, my, mz = (1 << hx) - 1, (1 << hy) - 1, (1 << hz) - 1
-    block_cells = 1 << bits
-    scratch = np.full((64, block_cells), np.nan, np.float32)
-    rcoords = np.empty((64, 3), np.int32)
-    rslot = np.empty(64, np.int64)
-    went = np.empty(64, np.int64)  # each row's window entry, -1 outside the window
     window = np.full(0, -1, np.int32)
     pkeys = np.empty((256, 3), np.int64)
     pvals = np.full(256, -1, np.int64)
@@ -320,7 +322,7 @@ def _walk(origins, dirs, t_end, slope, offset, ray_lo, ray_hi, lower, shape, res
         n_pused = 0
         traversed[s] = visits
     row_offsets[n_scans] = nt
-    return scratch, rcoords, rslot, row_offsets, traversed
+    return scratch, rcoords, rslot, row_offsets, traversed, went
 
 
 @njit(cache=True, nogil=True)
@@ -394,23 +396,37 @@ def _enter(blocks, tkeys, tslots, coords, n_slots):  # pragma: no cover - compil
 
 
 @njit(cache=True, nogil=True)
-def _combine(scratch, rcoords, rslot, row_offsets, tkeys, tslots, bits):  # pragma: no cover - compiled
+def _combine(scratches, rcoords, rslot, row_offsets, tkeys, tslots, bits, cells, dist):  # pragma: no cover - compiled
     """The walks' rows as one cast: per scan, its cells by increasing key, a cell reached by several walks with the
-    largest of their evidence. ``row_offsets`` (walks, scans + 1) indexes the rows of walk ``p``, scan ``s``; every
-    block is in the index now."""
+    largest of their evidence. ``scratches`` are the walks' scratch rows, ``rcoords`` and ``rslot`` their rows'
+    blocks one walk after the other, ``row_offsets`` (walks, scans + 1) the rows of walk ``p``, scan ``s`` in them;
+    every block is in the index now. Each scratch row is NaN again after (the walks' rows are used again). ``cells``
+    and ``dist`` are written if they have room, else new arrays; with the number of cells written."""
     n_parts, n_scans = row_offsets.shape[0], row_offsets.shape[1] - 1
-    block_cells = scratch.shape[1]
+    block_cells = scratches[0].shape[1]
     n_rows = rslot.shape[0]
+    part = np.empty(n_rows, np.int64)  # each row's walk, and its row there
+    local = np.empty(n_rows, np.int64)
+    start = np.zeros(n_parts + 1, np.int64)  # the first row of each walk in ``rcoords`` and ``rslot``
+    q = 0
+    for p in range(n_parts):
+        start[p + 1] = start[p] + row_offsets[p, n_scans]
+        for k in range(row_offsets[p, n_scans]):
+            part[q] = p
+            local[q] = k
+            q += 1
     for q in range(n_rows):
         if rslot[q] < 0:
             rslot[q] = find(tkeys, tslots, rcoords[q, 0], rcoords[q, 1], rcoords[q, 2])
     n_cells = 0
     for q in range(n_rows):
+        scratch = scratches[part[q]]
         for o in range(block_cells):
-            if scratch[q, o] == scratch[q, o]:
+            if scratch[local[q], o] == scratch[local[q], o]:
                 n_cells += 1
-    cells = np.empty(n_cells, np.int64)
-    dist = np.empty(n_cells, np.float32)
+    if cells.shape[0] < n_cells:
+        cells = np.empty(n_cells, np.int64)
+        dist = np.empty(n_cells, np.float32)
     scan_offsets = np.zeros(n_scans + 1, np.int64)
     n_out = 0
     for s in range(n_scans):
@@ -422,7 +438,7 @@ def _combine(scratch, rcoords, rslot, row_offsets, tkeys, tslots, bits):  # prag
         k = 0
         for p in range(n_parts):
             for q in range(row_offsets[p, s], row_offsets[p, s + 1]):
-                rows[k] = q
+                rows[k] = start[p] + q
                 k += 1
         rows = rows[np.argsort(rslot[rows], kind="mergesort")]
         i = 0
@@ -432,18 +448,73 @@ def _combine(scratch, rcoords, rslot, row_offsets, tkeys, tslots, bits):  # prag
                 j += 1
             base = rslot[rows[i]] << bits
             for o in range(block_cells):
-                b = scratch[rows[i], o]
-                for m in range(i + 1, j):
-                    v = scratch[rows[m], o]
-                    if v == v and (b != b or v > b):
-                        b = v
+                b = np.float32(np.nan)
+                for m in range(i, j):
+                    scratch = scratches[part[rows[m]]]
+                    v = scratch[local[rows[m]], o]
+                    if v == v:
+                        scratch[local[rows[m]], o] = np.nan
+                        if b != b or v > b:
+                            b = v
                 if b == b:
                     cells[n_out] = base | o
                     dist[n_out] = b
                     n_out += 1
             i = j
     scan_offsets[n_scans] = n_out
-    return cells[:n_out], dist[:n_out], scan_offsets  # views: a copy would double the peak
+    return cells, dist, scan_offsets, n_out
+
+
+class _WalkRows:
+    """Rows for walks to start with, kept between casts: a lidar sweep's walk grows its rows to tens of MB, and
+    memory written for the first time costs far more than its use (the rows' growth took 156 k page faults in six
+    Ouster frames). A walk takes a set (``take``) and the cast gives it back once its rows are read and NaN again."""
+
+    _lock = threading.Lock()
+    _spare: list[tuple[np.ndarray, ...]] = []
+
+    @classmethod
+    def take(cls, block_cells: int) -> tuple[np.ndarray, ...]:
+        with cls._lock:
+            for k, rows in enumerate(cls._spare):
+                if rows[0].shape[1] == block_cells:
+                    return cls._spare.pop(k)
+        return (np.full((64, block_cells), np.nan, np.float32), np.empty((64, 3), np.int32), np.empty(64, np.int64),
+                np.empty(64, np.int64))
+
+    @classmethod
+    def give(cls, sets: list[tuple[np.ndarray, ...]]) -> None:
+        with cls._lock:
+            for rows in sets:
+                if rows[0].nbytes <= SPARE_ROWS_BYTES and len(cls._spare) < 2 * parallel.threads():
+                    cls._spare.append(rows)
+
+
+class _CastOut:
+    """Arrays for a cast's cells, given back by casters done with them (``give_back``): a lidar sweep's 7 M cells
+    are 86 MB, and written into fresh memory they took 114 k page faults in six Ouster frames."""
+
+    _lock = threading.Lock()
+    _spare: list[tuple[np.ndarray, np.ndarray]] = []
+
+    @classmethod
+    def take(cls) -> tuple[np.ndarray, np.ndarray]:
+        with cls._lock:
+            if cls._spare:
+                return cls._spare.pop()
+        return np.empty(0, np.int64), np.empty(0, np.float32)
+
+
+def give_back(cast: CastResult) -> None:
+    """The caller is done with ``cast`` (its cells are no longer read): its arrays may take the next cast's cells."""
+    cells = cast.cells if cast.cells.base is None else cast.cells.base
+    dist = cast.distance_sigmas if cast.distance_sigmas.base is None else cast.distance_sigmas.base
+    if not (isinstance(cells, np.ndarray) and isinstance(dist, np.ndarray) and cells.dtype == np.int64
+            and dist.dtype == np.float32 and cells.ndim == dist.ndim == 1 and cells.shape == dist.shape):
+        return
+    with _CastOut._lock:
+        if cells.nbytes + dist.nbytes <= SPARE_CELLS_BYTES and len(_CastOut._spare) < parallel.threads():
+            _CastOut._spare.append((cells, dist))
 
 
 @dataclass(frozen=True)
@@ -480,6 +551,7 @@ def cast_into(
     *,
     unknown_from: float,
     window_limit: int = WINDOW_LIMIT,
+    reuse: bool = False,
 ) -> CastResult:
     """Traverse the cells of every ray of a batch of scans and keep one evidence per (scan, cell).
 
@@ -498,6 +570,9 @@ def cast_into(
         Block size, as powers of two (a 2-D lattice has one z layer: shift z 0).
     origins, directions, t_end, measured, sigma, ray_offsets, unknown_from
         As :func:`cast_rays`.
+    reuse : bool
+        Write the cells into arrays a cast gave back (:func:`give_back`) when there is one: for a caller that is done
+        with each cast before the next, so that a lidar sweep's cells do not take fresh memory every sweep.
     window_limit : int
         Most blocks of a scan's dense window (the blocks its rays span); a wider scan finds its blocks in the index's
         hash alone. The cells are the same either way.
@@ -544,20 +619,22 @@ def cast_into(
     # do not depend on the split (a cell's evidence is a maximum), nor do the slots new blocks get (``_new_blocks``).
     n_walks = parallel.walks_for(n_rays)
     counts = np.diff(offsets)
+    block_cells = 1 << int(shifts.sum())
     walks = parallel.run(lambda p: _walk(*args, offsets[:-1] + counts * p // n_walks,
-                                         offsets[:-1] + counts * (p + 1) // n_walks, *rest), range(n_walks))
+                                         offsets[:-1] + counts * (p + 1) // n_walks, *rest,
+                                         *_WalkRows.take(block_cells)), range(n_walks))
     rows = [int(w[3][-1]) for w in walks]
-    starts = np.concatenate([[0], np.cumsum(rows)])
-    scratch, rcoords, rslot = (np.concatenate([w[k][:n] for w, n in zip(walks, rows)]) if n_walks > 1
-                               else walks[0][k][: rows[0]] for k in range(3))
-    row_offsets = np.stack([w[3] + start for w, start in zip(walks, starts)])
+    rcoords, rslot = (np.concatenate([w[k][:n] for w, n in zip(walks, rows)]) for k in (1, 2))
+    row_offsets = np.stack([w[3] for w in walks])
     traversed = np.sum([w[4] for w in walks], axis=0)
-    del walks
     new = _new_blocks(rcoords, rslot, rslot.shape[0])
     index.reserve(new.shape[0])
     index.n = _enter(new, index.keys, index.slots, index.coords, index.n)
-    cells, dist, scan_offsets = _combine(scratch, rcoords, rslot, row_offsets, index.keys, index.slots,
-                                         int(shifts.sum()))
+    out = _CastOut.take() if reuse else (np.empty(0, np.int64), np.empty(0, np.float32))
+    cells, dist, scan_offsets, n_out = _combine(tuple(w[0] for w in walks), rcoords, rslot, row_offsets,
+                                                index.keys, index.slots, int(shifts.sum()), *out)
+    cells, dist = cells[:n_out], dist[:n_out]  # views: a copy would double the peak
+    _WalkRows.give([w[:3] + (w[5],) for w in walks])
     return CastResult(cells=cells, distance_sigmas=dist, scan_offsets=scan_offsets, cells_traversed=traversed)
 
 
