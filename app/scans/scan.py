@@ -38,8 +38,10 @@ def check_rays(name: str, count: int, limits: Limits) -> None:
 
 
 def _finite_rows(points: np.ndarray) -> np.ndarray:
-    # organised clouds (ROS PointCloud2 with is_dense false) mark a no-return with NaN: drop those rows
-    return points[np.isfinite(points).all(axis=1)]
+    # organised clouds (ROS PointCloud2 with is_dense false) mark a no-return with NaN: drop those rows (and copy
+    # nothing when there are none: a lidar's cloud is copied once, as fuzzyocc places it)
+    finite = np.isfinite(points).all(axis=1)
+    return points if finite.all() else points[finite]
 
 
 def _value_error(name: str, exc: ValueError) -> Invalid:
