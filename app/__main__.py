@@ -1,10 +1,10 @@
 """`python -m app`: serve the product (options override the FUZZYRISK_* environment).
 
 The order matters: settings first (one that needs an optional extra not installed: exit 2 at once),
-and logs; then the port (taken: exit 1 at once) and the directories (numba's kernel cache must be
-set before numba is imported); then the application, whose lifespan loads the maps before uvicorn
-listens, and compiles the kernels and starts the planner workers in the background (``GET /ready``
-says when they are done).
+and logs; then the port (taken: exit 1 at once), the directories (numba's kernel cache must be set
+before numba is imported) and BLAS's threads (before numpy is); then the application, whose lifespan
+loads the maps before uvicorn listens, and compiles the kernels and starts the planner workers in the
+background (``GET /ready`` says when they are done).
 """
 
 from __future__ import annotations
@@ -17,7 +17,14 @@ from pathlib import Path
 from pydantic import ValidationError
 
 from app.config import Settings
-from app.ops.process_setup import GIL_SWITCH_INTERVAL_S, StartupError, bind, missing_extra, prepare_directories
+from app.ops.process_setup import (
+    GIL_SWITCH_INTERVAL_S,
+    StartupError,
+    bind,
+    limit_blas_threads,
+    missing_extra,
+    prepare_directories,
+)
 from app.ops.logs import configure_logging
 from app.ops.version import add_version_option
 
@@ -47,6 +54,7 @@ def main(argv: list[str] | None = None) -> None:
     try:
         sock = bind(settings.host, settings.port)
         directories = prepare_directories(settings)
+        limit_blas_threads()  # before numpy is imported, below
     except StartupError as exc:
         log.error("cannot start: %s", exc)
         sys.exit(EXIT_STARTUP_FAILURE)

@@ -21,7 +21,9 @@ Its ``header.stamp`` goes with it (``stamp_ns``; a JSON scan's ``header.stamp``)
   of a 2-D LaserScan do not apply to clouds.
 - **PointCloud2**: ``x``, ``y``, ``z`` read by name from their fields (any of the eight datatypes,
   offsets, ``point_step``, ``row_step``, ``is_bigendian``), rows with a non-finite coordinate (an
-  organised cloud's no-return) dropped whatever ``is_dense`` says. A 3-D map takes them with the
+  organised cloud's no-return) dropped whatever ``is_dense`` says. Little-endian float32 ``x y z``
+  side by side, every lidar driver's layout, are read without a copy of the body: a strided view of
+  ``data`` (a view of the body itself), the finite rows copied once. A 3-D map takes them with the
   3-D pose; a 2-D map takes them rotated into the map's axes and projected on its plane (z
   dropped), so filter heights first (``pointcloud_to_laserscan`` does) if the floor is in view.
   A PointCloud2 carries no ``range_max``: the caller gives one.
@@ -41,7 +43,7 @@ from pydantic import ValidationError
 from rosbags.serde import SerdeError
 from scipy.spatial.transform import Rotation
 
-from app.scans import Limits, Scan, check_rays, laser_scan, point_cloud
+from app.scans import Limits, Scan, check_rays, finite_rows, laser_scan, point_cloud
 from app.errors import Invalid
 from app.ros.msgtypes import ns_of_ros_time, ros_time_of_ns, typestore
 from app.schemas import Pose2D, Pose3D, StampIn
@@ -71,6 +73,7 @@ _FROM_MESSAGE = ("theta", "angle_min", "angle_increment", "range_min")
 _POSE_PARAMS = ("x", "y", "z", "qx", "qy", "qz", "qw")
 #: sensor_msgs/PointField datatypes -> numpy type codes (byte order added per message).
 _FIELD_TYPES = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4", 7: "f4", 8: "f8"}
+_FLOAT32 = 7
 
 
 # ---------------------------------------------------------------- the sensor pose
@@ -254,13 +257,18 @@ def _laser(msg: Any, pose: SensorPose, name: str, dims: int, limits: Limits) -> 
     return SensorCloud(_pose3d(pose, name), points, range_max)
 
 
-def _field_dtype(msg: Any, name: str, dims: int) -> np.dtype:
-    """The structured dtype of one point: x, y (and z) at their offsets, ``point_step`` bytes long."""
-    order = ">" if msg.is_bigendian else "<"
-    step = int(msg.point_step)
+def _fields_by_name(msg: Any) -> dict[str, Any]:
+    """A PointCloud2's fields by name (the first of a name, as a driver that repeats one means it)."""
     by_name: dict[str, Any] = {}
     for f in msg.fields:
         by_name.setdefault(str(f.name), f)
+    return by_name
+
+
+def _field_dtype(msg: Any, by_name: Mapping[str, Any], name: str, dims: int) -> np.dtype:
+    """The structured dtype of one point: x, y (and z) at their offsets, ``point_step`` bytes long."""
+    order = ">" if msg.is_bigendian else "<"
+    step = int(msg.point_step)
     wanted = ("x", "y", "z") if dims == 3 or "z" in by_name else ("x", "y")
     missing = [n for n in wanted if n not in by_name]
     if missing:
@@ -282,9 +290,28 @@ def _field_dtype(msg: Any, name: str, dims: int) -> np.dtype:
     return np.dtype({"names": list(wanted), "formats": formats, "offsets": offsets, "itemsize": step})
 
 
-def cloud_points(msg: Any, name: str, dims: int, limits: Limits) -> np.ndarray:
-    """(N, 3) float64 sensor-frame points of a PointCloud2, row by row (z is 0 for a 2-D cloud on a 2-D map).
+def _xyz_float32(msg: Any, by_name: Mapping[str, Any], data: np.ndarray, height: int, width: int) -> np.ndarray | None:
+    """A (height, width, 3) float32 view of the points' x, y, z in ``data`` when they are little-endian float32 side
+    by side, at any offset, ``point_step`` and ``row_step`` (every lidar driver's layout); None for another layout.
 
+    The sizes are checked (``cloud_points``): the view reads nothing outside ``data``.
+    """
+    fields = [by_name.get(n) for n in ("x", "y", "z")]
+    if msg.is_bigendian or any(f is None or int(f.datatype) != _FLOAT32 or int(f.count) < 1 for f in fields):
+        return None
+    offset = int(fields[0].offset)
+    if [int(f.offset) for f in fields] != [offset, offset + 4, offset + 8] or offset + 12 > int(msg.point_step):
+        return None
+    return np.ndarray((height, width, 3), dtype="<f4", buffer=data, offset=offset,
+                      strides=(int(msg.row_step), int(msg.point_step), 4))
+
+
+def cloud_points(msg: Any, name: str, dims: int, limits: Limits) -> np.ndarray:
+    """(N, 3) sensor-frame points of a PointCloud2, row by row, without the rows with a non-finite coordinate (an
+    organised cloud's no-returns, whatever ``is_dense`` says); z is 0 for a 2-D cloud on a 2-D map.
+
+    Little-endian float32 x, y, z side by side (``_xyz_float32``) are viewed in place and copied once, to float32
+    (fuzzyocc converts them to float64 as it places them); any other layout is read field by field to float64.
     Every size is checked before a byte of ``data`` is read: the point count against the limit,
     ``point_step`` against the fields, ``row_step`` against the row, ``data`` against ``row_step * height``.
     """
@@ -300,13 +327,17 @@ def cloud_points(msg: Any, name: str, dims: int, limits: Limits) -> np.ndarray:
     if data.size != row_step * height:
         raise Invalid(f"{name}: data holds {data.size} bytes, but row_step {row_step} x height {height} is "
                       f"{row_step * height}: the message is truncated or its sizes are wrong")
-    dtype = _field_dtype(msg, name, dims)  # point_step is at most the data's size now: numpy takes it
+    by_name = _fields_by_name(msg)
+    dtype = _field_dtype(msg, by_name, name, dims)  # point_step is at most the data's size now: numpy takes it
+    xyz = _xyz_float32(msg, by_name, data, height, width)
+    if xyz is not None:
+        return finite_rows(xyz)
     grid = np.ndarray((height, width), dtype=dtype, buffer=data, strides=(row_step, step))
     with np.errstate(invalid="ignore"):  # a signalling NaN marks a no-return all the same
         columns = [grid[n].astype(np.float64).ravel() for n in dtype.names or ()]
     if len(columns) == 2:
         columns.append(np.zeros(height * width))
-    return np.column_stack(columns)
+    return finite_rows(np.column_stack(columns))
 
 
 def sensor_scan(msg: Any, msgtype: str, pose: SensorPose, *, dims: int, limits: Limits,
@@ -331,10 +362,10 @@ def _unstamped(msg: Any, msgtype: str, pose: SensorPose, *, dims: int, limits: L
         raise Invalid(f"{name}: a PointCloud2 carries no range_max: give the sensor's (range_max in the query), "
                       "points beyond it clear free space up to it")
     points = cloud_points(msg, name, dims, limits)
-    points = points[np.isfinite(points).all(axis=1)]  # an organised cloud's no-returns (NaN), whatever is_dense says
     if dims == 3:
         return SensorCloud(_pose3d(pose, name), points, float(range_max))
-    # a 2-D map: rotated into the map's axes as PointCloud.from_sensor_frame rotates, then z dropped
+    # a 2-D map: rotated into the map's axes as PointCloud.from_sensor_frame rotates (in float64), then z dropped
+    points = np.asarray(points, dtype=np.float64)
     rotated = Rotation.from_quat(_unit_quaternion(pose)).apply(points) if points.size else points
     return SensorCloud(Pose2D(x=pose.position[0], y=pose.position[1], theta=0.0), rotated[:, :2], float(range_max))
 
@@ -360,7 +391,8 @@ def _cloud_counts(body: bytes) -> tuple[int, int, int] | None:
 def decode(body: bytes, msgtype: str, name: str = "body") -> Any:
     """The message of a CDR body (``serialize_message``'s or rosbags' ``serialize_cdr``'s bytes)."""
     try:
-        return typestore().deserialize_cdr(body, msgtype)
+        # a memoryview: rosbags slices the body (a bytes slice is a copy of all of it) and views its arrays in place
+        return typestore().deserialize_cdr(memoryview(body), msgtype)
     except SerdeError as exc:
         raise Invalid(f"{name}: not a CDR-serialized {msgtype} ({exc}): send the bytes "
                       "rclpy.serialization.serialize_message writes, with the Content-Type of their type") from None

@@ -7,7 +7,7 @@ Nothing here stores or fuses: the batch log's bytes are ``app.maps.logcodec``'s.
 """
 
 from app.scans.bodies import BINARY_TYPES, from_binary, from_json
-from app.scans.scan import Limits, Scan, check_rays, laser_scan, point_cloud
+from app.scans.scan import Limits, Scan, check_rays, finite_rows, laser_scan, point_cloud
 from app.scans.scanview import MAX_VIEW_BEAMS, ScanView, scan_view
 
 __all__ = [
@@ -17,6 +17,7 @@ __all__ = [
     "Scan",
     "ScanView",
     "check_rays",
+    "finite_rows",
     "from_binary",
     "from_json",
     "laser_scan",

@@ -53,15 +53,26 @@ def wall_ranges(n: int = 121, *, angle_min: float = -1.2, angle_increment: float
 
 def cloud_msg(ts: Any, points: np.ndarray, *, extra: tuple[str, ...] = ("intensity",), dtype: str = "f4",
               bigendian: bool = False, height: int = 1, row_pad: int = 0, frame_id: str = "lidar",
-              stamp_ns: int = 0, dense: bool | None = None) -> Any:
+              stamp_ns: int = 0, dense: bool | None = None, offsets: tuple[int, int, int] | None = None,
+              point_step: int | None = None) -> Any:
     """A PointCloud2 of ``points`` (N, 3) as x, y, z fields of ``dtype``, plus float32 ``extra`` fields after them.
 
     ``height`` > 1 makes an organised cloud of ``height`` rows; ``row_pad`` adds bytes at each row's end.
+    ``offsets`` places x, y, z in the point (packed from 0 by default), ``point_step`` pads each point to that size.
     """
     order = ">" if bigendian else "<"
     names = ["x", "y", "z", *extra]
     formats = [order + dtype] * 3 + [order + "f4"] * len(extra)
-    layout = np.dtype({"names": names, "formats": formats})
+    if offsets is None:
+        layout = np.dtype({"names": names, "formats": formats})
+    else:
+        size = np.dtype(dtype).itemsize
+        after = max(offsets) + size
+        layout = np.dtype({"names": names, "formats": formats,
+                           "offsets": [*offsets, *range(after, after + 4 * len(extra), 4)]})
+    if point_step is not None:
+        layout = np.dtype({"names": names, "formats": formats,
+                           "offsets": [layout.fields[n][1] for n in names], "itemsize": point_step})
     n = points.shape[0]
     assert n % height == 0
     width = n // height

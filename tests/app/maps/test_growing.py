@@ -135,6 +135,22 @@ def test_a_pose_or_point_too_far_from_the_frame_is_refused(client: TestClient, k
     assert _info(client)["version"] == 0
 
 
+def test_a_cloud_is_refused_for_a_hit_too_far_from_the_frame_not_for_a_far_no_return(client: TestClient) -> None:
+    assert client.post("/maps", json=GROWING).status_code == 201
+    near = [[2.0, 0.5], [2.5, -0.5]]
+
+    def post(far: list[float], range_max: float) -> Any:
+        cloud = {"pose": {"x": 0.0, "y": 0.0, "theta": 0.0}, "points": [*near, far], "range_max": range_max}
+        return client.post("/maps/explore/scans", json={"scans": [cloud]})
+
+    response = post([1.5e6, 0.0], 2e6)  # a hit there
+    assert response.status_code == 422 and "local map frame" in error_message(response)
+    assert _info(client)["version"] == 0
+    response = post([1.5e6, 0.0], 5.0)  # beyond range_max: free space up to 5 m, no hit out there
+    assert response.status_code == 200, response.text
+    assert response.json()["rays"] == 3
+
+
 def test_a_batch_that_would_take_too_many_new_cells_is_refused_before_any_work(make_client: Any, kit: Any) -> None:
     client = make_client(max_new_cells_per_batch=2_000)
     assert client.post("/maps", json=GROWING).status_code == 201

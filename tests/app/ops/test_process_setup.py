@@ -151,6 +151,22 @@ def test_the_web_process_imports_no_planner_kernel() -> None:
     assert kernels == [] and "planning.query" not in loaded.split(), loaded
 
 
+def _blas_process(**env: str) -> list[str]:
+    """The OPENBLAS_NUM_THREADS and the thread count of a process that limited BLAS's threads, then multiplied."""
+    code = ("import os; from app.ops.process_setup import limit_blas_threads; limit_blas_threads(); import numpy; "
+            "numpy.ones((200_000, 3)) @ numpy.ones((3, 3)); "
+            "print(os.environ['OPENBLAS_NUM_THREADS'], len(os.listdir('/proc/self/task')))")
+    base = {k: v for k, v in os.environ.items() if k not in ("OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")}
+    return subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, check=True,
+                          env={**base, **env}).stdout.split()
+
+
+def test_blas_runs_in_the_calling_thread_unless_the_environment_says_otherwise() -> None:
+    # OpenBLAS's own threads took 22-41 ms of CPU per lidar cloud beside the fusion and parse threads
+    assert _blas_process() == ["1", "1"]
+    assert _blas_process(OPENBLAS_NUM_THREADS="2")[0] == "2"
+
+
 def test_the_kernel_cache_goes_to_the_data_directory_unless_numba_cache_dir_says(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:

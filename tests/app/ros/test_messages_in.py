@@ -242,6 +242,48 @@ def test_organised_cloud_drops_its_nan_points_and_honours_row_step(client: TestC
     _assert_same_map(client, "hall", "hall_json")
 
 
+@pytest.mark.parametrize(("offsets", "point_step", "row_pad"), [
+    ((3, 7, 11), 21, 5),  # a driver's float32 x y z at an odd offset and an odd point_step, rows padded
+    ((0, 4, 8), 48, 0),  # an Ouster driver's point: 48 bytes, x y z first
+    ((8, 4, 0), 16, 8),  # z y x: not side by side in order, read field by field
+])
+def test_lidar_layouts_give_the_json_map(client: TestClient, kit: Any, offsets: tuple[int, int, int], point_step: int,
+                                         row_pad: int) -> None:
+    ts = store("jazzy")
+    points = _cloud_points(n=400, seed=11).astype(np.float32).astype(np.float64)
+    # no-returns: one coordinate NaN or infinite, in any axis
+    points[np.random.default_rng(5).choice(400, size=50, replace=False), np.arange(50) % 3] = np.resize([np.nan, np.inf, -np.inf], 50)
+    msg = cloud_msg(ts, points, height=8, row_pad=row_pad, offsets=offsets, point_step=point_step, dense=False)
+    assert (msg.point_step, msg.row_step) == (point_step, 50 * point_step + row_pad)
+    position, quaternion = [0.2, -0.1, 1.1], Rotation.from_euler("zx", [0.4, 0.05]).as_quat().tolist()
+    client.post("/maps", json=kit.MAP_3D)
+    client.post("/maps", json={**kit.MAP_3D, "name": "hall_json"})
+    response = _post_cdr(client, "hall", cdr(ts, msg), CLOUD_CT, {**_pose_query(position, quaternion),
+                                                                   "range_max": 6.0})
+    assert response.status_code == 200, response.text
+    finite = points[np.isfinite(points).all(axis=1)]
+    assert response.json()["rays"] == finite.shape[0] == 350
+    assert _post_json_cloud(client, "hall_json", finite, position, quaternion, 6.0).status_code == 200
+    _assert_same_map(client, "hall", "hall_json")
+
+
+def test_a_dense_float32_cloud_is_read_in_place() -> None:
+    # the common lidar layout is viewed in the body's own bytes: a 131,072-point cloud is never copied before
+    # fuzzyocc places it (the other layouts, and a cloud with no-returns, are copied once)
+    ts = store("jazzy")
+    points = _cloud_points(n=64, seed=3).astype(np.float32).astype(np.float64)
+    body = cdr(ts, cloud_msg(ts, points, extra=("intensity", "ring")))
+    read = messages_in.cloud_points(messages_in.decode(body, messages_in.POINT_CLOUD2), "body", 3,
+                                    Limits(max_scans=1, max_rays=100))
+    assert np.array_equal(read, points)
+    assert np.shares_memory(read, np.frombuffer(body, dtype=np.uint8))
+    big_endian = cdr(ts, cloud_msg(ts, points, bigendian=True))
+    read = messages_in.cloud_points(messages_in.decode(big_endian, messages_in.POINT_CLOUD2), "body", 3,
+                                    Limits(max_scans=1, max_rays=100))
+    assert np.array_equal(read, points)
+    assert not np.shares_memory(read, np.frombuffer(big_endian, dtype=np.uint8))
+
+
 def test_pointcloud2_on_a_2d_map_is_rotated_into_the_map_and_projected(client: TestClient, kit: Any) -> None:
     ts = store("jazzy")
     points = _cloud_points(seed=6).astype(np.float32).astype(np.float64)
@@ -290,6 +332,8 @@ def test_refusals_are_4xx_and_change_nothing(client: TestClient, kit: Any) -> No
     assert "not a CDR-serialized" in _refused(client, kit, "lab", laser[:-9], LASER_CT, pose, 422)
     assert "not a CDR-serialized" in _refused(client, kit, "lab", laser[:3], LASER_CT, pose, 422)
     assert "not a CDR-serialized" in _refused(client, kit, "hall", cloud[:200], CLOUD_CT, cloud_pose, 422)
+    # cut inside its data, as a dropped connection's body would be
+    assert "not a CDR-serialized" in _refused(client, kit, "hall", cloud[:-1000], CLOUD_CT, cloud_pose, 422)
     assert "not a CDR-serialized" in _refused(client, kit, "hall", b"", CLOUD_CT, cloud_pose, 422)
     # the wrong type for the bytes, both ways
     _refused(client, kit, "hall", laser, CLOUD_CT, cloud_pose, 422)
