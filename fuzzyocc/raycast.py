@@ -160,6 +160,7 @@ def _walk(origins, dirs, t_end, slope, offset, ray_lo, ray_hi, lower, shape, res
     row_offsets = np.zeros(n_scans + 1, np.int64)
     traversed = np.zeros(n_scans, np.int64)
     nt = 0
+    written = 0  # cells of the rows that hold evidence
     none = np.int64(-1) << 62
     for s in range(n_scans):
         row_offsets[s] = nt
@@ -282,7 +283,10 @@ def _walk(origins, dirs, t_end, slope, offset, ray_lo, ray_hi, lower, shape, res
                         v = -np.inf
                     ur, uo = _u(row), _u(off)
                     b = scratch[ur, uo]
-                    if b != b or v > b:
+                    if b != b:
+                        written += 1
+                        scratch[ur, uo] = v
+                    elif v > b:
                         scratch[ur, uo] = v
                     if t_out >= t1:
                         break
@@ -322,7 +326,7 @@ def _walk(origins, dirs, t_end, slope, offset, ray_lo, ray_hi, lower, shape, res
         n_pused = 0
         traversed[s] = visits
     row_offsets[n_scans] = nt
-    return scratch, rcoords, rslot, row_offsets, traversed, went
+    return scratch, rcoords, rslot, row_offsets, traversed, went, written
 
 
 @njit(cache=True, nogil=True)
@@ -396,12 +400,13 @@ def _enter(blocks, tkeys, tslots, coords, n_slots):  # pragma: no cover - compil
 
 
 @njit(cache=True, nogil=True)
-def _combine(scratches, rcoords, rslot, row_offsets, tkeys, tslots, bits, cells, dist):  # pragma: no cover - compiled
+def _combine(scratches, rcoords, rslot, row_offsets, tkeys, tslots, bits, n_cells, cells, dist):  # pragma: no cover
     """The walks' rows as one cast: per scan, its cells by increasing key, a cell reached by several walks with the
     largest of their evidence. ``scratches`` are the walks' scratch rows, ``rcoords`` and ``rslot`` their rows'
     blocks one walk after the other, ``row_offsets`` (walks, scans + 1) the rows of walk ``p``, scan ``s`` in them;
     every block is in the index now. Each scratch row is NaN again after (the walks' rows are used again). ``cells``
-    and ``dist`` are written if they have room, else new arrays; with the number of cells written."""
+    and ``dist`` are written if they have room for ``n_cells`` (the walks' cells with evidence, the most there can
+    be), else new arrays; with the number of cells written."""
     n_parts, n_scans = row_offsets.shape[0], row_offsets.shape[1] - 1
     block_cells = scratches[0].shape[1]
     n_rows = rslot.shape[0]
@@ -418,12 +423,6 @@ def _combine(scratches, rcoords, rslot, row_offsets, tkeys, tslots, bits, cells,
     for q in range(n_rows):
         if rslot[q] < 0:
             rslot[q] = find(tkeys, tslots, rcoords[q, 0], rcoords[q, 1], rcoords[q, 2])
-    n_cells = 0
-    for q in range(n_rows):
-        scratch = scratches[part[q]]
-        for o in range(block_cells):
-            if scratch[local[q], o] == scratch[local[q], o]:
-                n_cells += 1
     if cells.shape[0] < n_cells:
         cells = np.empty(n_cells, np.int64)
         dist = np.empty(n_cells, np.float32)
@@ -447,6 +446,17 @@ def _combine(scratches, rcoords, rslot, row_offsets, tkeys, tslots, bits, cells,
             while j < count and rslot[rows[j]] == rslot[rows[i]]:
                 j += 1
             base = rslot[rows[i]] << bits
+            if j == i + 1:  # a block one walk reached (most): its row read straight
+                row = scratches[part[rows[i]]][local[rows[i]]]
+                for o in range(block_cells):
+                    v = row[o]
+                    if v == v:
+                        row[o] = np.nan
+                        cells[n_out] = base | o
+                        dist[n_out] = v
+                        n_out += 1
+                i = j
+                continue
             for o in range(block_cells):
                 b = np.float32(np.nan)
                 for m in range(i, j):
@@ -632,7 +642,8 @@ def cast_into(
     index.n = _enter(new, index.keys, index.slots, index.coords, index.n)
     out = _CastOut.take() if reuse else (np.empty(0, np.int64), np.empty(0, np.float32))
     cells, dist, scan_offsets, n_out = _combine(tuple(w[0] for w in walks), rcoords, rslot, row_offsets,
-                                                index.keys, index.slots, int(shifts.sum()), *out)
+                                                index.keys, index.slots, int(shifts.sum()),
+                                                sum(int(w[6]) for w in walks), *out)
     cells, dist = cells[:n_out], dist[:n_out]  # views: a copy would double the peak
     _WalkRows.give([w[:3] + (w[5],) for w in walks])
     return CastResult(cells=cells, distance_sigmas=dist, scan_offsets=scan_offsets, cells_traversed=traversed)
