@@ -629,6 +629,13 @@ def cast_into(
     # do not depend on the split (a cell's evidence is a maximum), nor do the slots new blocks get (``_new_blocks``).
     n_walks = parallel.walks_for(n_rays)
     counts = np.diff(offsets)
+    if n_walks > 1:
+        # Each walk a sector of azimuth of every scan: as many rays each, and few blocks in two walks. A lidar
+        # gives its rays beam by beam: its first half, the upward beams, reached a sixth of the blocks the second did.
+        azimuth = np.arctan2(args[1][:, 1], args[1][:, 0])
+        order = np.concatenate([lo + np.argsort(azimuth[lo:hi], kind="stable")
+                                for lo, hi in zip(offsets[:-1], offsets[1:])])
+        args = tuple(a[order] for a in args)
     block_cells = 1 << int(shifts.sum())
     walks = parallel.run(lambda p: _walk(*args, offsets[:-1] + counts * p // n_walks,
                                          offsets[:-1] + counts * (p + 1) // n_walks, *rest,
