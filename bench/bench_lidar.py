@@ -648,7 +648,8 @@ def case_lines(r: CaseReport) -> list[str]:
         f"{r.in_process_rays_s / 1e6:.3f} M rays/s; HTTP / in-process {r.rays_s / r.in_process_rays_s:.2f}x; "
         f"the service's map the in-process one, cell for cell: {same}",
         f"OctoMap insertPointCloud: {r.octomap_clouds} clouds in {r.octomap_s:.1f} s: "
-        f"{r.octomap_rays_s / 1e6:.3f} M points/s; in-process / OctoMap **{r.in_process_rays_s / r.octomap_rays_s:.1f}x**",
+        f"{r.octomap_rays_s / 1e6:.3f} M points/s; in-process / OctoMap "
+        f"**{r.in_process_rays_s / r.octomap_rays_s:.1f}x**",
         f"plan p99 {r.loaded['plan']} loaded against {r.unloaded['plan']} unloaded (**{_x(r.ratio('plan'))}**); "
         f"read p99 {r.loaded['read']} against {r.unloaded['read']} (**{_x(r.ratio('read'))}**)",
         f"the service's own means during the stream (/metrics): a scan request {r.server_ms['scan_requests']:.0f} ms, "
@@ -659,7 +660,8 @@ def case_lines(r: CaseReport) -> list[str]:
 
 
 def summary_table(reports: Sequence[CaseReport]) -> str:
-    lines = ["| case | clouds/s HTTP | M rays/s HTTP | in-process | OctoMap | in-process / OctoMap | HTTP / in-process | "
+    lines = ["| case | clouds/s HTTP | M rays/s HTTP | in-process | OctoMap | in-process / OctoMap | "
+             "HTTP / in-process | "
              "post p50 / p99 ms | plan p99 x unloaded | read p99 x unloaded |",
              "|---|---|---|---|---|---|---|---|---|---|"]
     for r in reports:
@@ -677,6 +679,7 @@ def targets(reports: Sequence[CaseReport]) -> list[tuple[str, bool | None]]:
         return [r for r in reports if r.kind == kind and r.resolution == resolution]
 
     ouster, os1 = where("ouster", 0.1), where("os1-128", 0.1)
+    ratios = [r.ratio(k) for r in reports for k in ("plan", "read")]
     return [
         (f"Ouster frames at 0.1 m over HTTP >= {TARGET_OUSTER_CLOUDS_S:g} frames/s "
          f"({', '.join(f'{r.clouds_s:.2f}' for r in ouster) or 'not run'})",
@@ -687,9 +690,9 @@ def targets(reports: Sequence[CaseReport]) -> list[tuple[str, bool | None]]:
         (f"post p99 <= {1e3 * TARGET_POST_P99_S:.0f} ms (worst {1e3 * max(r.post_p99_s for r in reports):.0f} ms)",
          all(r.post_p99_s <= TARGET_POST_P99_S for r in reports)),
         (f"plan and read p99 within {TARGET_LOADED_X:g}x of unloaded (worst "
-         f"{_x(max((x for r in reports for k in ('plan', 'read') if math.isfinite(x := r.ratio(k))), default=math.nan))}; a case with no answer "
+         f"{_x(max((x for x in ratios if math.isfinite(x)), default=math.nan))}; a case with no answer "
          "in a window misses it; refusals are listed with each case)",
-         all(r.ratio(k) <= TARGET_LOADED_X for r in reports for k in ("plan", "read"))),
+         all(x <= TARGET_LOADED_X for x in ratios)),
         (f"in-process fusion >= {TARGET_VS_OCTOMAP:g}x OctoMap's points/s (least "
          f"{min(r.in_process_rays_s / r.octomap_rays_s for r in reports):.1f}x)",
          all(r.in_process_rays_s / r.octomap_rays_s >= TARGET_VS_OCTOMAP for r in reports)),
@@ -720,7 +723,8 @@ def main(argv: list[str] | None = None) -> int:
     _data.add_option(ap)
     ap.add_argument("--quick", action="store_true", help=f"{', '.join(QUICK_CASES)}, {QUICK_SECONDS:g} s streams, "
                     f"{QUICK_SYNTHETIC_SWEEPS} synthetic sweeps, one OctoMap cloud (a test-sized run)")
-    ap.add_argument("--seconds", type=float, help=f"each stream's seconds (default {SECONDS:g}, --quick {QUICK_SECONDS:g})")
+    ap.add_argument("--seconds", type=float,
+                    help=f"each stream's seconds (default {SECONDS:g}, --quick {QUICK_SECONDS:g})")
     ap.add_argument("--cases", help=f"comma-separated KIND@RESOLUTION (default {','.join(CASES)})")
     ap.add_argument("--in-process-seconds", type=float, default=IN_PROCESS_S,
                     help="seconds of in-process fusion timed a case (every cloud with --quick); the rest are fused "
