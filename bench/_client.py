@@ -264,11 +264,15 @@ class LeanClient:
 
     def post(self, name: str, batch: Batch) -> int:
         """POST the batch to map ``name``; the status code (``OSError`` / ``HTTPException`` on a broken connection)."""
+        return self.send("POST", batch.target(name), batch.body, batch.content_type)[0]
+
+    def send(self, method: str, target: str, body: bytes | None = None,
+             content_type: str = "application/json") -> tuple[int, bytes]:
+        """One request (``target``: path and query); the status code and the answer's body."""
         try:
-            self._conn.request("POST", batch.target(name), body=batch.body, headers={"Content-Type": batch.content_type})
+            self._conn.request(method, target, body=body, headers={"Content-Type": content_type} if body else {})
             response = self._conn.getresponse()
-            response.read()
-            return response.status
+            return response.status, response.read()
         except (OSError, http.client.HTTPException):
             self._conn.close()
             raise
@@ -398,6 +402,17 @@ def machine() -> str:
 
     ram = psutil.virtual_memory().total / 2**30
     return f"{os.cpu_count()} cores, {model}, {ram:.1f} GiB RAM, load average {os.getloadavg()[0]:.1f}"
+
+
+def wait_ready(client: httpx.Client, timeout_s: float) -> None:
+    """Until ``GET /ready`` answers 200 (maps loaded, kernels compiled, planner workers up); ``RuntimeError`` after
+    ``timeout_s``."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if client.get("/ready").status_code == 200:
+            return
+        time.sleep(0.2)
+    raise RuntimeError(f"the service was not ready within {timeout_s} s")
 
 
 def chunks(seq: Sequence[Any], size: int) -> Iterator[Sequence[Any]]:

@@ -389,15 +389,6 @@ def _plan_body(q: Query, planner: str, time_limit: float) -> dict[str, Any]:
     return body
 
 
-def _wait_ready(client: Any, timeout_s: float) -> None:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if client.get("/ready").status_code == 200:
-            return
-        time.sleep(0.2)
-    raise RuntimeError(f"the service was not ready within {timeout_s} s")
-
-
 def http_plans(maps: Sequence[RealMap], planners: Sequence[str] = HTTP_PLANNERS, time_limit: float = TIME_LIMIT,
                repeats: int = 3, log: Callable[[str], None] = print) -> list[HttpMap]:
     """Build each map on a fresh service and time its queries over HTTP beside the same call in-process.
@@ -409,14 +400,14 @@ def http_plans(maps: Sequence[RealMap], planners: Sequence[str] = HTTP_PLANNERS,
     import httpx
     from planning import RiskField
 
-    from bench._client import ServerProcess, npy_array
+    from bench._client import ServerProcess, npy_array, wait_ready
 
     out: list[HttpMap] = []
     server = ServerProcess(env={"FUZZYRISK_PLAN_WORKERS": "2", "FUZZYRISK_PLAN_WARMUP": "true"})
     try:
         server.start(timeout_s=300.0)
         with httpx.Client(base_url=server.url, timeout=120.0) as client:
-            _wait_ready(client, 300.0)
+            wait_ready(client, 300.0)
             for rm in maps:
                 t0 = time.perf_counter()
                 done = subprocess.run(

@@ -197,23 +197,39 @@ def octomap_nbytes_of_clouds(clouds: list[PointCloud], resolution: float) -> tup
     return int(tree.memoryUsage()), clock.wall
 
 
-def ouster_clouds(folder: Path) -> list[PointCloud]:
-    """The Ouster frames of ``folder`` as clouds in the first frame's frame, rows at (0, 0, 0) (no return) dropped,
-    ``range_max`` ``OUSTER_RANGE_MAX``.
+@dataclass(frozen=True)
+class OusterFrame:
+    """One Ouster frame as recorded: float32 rows ``x y z reflectivity`` in the sensor frame, rows at (0, 0, 0) (no
+    return) dropped, and the sensor pose in the first frame's frame (a point in the map frame is ``R @ p + t``)."""
 
-    Either layout of the frames: ``velodyne/NNNNNN.bin`` (``../shared/data/ouster``) or ``NNNNNN.bin.gz``
-    (``tests/data/ouster``), float32 rows ``x y z reflectivity`` in the sensor frame, beside ``poses.txt``
-    (KITTI: ``[R | t]`` a line, a point in the map frame is ``R @ p + t``)."""
+    rows: np.ndarray  # (N, 4) float32
+    rotation: np.ndarray  # (3, 3)
+    translation: np.ndarray  # (3,)
+
+
+def ouster_frames(folder: Path) -> list[OusterFrame]:
+    """The Ouster frames of ``folder``, in either layout: ``velodyne/NNNNNN.bin`` (``../shared/data/ouster``) or
+    ``NNNNNN.bin.gz`` (``tests/data/ouster``), float32 rows ``x y z reflectivity`` in the sensor frame, beside
+    ``poses.txt`` (KITTI: ``[R | t]`` a line)."""
     poses = np.loadtxt(folder / "poses.txt").reshape(-1, 3, 4)
-    clouds = []
+    frames = []
     for i, pose in enumerate(poses):
         plain, packed = folder / "velodyne" / f"{i:06d}.bin", folder / f"{i:06d}.bin.gz"
         data = plain.read_bytes() if plain.is_file() else gzip.decompress(packed.read_bytes())
-        raw = np.frombuffer(data, dtype=np.float32).reshape(-1, 4)[:, :3]
-        points = raw[np.any(raw != 0.0, axis=1)].astype(np.float64)
-        rotation, translation = pose[:, :3], pose[:, 3]
-        clouds.append(PointCloud(points=points @ rotation.T + translation, origin=tuple(translation),
-                                 range_max=OUSTER_RANGE_MAX, max_rays=points.shape[0]))
+        rows = np.frombuffer(data, dtype=np.float32).reshape(-1, 4)
+        frames.append(OusterFrame(rows[np.any(rows[:, :3] != 0.0, axis=1)], pose[:, :3], pose[:, 3]))
+    return frames
+
+
+def ouster_clouds(folder: Path) -> list[PointCloud]:
+    """The Ouster frames of ``folder`` (:func:`ouster_frames`) as clouds in the first frame's frame, ``range_max``
+    ``OUSTER_RANGE_MAX``."""
+    clouds = []
+    for frame in ouster_frames(folder):
+        points = frame.rows[:, :3].astype(np.float64)
+        clouds.append(PointCloud(points=points @ frame.rotation.T + frame.translation,
+                                 origin=tuple(frame.translation), range_max=OUSTER_RANGE_MAX,
+                                 max_rays=points.shape[0]))
     return clouds
 
 

@@ -153,7 +153,7 @@ def scrape(server: ServerProcess) -> dict[str, tuple[float, float]]:
     return out
 
 
-def _delta(after: dict[str, tuple[float, float]], before: dict[str, tuple[float, float]]) -> dict[str, float]:
+def mean_ms(after: dict[str, tuple[float, float]], before: dict[str, tuple[float, float]]) -> dict[str, float]:
     """Mean milliseconds per observation between two scrapes."""
     means = {}
     for key in after:
@@ -443,11 +443,11 @@ def main(argv: list[str] | None = None) -> int:
             a_parts.append(run_in_process(work, part, args.max_requests, f"A{r + 1}"))
             before = scrape(server)
             b_parts.append(run_http(server, work, part, args.max_requests, f"B{r + 1}", None, client=args.client))
-            server_ms["B"].append(_delta(scrape(server), before))
+            server_ms["B"].append(mean_ms(scrape(server), before))
         before = scrape(server)
         c = run_http(server, work, seconds, args.max_requests, "C HTTP scans + plans", plan_body,
                      seeded=args.seeded, client=args.client)
-        server_ms["C"].append(_delta(scrape(server), before))
+        server_ms["C"].append(mean_ms(scrape(server), before))
         c.windows.append((c.started, c.ended))
         health, health_failures = prober.stop()
         for spy in spies:

@@ -136,7 +136,9 @@ def path_message(
     them; ``z`` is 0 on 2-D maps; orientations from ``path_yaws``.
     """
     header = {"stamp": dict(stamp), "frame_id": frame_id}
-    points = np.asarray(path, dtype=np.float64).reshape(len(path), -1) if len(path) else np.zeros((0, 2))
+    # no path (status none): no poses, in the state space's width (R3's z is read below)
+    empty = np.zeros((0, 3 if state_space == "R3" else 2))
+    points = np.asarray(path, dtype=np.float64).reshape(len(path), -1) if len(path) else empty
     yaws = path_yaws(points, state_space, goal_yaw)
     z = points[:, 2] if state_space == "R3" else np.zeros(len(points))
     poses = [

@@ -33,6 +33,13 @@ def test_poses_become_the_points_a_plan_request_takes() -> None:
     assert path_points(_poses(r3, "R3"), "R2").tolist() == [[0.5, 1.0], [1.5, 1.0]]  # z left out on a plane
 
 
+@pytest.mark.parametrize("state_space", ["R2", "SE2", "R3"])
+def test_a_plan_without_a_path_is_a_path_without_poses(state_space: str) -> None:
+    """A plan that found nothing (status none) answers an empty nav_msgs/Path in every state space."""
+    message = path_message([], state_space=state_space, frame_id="map", stamp={"sec": 1, "nanosec": 2})
+    assert message["poses"] == [] and message["header"]["frame_id"] == "map"
+
+
 def test_a_frame_other_than_the_maps_is_refused_naming_its_header() -> None:
     poses = _poses([[0.0, 0.0], [1.0, 0.0]], "R2")
     check_frames("map", Header(stamp={"sec": 0, "nanosec": 0}, frame_id=""), poses)  # empty: the path's frame
