@@ -89,10 +89,11 @@ LOG = logging.getLogger("fuzzyrisk.maps")
 #: (pydantic holds the GIL either way, so the loop waits for it wherever it runs) takes well under a
 #: millisecond, less than the two thread switches of a trip through the parsing pool.
 INLINE_PARSE_BYTES = 128 * 1024
-#: A batch whose rays walk more cells than this (about 2 s of a thread at 10 M cells/s) is heavy: it is fused in
-#: threads of its own, so that heavy batches never hold every fusion thread (a robot's batch of a few 1080-beam
-#: scans walks about 1 M cells).
-HEAVY_BATCH_CELLS = 20_000_000
+#: A batch whose rays walk more cells than this (about 2 s of a thread: the walks go at 40-60 M cells a second) is
+#: heavy: it is fused in threads of its own, so that heavy batches never hold every fusion thread (a robot's batch
+#: of a few 1080-beam scans walks about 1 M cells, a 128-beam lidar's sweep at 0.1 m about 23 M: a lidar's map is
+#: not heavy, its sweeps are its robot's stream).
+HEAVY_BATCH_CELLS = 100_000_000
 
 
 class WritePath:
