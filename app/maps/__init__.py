@@ -34,7 +34,7 @@ if TYPE_CHECKING:
     from app.maps.registry import MapRegistry
     from app.maps.shared_grids import FieldCache, GridRef, Lease, PlanGrids
     from app.maps.snapshot import GridSnapshot, GridStamp
-    from app.maps.stored import Replayed, build_map, npz, replay, restore, unnpz
+    from app.maps.stored import Replayed, build_map, replay, restore
     from app.maps.writepath import WritePath
 
 __all__ = [
@@ -60,12 +60,10 @@ __all__ = [
     "is_current",
     "map_info",
     "now",
-    "npz",
     "replay",
     "restore",
     "shielded",
     "stored_info",
-    "unnpz",
 ]
 
 _LAZY = {
@@ -75,7 +73,7 @@ _LAZY = {
     "MapRegistry": "app.maps.registry",
     **dict.fromkeys(["FieldCache", "GridRef", "Lease", "PlanGrids"], "app.maps.shared_grids"),
     **dict.fromkeys(["GridSnapshot", "GridStamp"], "app.maps.snapshot"),
-    **dict.fromkeys(["Replayed", "build_map", "npz", "replay", "restore", "unnpz"], "app.maps.stored"),
+    **dict.fromkeys(["Replayed", "build_map", "replay", "restore"], "app.maps.stored"),
     "WritePath": "app.maps.writepath",
 }
 

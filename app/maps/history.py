@@ -13,7 +13,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from app.maps.entry import MapEntry
-from app.maps.stored import npz, restore
+from app.maps import snapshotcodec
+from app.maps.stored import restore
 from app.storage import Storage, StoredMap
 from app.storage.corrections import PENDING
 
@@ -63,4 +64,4 @@ def plan_fold(storage: Storage, name: str, incarnation: str | None, *, budget: i
     history = storage.load_history(name, up_to=version)
     if history is None or history.incarnation != incarnation:
         return None
-    return Fold(version, npz(rebuild(history, up_to=version).map.snapshot_arrays()), head.version)
+    return Fold(version, snapshotcodec.encode(rebuild(history, up_to=version).map.snapshot_arrays()), head.version)

@@ -29,11 +29,11 @@ from typing import Any
 
 from app.config import Settings
 from app.errors import Conflict, Invalid, NotFound, TooLarge, Unavailable
-from app.maps import correction, logcodec
+from app.maps import correction, logcodec, snapshotcodec
 from app.maps.entry import MapEntry, now
 from app.maps.logcodec import Reposed
 from app.maps.registry import MapRegistry
-from app.maps.stored import npz, replay, restore
+from app.maps.stored import replay, restore
 from app.maps.writepath import WritePath
 from app.ops.metrics import Metrics
 from app.ops.threads import Workers
@@ -246,7 +246,7 @@ class Refusions:
                 raise _Stopped(job.name)
             if rebuilt_at.version not in snapshots:
                 snapshots.clear()
-                snapshots[rebuilt_at.version] = npz(rebuilt.map.snapshot_arrays())
+                snapshots[rebuilt_at.version] = snapshotcodec.encode(rebuilt.map.snapshot_arrays())
             updated = now()
             report = job.report(stored)
             version = self.storage.switch_reposed(

@@ -1,4 +1,4 @@
-"""A map from what is stored of it: its metadata, its snapshot's arrays (``npz`` / ``unnpz``), its log replayed.
+"""A map from what is stored of it: its metadata, its snapshot's arrays (``snapshotcodec``), its log replayed.
 
 ``restore`` rebuilds a held map from its snapshot and the batches after it, in order; fusion is
 deterministic, so the map is bit for bit the one acknowledged. ``build_map`` is a new map too: what is
@@ -7,16 +7,14 @@ stored is what runs.
 
 from __future__ import annotations
 
-import io
 import logging
-import zipfile
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any, cast
 
 import numpy as np
 
-from app.maps import logcodec
+from app.maps import logcodec, snapshotcodec
 from app.maps.entry import UNLIMITED_CELLS, MapEntry, OccupancyMap, spec_of
 from app.maps.logcodec import Batch, Clear, Prior, Reposed, SetForget
 from app.scans import Scan
@@ -26,29 +24,6 @@ from fuzzyocc import BayesMap, FuzzyMap, GridSpec, LatticeSpec, IntegrationStats
 from fuzzyocc.maps import PRIOR_UNSEEN
 
 LOG = logging.getLogger("fuzzyrisk.maps")
-
-
-#: The deflate level of a snapshot's arrays: 1 deflated a 6.9 M-cell map's blocks in 0.09 s to 1.4 MB, the default 6
-#: (``np.savez_compressed``'s) in 0.35 s to 1.0 MB; a snapshot is written beside the line, and the switch of a rebuild
-#: at a corrected trajectory waits for its own.
-SNAPSHOT_DEFLATE_LEVEL = 1
-
-
-def npz(arrays: Mapping[str, np.ndarray]) -> bytes:
-    """A map's arrays (``snapshot_arrays``) as a snapshot's bytes: an ``.npz`` (``np.load`` reads it)."""
-    out = io.BytesIO()
-    # snapshots are mostly uniform blocks and runs of one state: deflate shrinks them many times over
-    with zipfile.ZipFile(out, "w", compression=zipfile.ZIP_DEFLATED, compresslevel=SNAPSHOT_DEFLATE_LEVEL) as archive:
-        for key, value in arrays.items():
-            with archive.open(f"{key}.npy", "w", force_zip64=True) as member:
-                np.lib.format.write_array(member, np.asanyarray(value), allow_pickle=False)
-    return out.getvalue()
-
-
-def unnpz(payload: bytes) -> dict[str, np.ndarray]:
-    """The arrays of a snapshot's bytes (``npz``)."""
-    with np.load(io.BytesIO(payload), allow_pickle=False) as archive:
-        return {key: archive[key] for key in archive.files}
 
 
 def build_map(meta: Mapping[str, Any], *, max_cells: int) -> OccupancyMap:
@@ -101,7 +76,7 @@ def restore(stored: StoredMap, up_to: int | None = None, progress: Callable[[int
         raise RuntimeError(f"map {stored.name!r}: its stored metadata cannot be used ({exc}); the database "
                            "needs repair") from exc
     if stored.snapshot is not None:
-        arrays = unnpz(stored.snapshot)
+        arrays = snapshotcodec.decode(stored.snapshot)
         if isinstance(built, FuzzyMap):
             # the snapshot holds forget_beyond as it was at its version (a PATCH logged before it is not replayed)
             built = FuzzyMap.from_arrays(built.spec, built.sensor, arrays, built.engine)
@@ -150,13 +125,17 @@ def replay(built: OccupancyMap, stored: StoredMap, *, after: int, up_to: int | N
             # an acknowledged batch: never dropped silently; the service refuses to start and says where
             raise RuntimeError(f"map {stored.name!r}: stored batch {version} is corrupt ({exc}); the database "
                                f"needs repair (restore a backup, or delete that row to drop the batch)") from exc
-        replayed.log.append((version, len(payload), batch_work(built.spec, batch)))
         try:
-            integrate(built, batch)
+            stats = integrate(built, batch)
         except ValueError:
             # cannot happen for a batch that was acknowledged (it was applied before the 200)
             LOG.exception("map %s: batch %d cannot be replayed; skipped", stored.name, version)
+            replayed.log.append((version, len(payload), 0))
             continue
+        # scans: the cells their cast walked, as the fusion counts them (``cast_work`` made and walked every scan's
+        # rays a second time, 3-6 % of a replay, for a figure a rebuild then discards)
+        walked = stats.cells_traversed if isinstance(batch, list) else batch_work(built.spec, batch)
+        replayed.log.append((version, len(payload), walked))
         replayed.version = version
         if isinstance(batch, list) and batch:  # a prior or an edit fuses no scan
             replayed.last_scan = batch[-1]

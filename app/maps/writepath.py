@@ -54,7 +54,7 @@ import numpy as np
 from fastapi.exceptions import RequestValidationError
 
 from app.formats.saved_maps import MapCells
-from app.maps import logcodec
+from app.maps import logcodec, snapshotcodec
 from app.maps.logcodec import Batch, Edit, Prior, SetForget
 from app.scans import Limits, Scan
 from app.maps import ingest
@@ -72,7 +72,7 @@ from app.errors import (
 from app.maps.entry import MapEntry, now
 from app.maps.history import plan_fold
 from app.maps.line import shielded
-from app.maps.stored import batch_work, integrate, npz, replay, restore
+from app.maps.stored import batch_work, integrate, replay, restore
 from app.ops.metrics import Metrics
 from app.maps.ingest_process import ParseProcess, wants
 from app.maps.shared_grids import PlanGrids
@@ -158,7 +158,7 @@ class WritePath:
         try:
             # in the admin thread: the fusion threads are for batches
             await self._workers.run_admin(
-                lambda: self.storage.write_snapshot(entry.name, version, npz(arrays), entry.incarnation))
+                lambda: self.storage.write_snapshot(entry.name, version, snapshotcodec.encode(arrays), entry.incarnation))
         except Exception as exc:
             # StorageUnavailable (full, read-only) mostly, but whatever it is, the batch that triggered
             # the snapshot is committed and applied: it must still be acknowledged
