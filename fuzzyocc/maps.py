@@ -118,7 +118,8 @@ def allocation_bound(spec: GridSpec | LatticeSpec, scans: Sequence[Scan]) -> int
             n = rays.ranges.size
             if n:
                 cast_into(lattice, index, (0, 0, 0), np.repeat(rays.origin[None], n, axis=0), rays.directions,
-                          rays.ranges, np.full(n, np.nan), np.ones(n), np.array([0, n]), unknown_from=np.inf)
+                          rays.ranges, np.full(n, np.nan), np.ones(n), np.array([0, n]), unknown_from=np.inf,
+                          split=False)
     return index.n * side**ndim
 
 
@@ -453,12 +454,11 @@ class OccupancyMap:
         for part in scan_parts(scan):
             rays = self._rays_of(scan, part)
             n_rays, skipped = n_rays + rays.ranges.size, skipped + rays.skipped
-            cast = self._cast([scan], [rays])
+            cast = self._cast([scan], [rays], reuse=False)  # the parts' cells are all held until merged
             del rays
             traversed += int(cast.cells_traversed.sum())
-            keys.append(cast.cells.copy())  # the next part's cast writes its arrays
-            dists.append(cast.distance_sigmas.copy())
-            give_back(cast)
+            keys.append(cast.cells)
+            dists.append(cast.distance_sigmas)
             del cast
         every = np.concatenate(keys)
         order = np.argsort(every, kind="stable")  # by key: a block's cells together, as a cast hands them out
@@ -493,7 +493,9 @@ class OccupancyMap:
         else:
             raise ValueError(f"{name} must be a LaserScan or a PointCloud, got {type(scan).__name__}")
 
-    def _cast(self, scans: list[Scan], rays: list[Rays]) -> CastResult:
+    def _cast(self, scans: list[Scan], rays: list[Rays], reuse: bool = True) -> CastResult:
+        """The cast of ``scans`` (their ``rays``); ``reuse``: into arrays a cast gave back (``raycast.give_back``),
+        for a caller that gives this one back before its next cast."""
         half_cell = 0.5 * self.spec.resolution
         counts = [r.ranges.size for r in rays]
         origins = np.repeat(np.stack([r.origin for r in rays]), counts, axis=0)
@@ -515,7 +517,7 @@ class OccupancyMap:
             sigma=sigma,
             ray_offsets=np.concatenate([[0], np.cumsum(counts)]),
             unknown_from=self.occupied_extent,
-            reuse=True,
+            reuse=reuse,
         )
         self._cast_done()
         return cast

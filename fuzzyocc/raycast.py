@@ -562,6 +562,7 @@ def cast_into(
     unknown_from: float,
     window_limit: int = WINDOW_LIMIT,
     reuse: bool = False,
+    split: bool = True,
 ) -> CastResult:
     """Traverse the cells of every ray of a batch of scans and keep one evidence per (scan, cell).
 
@@ -580,6 +581,9 @@ def cast_into(
         Block size, as powers of two (a 2-D lattice has one z layer: shift z 0).
     origins, directions, t_end, measured, sigma, ray_offsets, unknown_from
         As :func:`cast_rays`.
+    split : bool
+        Split the walks between threads (``fuzzyocc.parallel``) when the rays are many; False: one walk, for a cast
+        cheap enough that ordering its rays for the split would cost more than it saves.
     reuse : bool
         Write the cells into arrays a cast gave back (:func:`give_back`) when there is one: for a caller that is done
         with each cast before the next, so that a lidar sweep's cells do not take fresh memory every sweep.
@@ -627,7 +631,7 @@ def cast_into(
             int(window_limit), True if d == 2 else None, True if lattice.shape is not None else None)
     # Each walk takes a share of every scan's rays (consecutive beams: nearby cells); the cells and their evidence
     # do not depend on the split (a cell's evidence is a maximum), nor do the slots new blocks get (``_new_blocks``).
-    n_walks = parallel.walks_for(n_rays)
+    n_walks = parallel.walks_for(n_rays) if split else 1
     counts = np.diff(offsets)
     if n_walks > 1:
         # Each walk a sector of azimuth of every scan: as many rays each, and few blocks in two walks. A lidar
