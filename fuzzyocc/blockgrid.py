@@ -148,6 +148,13 @@ class BlockGrid:
                 part.release_from(capacity)
         self._pool, self._prisk, self._owner = (part.view(capacity) for part in reserved)
 
+    def __getstate__(self) -> dict[str, object]:
+        # a copy or a pickle holds the pool's arrays as they are; it reserves address space of its own when its pool
+        # next grows (a mapping is neither copied nor pickled)
+        state = dict(self.__dict__)
+        state["_reserved"] = None
+        return state
+
     def _most_blocks(self) -> int:
         """The most blocks this grid can hold: its box's, or any number for a growing one."""
         if self.box is None:
@@ -689,16 +696,24 @@ def _pack_slabs(firsts, ends, ref, pool, prisk, owner):  # pragma: no cover - co
     for p in range(1, firsts.shape[0]):
         for s in range(firsts[p], ends[p]):
             if s != n:
-                for o in range(pool.shape[1]):
-                    for k in range(pool.shape[2]):
-                        pool[n, o, k] = pool[s, o, k]
-                for o in range(prisk.shape[1]):
-                    prisk[n, o] = prisk[s, o]
-                b = owner[s]
-                owner[n] = b
-                ref[b] = n
+                _move_slab(s, n, ref, pool, prisk, owner)
             n += 1
     return n
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _move_slab(s, to, ref, pool, prisk, owner):  # pragma: no cover - compiled
+    """Slab ``s`` moves to ``to`` (its block's reference follows it)."""
+    # element by element: a slice assignment would compile numba's shape-mismatch error
+    # message formatting into this kernel (seconds more at the first start, on a cold cache)
+    for o in range(pool.shape[1]):
+        for k in range(pool.shape[2]):
+            pool[to, o, k] = pool[s, o, k]
+    for o in range(prisk.shape[1]):
+        prisk[to, o] = prisk[s, o]
+    b = owner[s]
+    owner[to] = b
+    ref[b] = to
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -731,16 +746,7 @@ def _release_slab(b, s, ref, pool, prisk, owner, n_dense):  # pragma: no cover -
     ref[b] = -1
     last = n_dense - 1
     if s != last:
-        # element by element: a slice assignment would compile numba's shape-mismatch error
-        # message formatting into this kernel (seconds more at the first start, on a cold cache)
-        for o in range(pool.shape[1]):
-            for k in range(pool.shape[2]):
-                pool[s, o, k] = pool[last, o, k]
-        for o in range(prisk.shape[1]):
-            prisk[s, o] = prisk[last, o]
-        moved = owner[last]
-        owner[s] = moved
-        ref[moved] = s
+        _move_slab(last, s, ref, pool, prisk, owner)
     return last
 
 

@@ -247,9 +247,7 @@ def _walk(origins, dirs, t_end, slope, offset, ray_lo, ray_hi, lower, shape, res
                                 break
                             row = nt
                             nt += 1
-                            rcoords[row, 0], rcoords[row, 1], rcoords[row, 2] = bx, by, bz
-                            rslot[row] = find(tkeys, tslots, bx, by, bz)
-                            went[row] = w
+                            _open_row(row, bx, by, bz, w, rcoords, rslot, went, tkeys, tslots)
                             window[_u(w)] = row
                     elif bx != last_x or by != last_y or bz != last_z:
                         pmask = pvals.shape[0] - 1
@@ -269,9 +267,7 @@ def _walk(origins, dirs, t_end, slope, offset, ray_lo, ray_hi, lower, shape, res
                                 break
                             row = nt
                             nt += 1
-                            rcoords[row, 0], rcoords[row, 1], rcoords[row, 2] = bx, by, bz
-                            rslot[row] = find(tkeys, tslots, bx, by, bz)
-                            went[row] = -1
+                            _open_row(row, bx, by, bz, -1, rcoords, rslot, went, tkeys, tslots)
                             pkeys[h, 0], pkeys[h, 1], pkeys[h, 2] = bx, by, bz
                             pvals[h] = row
                             pused[n_pused] = h
@@ -327,6 +323,15 @@ def _walk(origins, dirs, t_end, slope, offset, ray_lo, ray_hi, lower, shape, res
         traversed[s] = visits
     row_offsets[n_scans] = nt
     return scratch, rcoords, rslot, row_offsets, traversed, went, written
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _open_row(row, bx, by, bz, w, rcoords, rslot, went, tkeys, tslots):  # pragma: no cover - compiled
+    """Row ``row`` is block ``(bx, by, bz)``'s in this scan: its coordinates, its slot in the index (-1: not there
+    yet) and its window entry ``w`` (-1: outside the window)."""
+    rcoords[row, 0], rcoords[row, 1], rcoords[row, 2] = bx, by, bz
+    rslot[row] = find(tkeys, tslots, bx, by, bz)
+    went[row] = w
 
 
 @njit(cache=True, nogil=True)
