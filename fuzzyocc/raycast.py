@@ -19,6 +19,7 @@ distance of eq. 5 is then ``(midpoint - measured_range) / sigma``.
 from __future__ import annotations
 
 import threading
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -121,8 +122,9 @@ def _block_at(o, d, t, lower, n, res, h):  # pragma: no cover - compiled
 
 _u = np.uint64
 
-#: The largest set of a walk's rows kept for the next cast (``_WalkRows``): an Ouster frame's in one walk.
-SPARE_ROWS_BYTES = 64 << 20
+#: The largest set of a walk's rows kept for the next cast (``_WALK_ROWS``): an Ouster frame's in one walk, 262,144
+#: rows of a 3-D block's 64 cells (64 MiB of scratch, 7 MiB of their blocks' coordinates, slots and window entries).
+SPARE_ROWS_BYTES = 71 << 20
 #: The largest arrays of a cast's cells kept for the next (``give_back``): a lidar sweep's at 0.1 m.
 SPARE_CELLS_BYTES = 128 << 20
 #: Most entries of a scan's window of blocks (int32 each, 8 MiB): a scan whose rays span more blocks finds each block
@@ -145,7 +147,7 @@ def _walk(origins, dirs, t_end, slope, offset, ray_lo, ray_hi, lower, shape, res
     # A ray enters a new block every two cells or so: a dense window over the blocks the scan's rays span
     # (``window``, -1 between scans) gives a block's row in one read; a block outside it is found in a small
     # table of the scan's own (``pkeys``), so that the cost follows the cells the rays cross, never the map's extent.
-    # ``scratch`` (all NaN), ``rcoords``, ``rslot`` and ``went`` are the rows to start with (``_WalkRows``); they grow
+    # ``scratch`` (all NaN), ``rcoords``, ``rslot`` and ``went`` are the rows to start with (``_WALK_ROWS``); they grow
     # here and come back with the walk.
     n_scans = ray_lo.shape[0]
     nx, ny, nz = shape[0], shape[1], shape[2]
@@ -480,56 +482,54 @@ def _combine(scratches, rcoords, rslot, row_offsets, tkeys, tslots, bits, n_cell
     return cells, dist, scan_offsets, n_out
 
 
-class _WalkRows:
-    """Rows for walks to start with, kept between casts: a lidar sweep's walk grows its rows to tens of MB, and
-    memory written for the first time costs far more than its use (the rows' growth took 156 k page faults in six
-    Ouster frames). A walk takes a set (``take``) and the cast gives it back once its rows are read and NaN again."""
+class _Spares:
+    """Arrays kept between casts for the next to write into, at most ``count_per_thread`` sets a thread of up to
+    ``max_bytes``: memory written for the first time costs far more than its use (in six Ouster frames, the walks'
+    rows growing took 156 k page faults and the cells written into fresh arrays 114 k)."""
 
-    _lock = threading.Lock()
-    _spare: list[tuple[np.ndarray, ...]] = []
+    def __init__(self, max_bytes: int, count_per_thread: int) -> None:
+        self.max_bytes, self.count_per_thread = max_bytes, count_per_thread
+        self._lock = threading.Lock()
+        self._spare: list[tuple[np.ndarray, ...]] = []
 
-    @classmethod
-    def take(cls, block_cells: int) -> tuple[np.ndarray, ...]:
-        with cls._lock:
-            for k, rows in enumerate(cls._spare):
-                if rows[0].shape[1] == block_cells:
-                    return cls._spare.pop(k)
-        return (np.full((64, block_cells), np.nan, np.float32), np.empty((64, 3), np.int32), np.empty(64, np.int64),
-                np.empty(64, np.int64))
+    def take(self, fits: Callable[[tuple[np.ndarray, ...]], bool]) -> tuple[np.ndarray, ...] | None:
+        """A kept set that ``fits``, taken out; None when none does."""
+        with self._lock:
+            for k, arrays in enumerate(self._spare):
+                if fits(arrays):
+                    return self._spare.pop(k)
+        return None
 
-    @classmethod
-    def give(cls, sets: list[tuple[np.ndarray, ...]]) -> None:
-        with cls._lock:
-            for rows in sets:
-                if rows[0].nbytes <= SPARE_ROWS_BYTES and len(cls._spare) < 2 * parallel.threads():
-                    cls._spare.append(rows)
+    def give(self, arrays: tuple[np.ndarray, ...]) -> None:
+        """Keep ``arrays`` for a later cast, unless they are too big or enough are kept."""
+        with self._lock:
+            if (sum(a.nbytes for a in arrays) <= self.max_bytes
+                    and len(self._spare) < self.count_per_thread * parallel.threads()):
+                self._spare.append(arrays)
 
 
-class _CastOut:
-    """Arrays for a cast's cells, given back by casters done with them (``give_back``): a lidar sweep's 7 M cells
-    are 86 MB, and written into fresh memory they took 114 k page faults in six Ouster frames."""
+#: A walk's rows (scratch all NaN, coordinates, slots, window entries): a walk takes a set, the cast gives it back
+#: once the combine has read its rows and made them NaN again.
+_WALK_ROWS = _Spares(SPARE_ROWS_BYTES, 2)
+#: A cast's cells and evidence, given back by a caller done with them (``give_back``).
+_CAST_CELLS = _Spares(SPARE_CELLS_BYTES, 1)
 
-    _lock = threading.Lock()
-    _spare: list[tuple[np.ndarray, np.ndarray]] = []
 
-    @classmethod
-    def take(cls) -> tuple[np.ndarray, np.ndarray]:
-        with cls._lock:
-            if cls._spare:
-                return cls._spare.pop()
-        return np.empty(0, np.int64), np.empty(0, np.float32)
+def _walk_rows(block_cells: int) -> tuple[np.ndarray, ...]:
+    kept = _WALK_ROWS.take(lambda rows: rows[0].shape[1] == block_cells)
+    if kept is not None:
+        return kept
+    return (np.full((64, block_cells), np.nan, np.float32), np.empty((64, 3), np.int32), np.empty(64, np.int64),
+            np.empty(64, np.int64))
 
 
 def give_back(cast: CastResult) -> None:
     """The caller is done with ``cast`` (its cells are no longer read): its arrays may take the next cast's cells."""
     cells = cast.cells if cast.cells.base is None else cast.cells.base
     dist = cast.distance_sigmas if cast.distance_sigmas.base is None else cast.distance_sigmas.base
-    if not (isinstance(cells, np.ndarray) and isinstance(dist, np.ndarray) and cells.dtype == np.int64
+    if (isinstance(cells, np.ndarray) and isinstance(dist, np.ndarray) and cells.dtype == np.int64
             and dist.dtype == np.float32 and cells.ndim == dist.ndim == 1 and cells.shape == dist.shape):
-        return
-    with _CastOut._lock:
-        if cells.nbytes + dist.nbytes <= SPARE_CELLS_BYTES and len(_CastOut._spare) < parallel.threads():
-            _CastOut._spare.append((cells, dist))
+        _CAST_CELLS.give((cells, dist))
 
 
 @dataclass(frozen=True)
@@ -634,13 +634,13 @@ def cast_into(
             np.where(no_return, NO_RETURN_DISTANCE, -measured * slope))
     rest = (lower, shape, float(lattice.resolution), float(unknown_from), shifts, index.keys, index.slots,
             int(window_limit), True if d == 2 else None, True if lattice.shape is not None else None)
-    # Each walk takes a share of every scan's rays (consecutive beams: nearby cells); the cells and their evidence
-    # do not depend on the split (a cell's evidence is a maximum), nor do the slots new blocks get (``_new_blocks``).
+    # Each walk takes a sector of azimuth of every scan (as many rays each, and few blocks in two walks: a lidar gives
+    # its rays beam by beam, and the first half, its upward beams, reached a sixth of the blocks the second did). The
+    # cells and their evidence do not depend on the split (a cell's evidence is a maximum), nor do the slots new
+    # blocks get (``_new_blocks``).
     n_walks = parallel.walks_for(n_rays) if split else 1
     counts = np.diff(offsets)
     if n_walks > 1:
-        # Each walk a sector of azimuth of every scan: as many rays each, and few blocks in two walks. A lidar
-        # gives its rays beam by beam: its first half, the upward beams, reached a sixth of the blocks the second did.
         azimuth = np.arctan2(args[1][:, 1], args[1][:, 0])
         order = np.concatenate([lo + np.argsort(azimuth[lo:hi], kind="stable")
                                 for lo, hi in zip(offsets[:-1], offsets[1:])])
@@ -648,7 +648,7 @@ def cast_into(
     block_cells = 1 << int(shifts.sum())
     walks = parallel.run(lambda p: _walk(*args, offsets[:-1] + counts * p // n_walks,
                                          offsets[:-1] + counts * (p + 1) // n_walks, *rest,
-                                         *_WalkRows.take(block_cells)), range(n_walks))
+                                         *_walk_rows(block_cells)), range(n_walks))
     rows = [int(w[3][-1]) for w in walks]
     rcoords, rslot = (np.concatenate([w[k][:n] for w, n in zip(walks, rows)]) for k in (1, 2))
     row_offsets = np.stack([w[3] for w in walks])
@@ -656,12 +656,13 @@ def cast_into(
     new = _new_blocks(rcoords, rslot, rslot.shape[0])
     index.reserve(new.shape[0])
     index.n = _enter(new, index.keys, index.slots, index.coords, index.n)
-    out = _CastOut.take() if reuse else (np.empty(0, np.int64), np.empty(0, np.float32))
+    out = (_CAST_CELLS.take(lambda _: True) if reuse else None) or (np.empty(0, np.int64), np.empty(0, np.float32))
     cells, dist, scan_offsets, n_out = _combine(tuple(w[0] for w in walks), rcoords, rslot, row_offsets,
                                                 index.keys, index.slots, int(shifts.sum()),
                                                 sum(int(w[6]) for w in walks), *out)
     cells, dist = cells[:n_out], dist[:n_out]  # views: a copy would double the peak
-    _WalkRows.give([w[:3] + (w[5],) for w in walks])
+    for w in walks:
+        _WALK_ROWS.give((*w[:3], w[5]))
     return CastResult(cells=cells, distance_sigmas=dist, scan_offsets=scan_offsets, cells_traversed=traversed)
 
 
