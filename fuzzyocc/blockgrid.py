@@ -472,16 +472,18 @@ class BlockGrid:
         return self.rows_at(self._flat_to_cells(cells))
 
     # -- persistence ----------------------------------------------------------------------
-    def to_blocks(self) -> dict[str, np.ndarray]:
-        """The blocks held, as arrays (copies): what :meth:`from_blocks` restores bit for bit."""
+    def to_blocks(self, copy: bool = True) -> dict[str, np.ndarray]:
+        """The blocks held, as arrays (copies; views of the grid's own with ``copy=False``, for a caller that
+        keeps every other thread off the grid while it reads them): what :meth:`from_blocks` restores bit for bit."""
         n, d = self.index.n, self._n_dense
-        return {
-            "block_coords": self.index.coords[:n].copy(),
-            "block_slab": self._ref[:n].copy(),
-            "block_row": self._urow[:n].copy(),
-            "block_observed": self._obs[:n].copy(),
-            "slabs": self._pool[:d].copy(),
+        arrays = {
+            "block_coords": self.index.coords[:n],
+            "block_slab": self._ref[:n],
+            "block_row": self._urow[:n],
+            "block_observed": self._obs[:n],
+            "slabs": self._pool[:d],
         }
+        return {name: array.copy() for name, array in arrays.items()} if copy else arrays
 
     @classmethod
     def from_blocks(cls, ndim: int, arrays: dict[str, np.ndarray], initial_row: np.ndarray, risk_fn: RiskFn,

@@ -896,12 +896,13 @@ class FuzzyMap(OccupancyMap):
         arrays["state"] = self._blocks.dense().reshape(*cast(GridSpec, self.spec).shape, -1)
         return self._engine_arrays(arrays)
 
-    def snapshot_arrays(self) -> dict[str, np.ndarray]:
-        """:meth:`to_arrays` as the blocks held, fixed maps too (copies): what a snapshot stores. Its cost follows
-        what the map holds, not its box (a fixed map's cells over its box took 1.8 s for 6.9 M cells, mostly
-        never observed); :meth:`from_arrays` restores either bit for bit."""
+    def snapshot_arrays(self, copy: bool = True) -> dict[str, np.ndarray]:
+        """:meth:`to_arrays` as the blocks held, fixed maps too (copies; with ``copy=False`` views of the map's own
+        arrays, valid while nothing changes the map): what a snapshot stores. Its cost follows what the map holds,
+        not its box (a fixed map's cells over its box took 1.8 s for 6.9 M cells, mostly never observed);
+        :meth:`from_arrays` restores either bit for bit."""
         arrays = {"model": np.array(self.model), "scans_fused": np.array(self._scans_fused, dtype=np.int64),
-                  **self._blocks.to_blocks()}
+                  **self._blocks.to_blocks(copy)}
         return self._engine_arrays(arrays)
 
     def _engine_arrays(self, arrays: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
@@ -990,13 +991,15 @@ class BayesMap(OccupancyMap):
 
     def to_arrays(self) -> dict[str, np.ndarray]:
         """Everything needed to restore the map bit for bit (copies)."""
-        arrays = self._common_arrays()
-        arrays["logodds"] = self._cells.state.reshape(self.spec.shape).copy()
-        return arrays
+        return self.snapshot_arrays()
 
-    def snapshot_arrays(self) -> dict[str, np.ndarray]:
-        """What a snapshot stores: :meth:`to_arrays` (a Bayes map holds its whole box)."""
-        return self.to_arrays()
+    def snapshot_arrays(self, copy: bool = True) -> dict[str, np.ndarray]:
+        """What a snapshot stores: :meth:`to_arrays` (a Bayes map holds its whole box; ``copy`` as
+        :meth:`FuzzyMap.snapshot_arrays`)."""
+        arrays = self._common_arrays()
+        logodds = self._cells.state.reshape(self.spec.shape)
+        arrays["logodds"] = logodds.copy() if copy else logodds
+        return arrays
 
     @classmethod
     def from_arrays(cls, spec: GridSpec, sensor: SensorModel | None, arrays: dict[str, np.ndarray]) -> BayesMap:

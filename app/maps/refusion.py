@@ -41,6 +41,7 @@ from app.ros.path_in import corrected_path
 from app.schemas import RebuildState, RebuildStatus
 from app.storage import MapGone, Storage, StorageUnavailable, StoredMap, Superseded, Switch
 from app.storage.corrections import DONE, FAILED, PENDING, StoredCorrection
+from fuzzyocc import parallel
 from fuzzyocc.tf import NotLevel
 
 LOG = logging.getLogger("fuzzyrisk.maps")
@@ -246,7 +247,10 @@ class Refusions:
                 raise _Stopped(job.name)
             if rebuilt_at.version not in snapshots:
                 snapshots.clear()
-                snapshots[rebuilt_at.version] = snapshotcodec.encode(rebuilt.map.snapshot_arrays())
+                # the rebuilt map is this job's alone until the switch: its arrays are encoded in place (a copy
+                # of a 39 MB map took 0.16 s of a 2.4 s rebuild), on every core the fusion may use
+                snapshots[rebuilt_at.version] = snapshotcodec.encode(rebuilt.map.snapshot_arrays(copy=False),
+                                                                     threads=parallel.threads())
             updated = now()
             report = job.report(stored)
             version = self.storage.switch_reposed(

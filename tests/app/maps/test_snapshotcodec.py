@@ -47,6 +47,21 @@ def test_a_maps_snapshot_restores_the_same_map(model: type[FuzzyMap] | type[Baye
     assert np.array_equal(restored.observed(), built.observed())
 
 
+@pytest.mark.parametrize("model", [FuzzyMap, BayesMap])
+def test_a_maps_arrays_encoded_in_place_on_two_threads_give_the_same_snapshot(
+        model: type[FuzzyMap] | type[BayesMap]) -> None:
+    built = model(SPEC)
+    built.integrate_batch(_scans())
+    copies = built.snapshot_arrays()
+
+    views = built.snapshot_arrays(copy=False)
+    back = snapshotcodec.decode(snapshotcodec.encode(views, threads=2))
+
+    assert _same(copies, back)
+    assert not any(np.shares_memory(copies[k], views[k]) for k in copies)
+    assert model.from_arrays(SPEC, None, back).risk().tobytes() == built.risk().tobytes()
+
+
 def test_a_snapshot_stored_as_npz_before_still_decodes() -> None:
     built = FuzzyMap(SPEC)
     built.integrate_batch(_scans())
