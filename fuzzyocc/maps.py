@@ -597,9 +597,10 @@ class OccupancyMap:
             return None
         return Window(tuple(lo), tuple(hi), res, lower)
 
-    def window_around(self, points: object, margin: float) -> Window:
+    def window_around(self, points: object, margin: float, reach: float | None = None) -> Window:
         """A growing map's bounds and the cells of ``points`` ((M, D), metres), grown by ``margin`` metres on every
-        side: what a plan between those points works on (beyond the bounds, never observed)."""
+        side: what a plan between those points works on (beyond the bounds, never observed). ``reach``: only the
+        part of that within ``reach`` metres of the points' box, on every axis."""
         if not self.growing:
             raise ValueError("window_around is for growing maps; a fixed map's plans work on its box")
         d, res = self.lattice.ndim, self.lattice.resolution
@@ -613,6 +614,11 @@ class OccupancyMap:
         if bounds is not None:
             lo = np.minimum(lo, np.asarray(bounds.lo) - pad)
             hi = np.maximum(hi, np.asarray(bounds.hi) + pad)
+        if reach is not None:
+            if not math.isfinite(reach) or reach < margin:
+                raise ValueError(f"reach must be finite and at least the margin ({margin} m), got {reach}")
+            out = int(math.ceil(reach / res))
+            lo, hi = np.maximum(lo, cells.min(axis=0) - out), np.minimum(hi, cells.max(axis=0) + 1 + out)
         return Window(tuple(int(v) for v in lo), tuple(int(v) for v in hi), res, self.lattice.lower)
 
     def _box(self, window: Window) -> tuple[np.ndarray, np.ndarray]:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import functools
+import math
 import time
 from collections.abc import Awaitable, Callable
 
@@ -115,18 +116,26 @@ class MapPlans:
 
     async def _window_around(self, entry: MapEntry, request: PlanRequest) -> tuple[Window, int]:
         """A growing map's plan window for ``request`` and the version it is of: its bounds and the start and goal,
-        grown by the robot's radius and ``GROWING_PLAN_MARGIN_M``."""
+        grown by the robot's radius and ``GROWING_PLAN_MARGIN_M``. Where that passes the largest box (a 3-D lidar
+        map at 0.1 m), only its part within the start and goal's distance of their box (and the margin)."""
         ndim = entry.spec.ndim
         ends = [request.start[:ndim], request.goal[:ndim]]
         if any(len(p) < ndim for p in ends):
             raise Invalid(f"start and goal need {ndim} coordinates on this {ndim}-D map")
         async with entry.apply_lock:  # the bounds of the version read
-            try:
-                window = entry.map.window_around(ends, request.robot_radius + GROWING_PLAN_MARGIN_M)
-            except ValueError as exc:
-                raise Invalid(str(exc)) from None
+            margin = request.robot_radius + GROWING_PLAN_MARGIN_M
             # bounded as the grid of a fixed map's plan is, by the largest box: the same cells plan alike in both
             limit = copy_limit(self.settings)
+            try:
+                window = entry.map.window_around(ends, margin)
+                if window.cells() > limit:
+                    # the whole map is past what a plan may copy (the Ouster frames at 0.1 m: 60 x 58 x 14 m): the
+                    # part around the two ends, as far again as they are apart, holds the detours a path between
+                    # them takes
+                    apart = math.dist(ends[0], ends[1])
+                    window = entry.map.window_around(ends, margin, reach=margin + apart)
+            except ValueError as exc:
+                raise Invalid(str(exc)) from None
             if window.cells() > limit:
                 raise TooLarge(f"a plan between these points works on {window.cells():,} cells of this growing map, "
                                f"more than a fixed map's largest box ({limit:,}: FUZZYRISK_MAX_MAP_CELLS or 64 M, "

@@ -256,6 +256,13 @@ def test_a_growing_map_whose_bounds_pass_the_largest_box_is_read_through_windows
                                                        "planner": "grid"})
     assert refused.status_code == 413 and "nearer points" in error_message(refused), refused.text
     assert _info(client)["version"] == 2
+    # between near points, a plan works on the part of the map around them, and goes around what it saw there
+    near = client.post("/maps/explore/plan", json={"start": [2.0, 0.0], "goal": [4.0, 0.0], "planner": "grid",
+                                                    "allow_unknown": True})
+    assert near.status_code == 200 and near.json()["status"] == "exact", near.text
+    path = np.array([[p["pose"]["position"]["x"], p["pose"]["position"]["y"]] for p in near.json()["poses"]])
+    assert np.allclose(path[0], [2.0, 0.0], atol=0.1) and np.allclose(path[-1], [4.0, 0.0], atol=0.1)
+    assert np.abs(path[np.argmin(np.abs(path[:, 0] - 3.05)), 1]) > 2.9  # the wall at x = 3, |y| < 3
 
 
 def test_a_plan_on_a_growing_map_is_bounded_as_on_the_fixed_map_of_its_bounds(make_client: Any, kit: Any) -> None:
