@@ -1,4 +1,5 @@
-"""Maps of recorded CARMEN logs and held-out beam scoring, shared by ``bench_maps`` and the tests.
+"""Maps of recorded CARMEN logs and held-out beam scoring, shared by ``bench_maps`` and the tests (the march and
+the scoring also score ``bench_heldout3d``'s 3-D rays).
 
 The protocol: fuse 9 scans of every 10 (scan ``i`` is held out when ``i % 10 == 9``);
 march every held-out hit beam through the map from the laser and take the first cell at or
@@ -23,6 +24,7 @@ from numba import njit
 from bench import _data
 from fuzzyocc import BayesMap, FuzzyMap, GridSpec, LaserScan
 from fuzzyocc.carmen import grid_for_scans, read_carmen
+from fuzzyocc.maps import Window
 
 RESOLUTION = 0.05
 MARGIN_M = 1.0
@@ -58,10 +60,10 @@ def grid_for(scans: list[LaserScan], resolution: float = RESOLUTION, margin: flo
 
 @dataclass(frozen=True)
 class HeldOut:
-    """The held-out hit beams of a log: origins, unit directions and measured ranges."""
+    """Held-out hit beams (a log's, or a 3-D sweep's): origins, unit directions and measured ranges."""
 
-    origins: np.ndarray  # (N, 2)
-    directions: np.ndarray  # (N, 2)
+    origins: np.ndarray  # (N, D)
+    directions: np.ndarray  # (N, D)
     ranges: np.ndarray  # (N,)
 
 
@@ -85,43 +87,59 @@ def held_out_beams(scans: list[LaserScan]) -> HeldOut:
 
 @njit(cache=True)
 def _march(risk, lower, res, origins, dirs, threshold, out):  # pragma: no cover - compiled
-    """Distance from each origin to the centre of the first cell at or above ``threshold`` (inf: none in the map)."""
-    nx, ny = risk.shape
+    """Distance from each origin to the centre of the first cell at or above ``threshold`` (inf: none in the grid),
+    by Amanatides-Woo over a 3-D grid (a 2-D map is one cell high, its rays level)."""
+    nx, ny, nz = risk.shape
     for r in range(origins.shape[0]):
-        ox, oy = origins[r, 0], origins[r, 1]
-        dx, dy = dirs[r, 0], dirs[r, 1]
+        ox, oy, oz = origins[r, 0], origins[r, 1], origins[r, 2]
+        dx, dy, dz = dirs[r, 0], dirs[r, 1], dirs[r, 2]
         i = int(math.floor((ox - lower[0]) / res))
         j = int(math.floor((oy - lower[1]) / res))
+        k = int(math.floor((oz - lower[2]) / res))
         out[r] = np.inf
-        if i < 0 or j < 0 or i >= nx or j >= ny:
+        if i < 0 or j < 0 or k < 0 or i >= nx or j >= ny or k >= nz:
             continue
         si = 1 if dx > 0 else -1
         sj = 1 if dy > 0 else -1
+        sk = 1 if dz > 0 else -1
         tdx = abs(res / dx) if dx != 0.0 else np.inf
         tdy = abs(res / dy) if dy != 0.0 else np.inf
-        nxb = lower[0] + (i + (1 if dx > 0 else 0)) * res
-        nyb = lower[1] + (j + (1 if dy > 0 else 0)) * res
-        tmx = (nxb - ox) / dx if dx != 0.0 else np.inf
-        tmy = (nyb - oy) / dy if dy != 0.0 else np.inf
-        while 0 <= i < nx and 0 <= j < ny:
-            if risk[i, j] >= threshold:
+        tdz = abs(res / dz) if dz != 0.0 else np.inf
+        tmx = (lower[0] + (i + (1 if dx > 0 else 0)) * res - ox) / dx if dx != 0.0 else np.inf
+        tmy = (lower[1] + (j + (1 if dy > 0 else 0)) * res - oy) / dy if dy != 0.0 else np.inf
+        tmz = (lower[2] + (k + (1 if dz > 0 else 0)) * res - oz) / dz if dz != 0.0 else np.inf
+        while 0 <= i < nx and 0 <= j < ny and 0 <= k < nz:
+            if risk[i, j, k] >= threshold:
                 cx = lower[0] + (i + 0.5) * res - ox
                 cy = lower[1] + (j + 0.5) * res - oy
-                out[r] = math.sqrt(cx * cx + cy * cy)
+                cz = lower[2] + (k + 0.5) * res - oz
+                out[r] = math.sqrt(cx * cx + cy * cy + cz * cz)
                 break
-            if tmx < tmy:
+            if tmx < tmy and tmx < tmz:
                 i += si
                 tmx += tdx
-            else:
+            elif tmy <= tmz:
                 j += sj
                 tmy += tdy
+            else:
+                k += sk
+                tmz += tdz
 
 
-def predicted_ranges(risk: np.ndarray, spec: GridSpec, beams: HeldOut, threshold: float = OCCUPIED) -> np.ndarray:
-    """Range each held-out beam reads off a 2-D risk grid (inf where it finds no surface)."""
+def predicted_ranges(risk: np.ndarray, spec: GridSpec | Window, beams: HeldOut,
+                     threshold: float = OCCUPIED) -> np.ndarray:
+    """Range each held-out beam reads off a 2-D or 3-D risk grid of ``spec``'s cells: the distance from its origin to
+    the centre of the first cell at or above ``threshold`` (inf where it finds none before leaving the grid)."""
     out = np.empty(beams.ranges.size)
-    _march(np.ascontiguousarray(risk, dtype=np.float32), np.asarray(spec.origin, dtype=np.float64), spec.resolution,
-           np.ascontiguousarray(beams.origins), np.ascontiguousarray(beams.directions), float(threshold), out)
+    origins, dirs = np.asarray(beams.origins, dtype=np.float64), np.asarray(beams.directions, dtype=np.float64)
+    lower = np.asarray(spec.origin, dtype=np.float64)
+    if risk.ndim == 2:  # one cell high, the beams at its centre's height and level
+        risk = risk[:, :, None]
+        lower = np.append(lower, 0.0)
+        origins = np.column_stack([origins, np.full(len(origins), 0.5 * spec.resolution)])
+        dirs = np.column_stack([dirs, np.zeros(len(dirs))])
+    _march(np.ascontiguousarray(risk, dtype=np.float32), lower, spec.resolution, np.ascontiguousarray(origins),
+           np.ascontiguousarray(dirs), float(threshold), out)
     return out
 
 
@@ -201,16 +219,26 @@ def octomap_predicted(tree, spec: GridSpec, beams: HeldOut) -> np.ndarray:  # ty
     """``castRay`` of every held-out beam (unknown cells ignored) up to the map's box; inf where it hits nothing."""
     z = _z(spec)
     lo, hi = np.asarray(spec.origin), np.asarray(spec.upper)
-    out = np.full(beams.ranges.size, np.inf)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        o, d = beams.origins, beams.directions
+        reach = np.where(d > 0, (hi - o) / d, np.where(d < 0, (lo - o) / d, np.inf)).min(axis=1)
+    n = beams.ranges.size
+    return octomap_ranges(tree, np.column_stack([beams.origins, np.full(n, z)]),
+                          np.column_stack([beams.directions, np.zeros(n)]), reach)
+
+
+def octomap_ranges(tree, origins: np.ndarray, directions: np.ndarray,  # type: ignore[no-untyped-def]
+                   reach: np.ndarray | float) -> np.ndarray:
+    """``castRay`` of each 3-D ray ((N, 3) origins and unit directions), unknown cells ignored, up to ``reach``
+    metres (one for all or (N,)): the distance to the centre of the occupied cell it stops in, inf where none."""
+    reach = np.broadcast_to(np.asarray(reach, dtype=np.float64), (len(origins),))
+    out = np.full(len(origins), np.inf)
     end = np.zeros(3)
-    for r in range(beams.ranges.size):
-        o, d = beams.origins[r], beams.directions[r]
-        with np.errstate(divide="ignore"):
-            t = np.where(d > 0, (hi - o) / d, np.where(d < 0, (lo - o) / d, np.inf))
-        reach = float(t.min())
-        if tree.castRay(np.array([o[0], o[1], z]), np.array([d[0], d[1], 0.0]), end,
-                        ignoreUnknownCells=True, maxRange=reach):
-            out[r] = float(np.hypot(end[0] - o[0], end[1] - o[1]))
+    for r in range(len(origins)):
+        o = np.array(origins[r], dtype=np.float64)
+        if tree.castRay(o, np.array(directions[r], dtype=np.float64), end, ignoreUnknownCells=True,
+                        maxRange=float(reach[r])):
+            out[r] = math.dist(end, o)
     return out
 
 

@@ -185,8 +185,9 @@ def octomap_nbytes_of_log(scans: list[LaserScan]) -> tuple[int, float]:
     return int(tree.memoryUsage()), clock.wall
 
 
-def octomap_nbytes_of_clouds(clouds: list[PointCloud], resolution: float) -> tuple[int, float]:
-    """OctoMap's tree of 3-D ``clouds`` (``insertPointCloud`` each, their ``range_max``): memory and seconds."""
+def octomap_of_clouds(clouds: list[PointCloud], resolution: float):  # type: ignore[no-untyped-def]
+    """OctoMap's tree of 3-D ``clouds`` (``insertPointCloud`` each, in order, their ``range_max``), with the time it
+    took."""
     import octomap
 
     tree = octomap.OcTree(resolution)
@@ -194,6 +195,12 @@ def octomap_nbytes_of_clouds(clouds: list[PointCloud], resolution: float) -> tup
         for c in clouds:
             tree.insertPointCloud(np.ascontiguousarray(c.points, dtype=np.float64),
                                   np.asarray(c.origin, dtype=np.float64), maxrange=c.range_max)
+    return tree, clock
+
+
+def octomap_nbytes_of_clouds(clouds: list[PointCloud], resolution: float) -> tuple[int, float]:
+    """OctoMap's tree of 3-D ``clouds`` (:func:`octomap_of_clouds`): memory and seconds."""
+    tree, clock = octomap_of_clouds(clouds, resolution)
     return int(tree.memoryUsage()), clock.wall
 
 
@@ -233,13 +240,13 @@ def ouster_clouds(folder: Path) -> list[PointCloud]:
     return clouds
 
 
-def fuse_clouds(clouds: list[PointCloud], resolution: float) -> tuple[FuzzyMap, float]:
-    """One growing 3-D map of ``clouds``, a cloud per integrate call; with its seconds."""
+def fuse_clouds(clouds: list[PointCloud], resolution: float) -> tuple[FuzzyMap, Clock]:
+    """One growing 3-D map of ``clouds``, a cloud per integrate call, in order; with the time it took."""
     m = _growing(3, resolution)
     with Clock() as clock:
         for c in clouds:
             m.integrate_batch([c])
-    return m, clock.wall
+    return m, clock
 
 
 def _memory_row(name: str, ours: FuzzyMap, ours_s: float | None, theirs: int, theirs_s: float) -> bool:
@@ -289,7 +296,8 @@ def memory(maps: dict[str, FuzzyMap], ouster: tuple[list[PointCloud], FuzzyMap, 
 
 def ouster(clouds: list[PointCloud]) -> tuple[FuzzyMap, float]:
     """Part *ouster*: the frames in one growing map against the service's default map limit."""
-    m, seconds = fuse_clouds(clouds, OUSTER_RESOLUTION)
+    m, clock = fuse_clouds(clouds, OUSTER_RESOLUTION)
+    seconds = clock.wall
     bounds = m.bounds()
     assert bounds is not None
     limit = Settings.model_fields["max_map_cells"].default
