@@ -20,8 +20,9 @@ the predicted range is the distance to that cell's centre, and nothing within ``
 surface, and the median absolute error (a ray with no surface counts as infinitely wrong).
 
 Printed: one row per fold and resolution, with the mean over the folds; then each fold's fusion time, ours
-against OctoMap's, wall and CPU seconds (ours splits a cast between the cores, ``fuzzyocc.parallel``; OctoMap
-runs on one), a side figure.
+against OctoMap's, wall and CPU seconds (ours may split a cast between the cores, ``fuzzyocc.parallel``, as the
+service does; OctoMap runs on one), a side figure. Before anything is timed, one frame is fused and cast at the
+coarsest resolution to compile the kernels.
 """
 
 from __future__ import annotations
@@ -163,13 +164,11 @@ def print_times(results: list[FoldResult]) -> None:
               f"{t.wall / o.wall:20.1f}x {t.cpu / o.cpu:6.1f}x")
 
 
-def _warm_up(resolutions: tuple[float, ...]) -> None:
-    """Compile (or load) our fusion's and the march's kernels before anything is timed."""
-    points = np.array([[1.0, 0.2, 0.1], [0.8, -0.3, 0.4]])
-    cloud = PointCloud(points=points, origin=(0.05, 0.05, 0.05), range_max=5.0)
-    for res in resolutions:
-        m, _ = bench_extent.fuse_clouds([cloud], res)
-        our_ranges(m, held_out_rays(cloud, 1), 5.0)
+def _warm_up(cloud: PointCloud, resolution: float) -> None:
+    """Compile (or load) our fusion's and the march's kernels before anything is timed: a whole frame, as a big
+    cloud takes paths (its cast split between threads) that a small one does not."""
+    m, _ = bench_extent.fuse_clouds([cloud], resolution)
+    our_ranges(m, held_out_rays(cloud, QUICK_STRIDE))
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -190,7 +189,7 @@ def main(argv: list[str] | None = None) -> int:
           f"within range_max; surface: ours risk > 0.5, OctoMap occupied; casts reach {REACH_M:g} m; within = "
           f"|error| <= {_logmaps.TOLERANCE_CELLS} cells")
     t0 = time.perf_counter()
-    _warm_up(resolutions)
+    _warm_up(clouds[0], max(resolutions))
     print(f"numba warm-up: {time.perf_counter() - t0:.1f} s (excluded from the times below)", flush=True)
     results = []
     for fold in folds(clouds):
