@@ -219,26 +219,26 @@ def octomap_predicted(tree, spec: GridSpec, beams: HeldOut) -> np.ndarray:  # ty
     """``castRay`` of every held-out beam (unknown cells ignored) up to the map's box; inf where it hits nothing."""
     z = _z(spec)
     lo, hi = np.asarray(spec.origin), np.asarray(spec.upper)
+    o, d = beams.origins, beams.directions
     with np.errstate(divide="ignore", invalid="ignore"):
-        o, d = beams.origins, beams.directions
         reach = np.where(d > 0, (hi - o) / d, np.where(d < 0, (lo - o) / d, np.inf)).min(axis=1)
     n = beams.ranges.size
-    return octomap_ranges(tree, np.column_stack([beams.origins, np.full(n, z)]),
-                          np.column_stack([beams.directions, np.zeros(n)]), reach)
+    ends = octomap_ends(tree, np.column_stack([o, np.full(n, z)]), np.column_stack([d, np.zeros(n)]), reach)
+    found = ~np.isnan(ends[:, 0])
+    return np.where(found, np.hypot(ends[:, 0] - o[:, 0], ends[:, 1] - o[:, 1]), np.inf)
 
 
-def octomap_ranges(tree, origins: np.ndarray, directions: np.ndarray,  # type: ignore[no-untyped-def]
-                   reach: np.ndarray | float) -> np.ndarray:
+def octomap_ends(tree, origins: np.ndarray, directions: np.ndarray,  # type: ignore[no-untyped-def]
+                 reach: np.ndarray | float) -> np.ndarray:
     """``castRay`` of each 3-D ray ((N, 3) origins and unit directions), unknown cells ignored, up to ``reach``
-    metres (one for all or (N,)): the distance to the centre of the occupied cell it stops in, inf where none."""
+    metres (one for all or (N,)): the centre of the occupied cell it stops in, (N, 3), NaN where there is none."""
     reach = np.broadcast_to(np.asarray(reach, dtype=np.float64), (len(origins),))
-    out = np.full(len(origins), np.inf)
+    out = np.full((len(origins), 3), np.nan)
     end = np.zeros(3)
     for r in range(len(origins)):
-        o = np.array(origins[r], dtype=np.float64)
-        if tree.castRay(o, np.array(directions[r], dtype=np.float64), end, ignoreUnknownCells=True,
-                        maxRange=float(reach[r])):
-            out[r] = math.dist(end, o)
+        if tree.castRay(np.array(origins[r], dtype=np.float64), np.array(directions[r], dtype=np.float64), end,
+                        ignoreUnknownCells=True, maxRange=float(reach[r])):
+            out[r] = end
     return out
 
 

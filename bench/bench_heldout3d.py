@@ -14,7 +14,7 @@ other two, in order, a frame a call, at each resolution (0.1 and 0.2 m) into
 The held-out rays: every ``STRIDE``-th return of frame k, in the frame's order, nearer its sensor than
 ``range_max`` (every ``QUICK_STRIDE``-th with ``--quick``). Each ray is cast from the held-out sensor origin
 through both maps: ours by Amanatides-Woo through its risk (``_logmaps.predicted_ranges``) to the first cell of
-risk > 0.5, OctoMap by ``castRay`` (unknown cells ignored) to its first occupied cell (``_logmaps.octomap_ranges``);
+risk > 0.5, OctoMap by ``castRay`` (unknown cells ignored) to its first occupied cell (``_logmaps.octomap_ends``);
 the predicted range is the distance to that cell's centre, and nothing within ``REACH_M``: no surface. Scored as
 ``bench maps`` scores its 2-D beams (``_logmaps.score``): within 2 cells of the measured range, early, late, no
 surface, and the median absolute error (a ray with no surface counts as infinitely wrong).
@@ -108,7 +108,9 @@ def our_ranges(m: FuzzyMap, rays: HeldOut, reach: float = REACH_M) -> np.ndarray
 def octomap_ranges(tree, rays: HeldOut, reach: float = REACH_M) -> np.ndarray:  # type: ignore[no-untyped-def]
     """The range each ray reads off an OctoMap tree: ``castRay`` to its first occupied cell's centre within
     ``reach`` (inf: none)."""
-    return _within_reach(_logmaps.octomap_ranges(tree, rays.origins, rays.directions, reach), reach)
+    ends = _logmaps.octomap_ends(tree, rays.origins, rays.directions, reach)
+    found = ~np.isnan(ends[:, 0])
+    return _within_reach(np.where(found, np.linalg.norm(ends - rays.origins, axis=1), np.inf), reach)
 
 
 def run_fold(fold: Fold, resolution: float, rays: HeldOut) -> FoldResult:
