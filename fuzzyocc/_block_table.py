@@ -111,6 +111,8 @@ class BlockIndex:
 
     def __init__(self, capacity: int = 64) -> None:
         self.n = 0
+        #: blocks dropped so far: with ``n``, what tells whether the slots are still those of a moment before
+        self.dropped = 0
         self.coords = np.zeros((capacity, 3), dtype=np.int32)
         self.keys, self.slots = new_table(_table_size(capacity))
 
@@ -146,6 +148,7 @@ class BlockIndex:
             m = self.coords[slot]
             relink(self.keys, self.slots, int(m[0]), int(m[1]), int(m[2]), slot)
         self.n = last
+        self.dropped += 1
         return last
 
     def nbytes(self) -> int:

@@ -40,7 +40,16 @@ from fuzzyocc._block_table import BlockIndex
 from fuzzyocc.blockgrid import BLOCK_SHIFT_2D, BLOCK_SHIFT_3D, BlockGrid, block_shift_for
 from fuzzyocc.grid import CellGrid
 from fuzzyocc.keys import coords_to_keys, keys_to_flat
-from fuzzyocc.raycast import CastResult, Lattice, cast_into, flat_ids, give_back, traversal_cells
+from fuzzyocc.raycast import (
+    CastResult,
+    Lattice,
+    cast_into,
+    enter_new_blocks,
+    fits,
+    flat_ids,
+    give_back,
+    traversal_cells,
+)
 from fuzzyocc.scans import LaserScan, PointCloud, Rays
 
 Scan = LaserScan | PointCloud
@@ -173,6 +182,17 @@ class Window:
 
 
 @dataclass(frozen=True)
+class PreparedBatch:
+    """A batch's cast made ahead of its fusion (:meth:`OccupancyMap.prepare_batch`)."""
+
+    scans: tuple[Scan, ...]
+    index: BlockIndex  # the index it was made on
+    cast: CastResult
+    beams: int
+    skipped: int
+
+
+@dataclass(frozen=True)
 class IntegrationStats:
     """What one integrate call did.
 
@@ -298,22 +318,53 @@ class OccupancyMap:
                            registration_sigma=registration_sigma)
         return self.integrate_batch([cloud])
 
-    def integrate_batch(self, scans: Sequence[Scan]) -> IntegrationStats:
+    def prepare_batch(self, scans: Sequence[Scan]) -> PreparedBatch | None:
+        """The cast of ``scans`` made now, leaving the map as it is, for :meth:`integrate_batch` to fuse: a caller
+        that keeps readers off the map while it changes (a service's lock) casts before it shuts them out, and
+        they wait for the fusion alone. None for a batch cast in several chunks or parts (cast as it is fused).
+
+        Every scan is checked as :meth:`integrate_batch` checks it (``ValueError`` naming ``scans[i]``). The cast
+        holds while the map's blocks stay as they are; :meth:`integrate_batch` casts again when they changed.
+        """
+        scans = list(scans)
+        for i, scan in enumerate(scans):
+            self._check_scan(scan, f"scans[{i}]")
+        if not scans or len(self._cast_chunks(scans)) != 1 or scans[0].beam_count > CAST_CHUNK_BEAMS:
+            return None
+        rays = [self._rays_of(scan) for scan in scans]
+        index, _ = self._cast_blocks()
+        cast = self._cast(scans, rays, enter=False)
+        return PreparedBatch(tuple(scans), index, cast, sum(r.ranges.size for r in rays), sum(r.skipped for r in rays))
+
+    def integrate_batch(self, scans: Sequence[Scan], prepared: PreparedBatch | None = None) -> IntegrationStats:
         """Fuse scans in order, all or none.
 
         Every scan is checked against the map first; if one is unusable, ``ValueError``
-        (naming ``scans[i]``) is raised and the map is left exactly as it was.
+        (naming ``scans[i]``) is raised and the map is left exactly as it was. ``prepared``: their cast from
+        :meth:`prepare_batch` (``ValueError`` if it is another batch's), used if the map's blocks have not changed
+        since; the map is the same either way.
         """
         scans = list(scans)
         for i, scan in enumerate(scans):
             self._check_scan(scan, f"scans[{i}]")
         if not scans:
             return IntegrationStats(scans=0, rays=0, cells_updated=0)
+        if prepared is not None and (len(prepared.scans) != len(scans)
+                                     or any(a is not b for a, b in zip(prepared.scans, scans))):
+            raise ValueError("prepared is the cast of other scans")
+        index, _ = self._cast_blocks()
+        if prepared is not None and (prepared.index is not index or not fits(index, prepared.cast)):
+            prepared = None  # the blocks changed since (another batch, a clear): its slots name others
         chunks = self._cast_chunks(scans)
         updated = traversed = n_rays = skipped = 0
         for first, last in chunks:
             if scans[first].beam_count > CAST_CHUNK_BEAMS:  # a chunk of its own (``_cast_chunks``)
                 cast, beams, dropped = self._cast_in_parts(scans[first])
+            elif prepared is not None:  # the batch's one chunk
+                cast, beams, dropped = prepared.cast, prepared.beams, prepared.skipped
+                enter_new_blocks(index, cast)
+                self._cast_done()
+                prepared = None
             else:
                 rays = [self._rays_of(scan) for scan in scans[first:last]]
                 cast = self._cast(scans[first:last], rays)
@@ -493,9 +544,10 @@ class OccupancyMap:
         else:
             raise ValueError(f"{name} must be a LaserScan or a PointCloud, got {type(scan).__name__}")
 
-    def _cast(self, scans: list[Scan], rays: list[Rays], reuse: bool = True) -> CastResult:
+    def _cast(self, scans: list[Scan], rays: list[Rays], reuse: bool = True, enter: bool = True) -> CastResult:
         """The cast of ``scans`` (their ``rays``); ``reuse``: into arrays a cast gave back (``raycast.give_back``),
-        for a caller that gives this one back before its next cast."""
+        for a caller that gives this one back before its next cast; ``enter`` as :func:`~fuzzyocc.raycast.cast_into`'s
+        (False: the map is left as it is)."""
         half_cell = 0.5 * self.spec.resolution
         counts = [r.ranges.size for r in rays]
         origins = np.repeat(np.stack([r.origin for r in rays]), counts, axis=0)
@@ -518,8 +570,10 @@ class OccupancyMap:
             ray_offsets=np.concatenate([[0], np.cumsum(counts)]),
             unknown_from=self.occupied_extent,
             reuse=reuse,
+            enter=enter,
         )
-        self._cast_done()
+        if enter:
+            self._cast_done()
         return cast
 
     def _cast_blocks(self) -> tuple[BlockIndex, tuple[int, int, int]]:

@@ -57,12 +57,21 @@ class CastResult:
         Scan ``s`` owns ``cells[scan_offsets[s]:scan_offsets[s + 1]]``.
     cells_traversed : (S,) ndarray of int64
         Cell visits of each scan before the dedupe (the ray-casting work).
+    new_blocks : (K, 3) ndarray of int32, or None
+        For a cast made with ``enter=False``: the blocks it reached that its index lacked, whose slots its cells
+        already name (from the index's count on, in this order); :func:`enter_new_blocks` enters them. None when
+        the cast entered them itself.
+    index_at : (int, int)
+        The index's count of blocks and of blocks dropped when the cast was made: it still fits the index while
+        both are unchanged (blocks are only ever appended or dropped).
     """
 
     cells: np.ndarray
     distance_sigmas: np.ndarray
     scan_offsets: np.ndarray
     cells_traversed: np.ndarray
+    new_blocks: np.ndarray | None = None
+    index_at: tuple[int, int] = (0, 0)
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -397,6 +406,23 @@ def _new_blocks(rcoords, rslot, n):  # pragma: no cover - compiled
 
 
 @njit(cache=True, nogil=True)
+def _slot_new(rcoords, rslot, new, first):  # pragma: no cover - compiled
+    """The rows of blocks not in the index (``rslot`` -1) take the slots ``_enter`` gives ``new`` (their blocks,
+    lexicographic, each once) from ``first`` on: found by bisection."""
+    for q in range(rslot.shape[0]):
+        if rslot[q] >= 0:
+            continue
+        lo, hi = 0, new.shape[0]
+        while lo < hi:
+            mid = (lo + hi) >> 1
+            if (new[mid, 0], new[mid, 1], new[mid, 2]) < (rcoords[q, 0], rcoords[q, 1], rcoords[q, 2]):
+                lo = mid + 1
+            else:
+                hi = mid
+        rslot[q] = first + lo
+
+
+@njit(cache=True, nogil=True)
 def _enter(blocks, tkeys, tslots, coords, n_slots):  # pragma: no cover - compiled
     """Enter ``blocks`` (absent) into the index at the next slots; the index must have room. Its new count."""
     for q in range(blocks.shape[0]):
@@ -568,6 +594,7 @@ def cast_into(
     window_limit: int = WINDOW_LIMIT,
     reuse: bool = False,
     split: bool = True,
+    enter: bool = True,
 ) -> CastResult:
     """Traverse the cells of every ray of a batch of scans and keep one evidence per (scan, cell).
 
@@ -592,6 +619,10 @@ def cast_into(
     reuse : bool
         Write the cells into arrays a cast gave back (:func:`give_back`) when there is one: for a caller that is done
         with each cast before the next, so that a lidar sweep's cells do not take fresh memory every sweep.
+    enter : bool
+        Enter the blocks the rays reach into ``index`` (True), or leave the index as it is and return them with
+        the cast (``CastResult.new_blocks``), for a caller that casts while others read the map and enters them
+        with :func:`enter_new_blocks` when it fuses.
     window_limit : int
         Most blocks of a scan's dense window (the blocks its rays span); a wider scan finds its blocks in the index's
         hash alone. The cells are the same either way.
@@ -654,8 +685,12 @@ def cast_into(
     row_offsets = np.stack([w[3] for w in walks])
     traversed = np.sum([w[4] for w in walks], axis=0)
     new = _new_blocks(rcoords, rslot, rslot.shape[0])
-    index.reserve(new.shape[0])
-    index.n = _enter(new, index.keys, index.slots, index.coords, index.n)
+    index_at = (index.n, index.dropped)
+    if enter:
+        index.reserve(new.shape[0])
+        index.n = _enter(new, index.keys, index.slots, index.coords, index.n)
+    else:
+        _slot_new(rcoords, rslot, new, index.n)  # the slots ``_enter`` will give them
     out = (_CAST_CELLS.take(lambda _: True) if reuse else None) or (np.empty(0, np.int64), np.empty(0, np.float32))
     cells, dist, scan_offsets, n_out = _combine(tuple(w[0] for w in walks), rcoords, rslot, row_offsets,
                                                 index.keys, index.slots, int(shifts.sum()),
@@ -663,7 +698,26 @@ def cast_into(
     cells, dist = cells[:n_out], dist[:n_out]  # views: a copy would double the peak
     for w in walks:
         _WALK_ROWS.give((*w[:3], w[5]))
-    return CastResult(cells=cells, distance_sigmas=dist, scan_offsets=scan_offsets, cells_traversed=traversed)
+    return CastResult(cells=cells, distance_sigmas=dist, scan_offsets=scan_offsets, cells_traversed=traversed,
+                      new_blocks=None if enter else new, index_at=index_at)
+
+
+def fits(index: BlockIndex, cast: CastResult) -> bool:
+    """Whether the slots ``cast``'s cells name are still those of ``index`` (the one it was made on)."""
+    return (index.n, index.dropped) == cast.index_at
+
+
+def enter_new_blocks(index: BlockIndex, cast: CastResult) -> None:
+    """Enter the blocks of a cast made with ``enter=False`` into ``index``, at the slots its cells name.
+
+    ``ValueError`` if the index changed since the cast (its slots would name other blocks): cast again."""
+    if cast.new_blocks is None:
+        return
+    if not fits(index, cast):
+        raise ValueError(f"the index holds {index.n} blocks ({index.dropped} dropped), the cast was made on "
+                         f"{cast.index_at[0]} ({cast.index_at[1]}): cast again")
+    index.reserve(cast.new_blocks.shape[0])
+    index.n = _enter(cast.new_blocks, index.keys, index.slots, index.coords, index.n)
 
 
 def flat_ids(keys: np.ndarray, index: BlockIndex, shift: tuple[int, int, int], shape: tuple[int, ...]) -> np.ndarray:

@@ -21,7 +21,7 @@ from app.scans import Scan
 from app.schemas import engine_choice
 from app.storage import StoredMap
 from fuzzyocc import BayesMap, FuzzyMap, GridSpec, LatticeSpec, IntegrationStats, SensorModel, cast_work
-from fuzzyocc.maps import PRIOR_UNSEEN
+from fuzzyocc.maps import PRIOR_UNSEEN, PreparedBatch
 
 LOG = logging.getLogger("fuzzyrisk.maps")
 
@@ -37,9 +37,9 @@ def build_map(meta: Mapping[str, Any], *, max_cells: int) -> OccupancyMap:
     return BayesMap(cast(GridSpec, spec), sensor)
 
 
-def integrate(built: OccupancyMap, batch: Batch) -> IntegrationStats:
-    """Fuse a batch of the log into ``built``: its scans, its prior, or its edit (the cells a clear set back to never
-    observed count as updated)."""
+def integrate(built: OccupancyMap, batch: Batch, prepared: PreparedBatch | None = None) -> IntegrationStats:
+    """Fuse a batch of the log into ``built``: its scans (cast ahead as ``prepared``, if given), its prior, or its
+    edit (the cells a clear set back to never observed count as updated)."""
     if isinstance(batch, Prior):
         return built.integrate_prior(batch.levels)
     if isinstance(batch, Clear):
@@ -49,7 +49,7 @@ def integrate(built: OccupancyMap, batch: Batch) -> IntegrationStats:
         return IntegrationStats(scans=0, rays=0, cells_updated=0)
     if isinstance(batch, Reposed):  # the batches before it were replayed at their new poses
         return IntegrationStats(scans=0, rays=0, cells_updated=0)
-    return built.integrate_batch(batch)
+    return built.integrate_batch(batch, prepared)
 
 
 def batch_work(spec: GridSpec | LatticeSpec, batch: Batch) -> int:

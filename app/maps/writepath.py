@@ -13,7 +13,9 @@ Concurrency: each map has these orderings.
   wait for both stages (every earlier batch committed and applied).
 * ``apply_lock`` (short): held while the map object is used, i.e. while a batch is
   applied, while a snapshot copies the arrays and while a reader (risk, query, plan)
-  copies. A due snapshot copies the map in its batch's apply turn, then is deflated
+  copies. A batch of scans is cast in its apply turn before it takes the lock (the
+  cast reads the map's blocks and changes nothing: ``FuzzyMap.prepare_batch``), so
+  readers wait for its fusion, not its ray casting. A due snapshot copies the map in its batch's apply turn, then is deflated
   and stored beside the line (``MapEntry.snapshotting``, in the admin thread): the
   batch is acknowledged without waiting for the write. Delete and the final
   snapshot wait for it.
@@ -48,7 +50,7 @@ import logging
 import math
 import time
 import traceback
-from collections.abc import AsyncIterator, Callable, Mapping
+from collections.abc import AsyncIterator, Awaitable, Callable, Mapping
 
 import numpy as np
 from fastapi.exceptions import RequestValidationError
@@ -82,6 +84,7 @@ from app.storage import BatchRecord, MapGone, Storage, StorageUnavailable
 from app.ops.threads import Workers
 from fuzzyocc import FuzzyMap, LaserScan
 from fuzzyocc.config import MAX_COORDINATE_M
+from fuzzyocc.maps import PreparedBatch
 
 LOG = logging.getLogger("fuzzyrisk.maps")
 
@@ -250,11 +253,25 @@ class WritePath:
         return ingest.prepare(body, content_type, query, entry.spec.ndim, self._limits, entry.spec,
                               self._budget(entry), received_ns)
 
-    def _apply(self, entry: MapEntry, version: int, batch: Batch) -> BatchResult:
-        """Fuse a committed batch (in a fusion thread; the caller holds the apply turn and the apply lock)."""
+    @staticmethod
+    async def _cast_ahead(entry: MapEntry, batch: Batch,
+                          run: Callable[..., Awaitable[PreparedBatch | None]]) -> PreparedBatch | None:
+        """A batch of scans cast in its apply turn before the apply lock is taken (the cast leaves the map as it is):
+        readers then wait for its fusion alone (an Ouster sweep at 0.1 m: 0.3 of its 0.8 s on one core). None for
+        anything else, or when the cast fails (the fusion, which casts again, then fails as the batch's failure)."""
+        if not isinstance(batch, list) or not batch:
+            return None
+        try:
+            return await run(entry.map.prepare_batch, batch)
+        except Exception:  # noqa: BLE001 - whatever stops the cast stops the fusion too, where _apply handles it
+            return None
+
+    def _apply(self, entry: MapEntry, version: int, batch: Batch, prepared: PreparedBatch | None = None) -> BatchResult:
+        """Fuse a committed batch (in a fusion thread; the caller holds the apply turn and the apply lock), cast
+        ahead as ``prepared`` if it was."""
         started = time.perf_counter()
         try:
-            stats = integrate(entry.map, batch)
+            stats = integrate(entry.map, batch, prepared)
         except BaseException as exc:
             # never acknowledged: it must not come back at the next start
             try:
@@ -476,6 +493,8 @@ class WritePath:
             entry.log.append((version, len(payload), work))
             entry.line.commit.done(ticket)  # the next batch may commit while this one waits for its fusion
             await entry.line.apply.wait(ticket)
+            run = self._workers.run_heavy if work > HEAVY_BATCH_CELLS else self._workers.run
+            prepared = await self._cast_ahead(entry, batch, run)
             async with entry.apply_lock:
                 if version > max(entry.version, entry.checked) + 1:
                     # other replicas' batches (or a discarded one) came between: theirs first, in the store's order
@@ -495,8 +514,7 @@ class WritePath:
                 # later batch may have committed with the next one meanwhile, and should its
                 # removal from the log have failed too, the row is still there under this version
                 try:
-                    run = self._workers.run_heavy if work > HEAVY_BATCH_CELLS else self._workers.run
-                    result = await run(self._apply, entry, version, batch)
+                    result = await run(self._apply, entry, version, batch, prepared)
                 except BaseException:
                     # the map may have changed in part: a grid published for its
                     # current version would no longer be that map

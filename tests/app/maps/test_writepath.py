@@ -73,16 +73,16 @@ class _SlowFusion:
         self.calls = 0
         original = FuzzyMap.integrate_batch
 
-        def integrate(map_: FuzzyMap, scans: Any) -> Any:
+        def integrate(map_: FuzzyMap, scans: Any, prepared: Any = None) -> Any:
             if map_.spec.shape != (100, 100):
-                return original(map_, scans)
+                return original(map_, scans, prepared)
             self.calls += 1
             if self.calls == 1:
                 self.entered.set()
                 assert self.release.wait(30)
                 if fail_first:
                     raise MemoryError("simulated")
-            return original(map_, scans)
+            return original(map_, scans, prepared)
 
         monkeypatch.setattr(FuzzyMap, "integrate_batch", integrate)
 
@@ -532,11 +532,11 @@ def _hold_applies(service: Any, monkeypatch: pytest.MonkeyPatch, name: str) -> t
     held, release = threading.Event(), threading.Event()
     apply = service.writes._apply
 
-    def slow_apply(entry: Any, version: int, scans: Any) -> Any:
+    def slow_apply(entry: Any, version: int, scans: Any, prepared: Any = None) -> Any:
         if entry.name == name:
             held.set()
             release.wait(60)
-        return apply(entry, version, scans)
+        return apply(entry, version, scans, prepared)
 
     monkeypatch.setattr(service.writes, "_apply", slow_apply)
     return held, release
@@ -562,6 +562,35 @@ def test_a_read_of_one_map_does_not_wait_behind_the_fusion_of_another(make_clien
         release.set()
         assert fusing.result(60).status_code == 200
     assert waited < 10.0  # before: until the fusion ended (here: never, release came after)
+
+
+def test_a_read_of_a_map_does_not_wait_while_its_next_batch_is_cast(make_client: Any, kit: Any,
+                                                                   monkeypatch: pytest.MonkeyPatch) -> None:
+    # a lidar sweep's rays take most of its fusion: they are cast before the map is shut to readers
+    client = make_client()
+    assert client.post("/maps", json=kit.MAP_2D).status_code == 201
+    assert client.post("/maps/lab/scans", json={"scans": [kit.laser()]}).status_code == 200
+    before = kit.risk_npy(client, "lab")
+    original, entered, release = FuzzyMap.prepare_batch, threading.Event(), threading.Event()
+
+    def held(self: FuzzyMap, scans: Any) -> Any:
+        if self.spec.shape == (100, 100):
+            entered.set()
+            assert release.wait(30)
+        return original(self, scans)
+
+    monkeypatch.setattr(FuzzyMap, "prepare_batch", held)
+    with ThreadPoolExecutor(1) as pool:
+        casting = pool.submit(client.post, "/maps/lab/scans", json={"scans": [kit.laser(x=1.0, wall=2.0)]})
+        assert entered.wait(30)
+        # answered while the batch is being cast: the map as it was, whole
+        assert kit.version(client, "lab") == 1
+        assert kit.risk_npy(client, "lab").tobytes() == before.tobytes()
+        assert client.post("/maps/lab/risk/query", json={"points": [[0.0, 0.0]]}).status_code == 200
+        release.set()
+        assert casting.result(60).json()["version"] == 2
+    assert kit.risk_npy(client, "lab").tobytes() == _replay(kit, [{"scans": [kit.laser()]},
+                                                                  {"scans": [kit.laser(x=1.0, wall=2.0)]}])
 
 
 def test_ready_shows_the_fusion_backlog_while_reads_are_served(make_client: Any, kit: Any,
@@ -688,11 +717,11 @@ def test_a_light_batch_is_not_held_behind_heavy_batches_of_other_maps(make_clien
     monkeypatch.setattr(writepath, "HEAVY_BATCH_CELLS", 10_000)  # 900 beams of 3 m: about 27,000 cells
     original, entered, release = FuzzyMap.integrate_batch, threading.Event(), threading.Event()
 
-    def held(self: FuzzyMap, scans: Any) -> Any:
+    def held(self: FuzzyMap, scans: Any, prepared: Any = None) -> Any:
         if len(scans[0].ranges) == 900:
             entered.set()
             assert release.wait(30)
-        return original(self, scans)
+        return original(self, scans, prepared)
 
     monkeypatch.setattr(FuzzyMap, "integrate_batch", held)
     with ThreadPoolExecutor(1) as pool:

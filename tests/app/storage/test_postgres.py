@@ -486,7 +486,7 @@ def test_the_list_and_a_maps_own_route_agree_after_a_discarded_batch(
         assert a.post("/maps/lab/scans", json={"scans": [_scan(kit, 0)]}).status_code == 200
         live = a.app.state.service.maps.entry("lab").map  # type: ignore[attr-defined]
 
-        def out_of_memory(scans: Any) -> Any:
+        def out_of_memory(scans: Any, prepared: Any = None) -> Any:
             raise MemoryError("simulated")
 
         monkeypatch.setattr(live, "integrate_batch", out_of_memory)

@@ -223,7 +223,7 @@ def test_a_batch_that_fails_while_applied_is_not_kept(make_settings: Any, kit: A
         client.post("/maps", json=kit.MAP_2D)
         assert client.post("/maps/lab/scans", json=_scans(kit, 1)[0]).status_code == 200
 
-        def broken(self: FuzzyMap, scans: Any) -> Any:
+        def broken(self: FuzzyMap, scans: Any, prepared: Any = None) -> Any:
             raise MemoryError("simulated")
 
         monkeypatch.setattr(FuzzyMap, "integrate_batch", broken)
@@ -246,7 +246,7 @@ def test_the_map_a_failed_batch_replaced_is_freed_at_once(make_settings: Any, ki
         client.post("/maps", json=kit.MAP_2D)
         replaced = weakref.ref(client.app.state.service.maps.entry("lab").map)  # type: ignore[attr-defined]
 
-        def broken(self: FuzzyMap, scans: Any) -> Any:
+        def broken(self: FuzzyMap, scans: Any, prepared: Any = None) -> Any:
             raise MemoryError("simulated")
 
         monkeypatch.setattr(FuzzyMap, "integrate_batch", broken)
@@ -272,12 +272,12 @@ def test_a_batch_that_fails_half_way_leaves_the_live_map_as_a_restart_rebuilds_i
 
         failed: list[bool] = []
 
-        def half(self: FuzzyMap, scans: Any) -> Any:
+        def half(self: FuzzyMap, scans: Any, prepared: Any = None) -> Any:
             if self.spec.shape == (100, 100) and not failed:  # the test's map, once (the rebuild replays)
                 failed.append(True)
                 original(self, list(scans)[:1])  # the first scan changes the map...
                 raise MemoryError("simulated")  # ...then the batch fails
-            return original(self, scans)
+            return original(self, scans, prepared)
 
         monkeypatch.setattr(FuzzyMap, "integrate_batch", half)
         two = {"scans": [kit.laser(x=1.0, wall=2.0), kit.laser(x=-1.0, wall=2.5)]}
