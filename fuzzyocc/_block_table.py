@@ -94,6 +94,25 @@ def remove(keys, slots, bx, by, bz):  # pragma: no cover - compiled
 
 
 @njit(cache=True, nogil=True)
+def _drop_many(keys, slots, coords, n, drop):  # pragma: no cover - compiled
+    """``BlockIndex.drop`` of each slot of ``drop`` in order: the new count and the moves (to, from, how many)."""
+    to = np.empty(drop.shape[0], np.int64)
+    from_ = np.empty(drop.shape[0], np.int64)
+    moves = 0
+    for q in range(drop.shape[0]):
+        slot = drop[q]
+        last = n - 1
+        remove(keys, slots, coords[slot, 0], coords[slot, 1], coords[slot, 2])
+        if slot != last:
+            coords[slot, 0], coords[slot, 1], coords[slot, 2] = coords[last, 0], coords[last, 1], coords[last, 2]
+            relink(keys, slots, coords[slot, 0], coords[slot, 1], coords[slot, 2], slot)
+            to[moves], from_[moves] = slot, last
+            moves += 1
+        n = last
+    return n, to, from_, moves
+
+
+@njit(cache=True, nogil=True)
 def rebuild(coords, n, capacity):  # pragma: no cover - compiled
     """A table of ``capacity`` entries holding blocks ``coords[:n]`` at slots ``0..n-1``."""
     keys = np.zeros((capacity, 3), np.int32)
@@ -150,6 +169,15 @@ class BlockIndex:
         self.n = last
         self.dropped += 1
         return last
+
+    def drop_many(self, slots: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`drop` each of ``slots`` (distinct, highest first), in one compiled pass: the moves made, in order,
+        as ``(to, from)`` slot arrays, which the caller's per-slot arrays must make the same way (a forgetting map
+        drops a whole loop's 210,000 blocks when its robot jumps: 1.4 s one :meth:`drop` at a time)."""
+        self.n, to, from_, moves = _drop_many(self.keys, self.slots, self.coords, self.n,
+                                              np.ascontiguousarray(slots, dtype=np.int64))
+        self.dropped += int(len(slots))
+        return to[:moves], from_[:moves]
 
     def nbytes(self) -> int:
         """Bytes of the index: coordinates and table."""

@@ -324,15 +324,10 @@ class BlockGrid:
     def _free_empty(self) -> None:
         """Drop the blocks that hold nothing (the initial row, uniform, nothing observed): they cost nothing again."""
         empty = _empty_slots(self._ref, self._urow, self._obs, self.index.n, self._init_row)
-        for slot in empty[::-1]:  # highest first: a moved block never lands on a slot still to drop
-            moved = self.index.drop(int(slot))
-            if moved != slot:
-                self._ref[slot] = self._ref[moved]
-                self._urow[slot] = self._urow[moved]
-                self._urisk[slot] = self._urisk[moved]
-                self._obs[slot] = self._obs[moved]
-                if self._ref[slot] >= 0:
-                    self._owner[self._ref[slot]] = slot
+        if empty.size:
+            # highest first: a moved block never lands on a slot still to drop
+            to, from_ = self.index.drop_many(empty[::-1])
+            _move_slots(to, from_, self._ref, self._urow, self._urisk, self._obs, self._owner)
         self._slots_ready = self.index.n
         self._give_back_slack()
 
@@ -1165,6 +1160,19 @@ def _forget_beyond(start, c, radius, ndim, coords, n, shift, ref, urow, urisk, o
                         count += _reset_cell(s, o, ref, pool, prisk, obs, init_row, init_code)
         n_dense = _settle(s, coords, box, shift, ref, urow, urisk, pool, prisk, owner, n_dense)
     return count, n_dense, n
+
+
+@njit(cache=True, nogil=True)
+def _move_slots(to, from_, ref, urow, urisk, obs, owner):  # pragma: no cover - compiled
+    """The per-slot arrays moved as ``BlockIndex.drop_many`` moved the blocks, in its order."""
+    for q in range(to.shape[0]):
+        slot, moved = to[q], from_[q]
+        ref[slot] = ref[moved]
+        urow[slot] = urow[moved]
+        urisk[slot] = urisk[moved]
+        obs[slot] = obs[moved]
+        if ref[slot] >= 0:
+            owner[ref[slot]] = slot
 
 
 @njit(cache=True, nogil=True)

@@ -182,3 +182,27 @@ def test_block_grid_refuses_states_that_do_not_fit() -> None:
     with pytest.raises(ValueError, match="observed"):
         BlockGrid.from_dense(SPEC_2D.shape, np.zeros((n, 7), np.uint8), np.zeros(n, np.uint8), np.zeros(7, np.uint8),
                              engine.defuzzify)
+
+
+
+def test_blocks_dropped_at_once_leave_the_index_as_dropping_them_one_at_a_time() -> None:
+    from fuzzyocc._block_table import BlockIndex, insert
+
+    rng = np.random.default_rng(5)
+    coords = np.unique(rng.integers(-40, 40, (600, 3)), axis=0)
+    one, many = BlockIndex(), BlockIndex()
+    for index in (one, many):
+        index.reserve(coords.shape[0])
+        for s, (x, y, z) in enumerate(coords):
+            insert(index.keys, index.slots, x, y, z, s)
+        index.coords[: coords.shape[0]] = coords
+        index.n = coords.shape[0]
+    gone = np.sort(rng.choice(coords.shape[0], 250, replace=False))[::-1]
+    moves = [(int(s), one.drop(int(s))) for s in gone]
+    to, from_ = many.drop_many(gone)
+    assert [(int(a), int(b)) for a, b in zip(to, from_)] == [(s, m) for s, m in moves if s != m]
+    assert many.n == one.n == coords.shape[0] - 250 and many.dropped == one.dropped == 250
+    assert np.array_equal(many.coords[: many.n], one.coords[: one.n])
+    kept = one.coords[: one.n]
+    assert np.array_equal(many.find(kept), np.arange(one.n)) and np.array_equal(one.find(kept), np.arange(one.n))
+    assert np.all(many.find(coords[gone]) == -1)
