@@ -266,9 +266,10 @@ class WritePath:
         except Exception:  # noqa: BLE001 - whatever stops the cast stops the fusion too, where _apply handles it
             return None
 
-    def _apply(self, entry: MapEntry, version: int, batch: Batch, prepared: PreparedBatch | None = None) -> BatchResult:
+    def _apply(self, entry: MapEntry, version: int, batch: Batch, prepared: PreparedBatch | None = None,
+               cast_s: float = 0.0) -> BatchResult:
         """Fuse a committed batch (in a fusion thread; the caller holds the apply turn and the apply lock), cast
-        ahead as ``prepared`` if it was."""
+        ahead as ``prepared`` if it was, in ``cast_s`` seconds (counted in the fusion's time)."""
         started = time.perf_counter()
         try:
             stats = integrate(entry.map, batch, prepared)
@@ -286,7 +287,7 @@ class WritePath:
             traceback.clear_frames(exc.__traceback__)
             raise
         model = entry.meta["model"]
-        self.metrics.fusion_seconds.labels(model).observe(time.perf_counter() - started)
+        self.metrics.fusion_seconds.labels(model).observe(time.perf_counter() - started + cast_s)
         self.metrics.scans_fused.labels(model).inc(stats.scans)
         self.metrics.rays.labels(model).inc(stats.rays)
         self.metrics.cells_updated.labels(model).inc(stats.cells_updated)
@@ -494,7 +495,9 @@ class WritePath:
             entry.line.commit.done(ticket)  # the next batch may commit while this one waits for its fusion
             await entry.line.apply.wait(ticket)
             run = self._workers.run_heavy if work > HEAVY_BATCH_CELLS else self._workers.run
+            cast_started = time.perf_counter()
             prepared = await self._cast_ahead(entry, batch, run)
+            cast_s = time.perf_counter() - cast_started
             async with entry.apply_lock:
                 if version > max(entry.version, entry.checked) + 1:
                     # other replicas' batches (or a discarded one) came between: theirs first, in the store's order
@@ -514,7 +517,7 @@ class WritePath:
                 # later batch may have committed with the next one meanwhile, and should its
                 # removal from the log have failed too, the row is still there under this version
                 try:
-                    result = await run(self._apply, entry, version, batch, prepared)
+                    result = await run(self._apply, entry, version, batch, prepared, cast_s)
                 except BaseException:
                     # the map may have changed in part: a grid published for its
                     # current version would no longer be that map

@@ -532,11 +532,11 @@ def _hold_applies(service: Any, monkeypatch: pytest.MonkeyPatch, name: str) -> t
     held, release = threading.Event(), threading.Event()
     apply = service.writes._apply
 
-    def slow_apply(entry: Any, version: int, scans: Any, prepared: Any = None) -> Any:
+    def slow_apply(entry: Any, version: int, scans: Any, *rest: Any) -> Any:
         if entry.name == name:
             held.set()
             release.wait(60)
-        return apply(entry, version, scans, prepared)
+        return apply(entry, version, scans, *rest)
 
     monkeypatch.setattr(service.writes, "_apply", slow_apply)
     return held, release
