@@ -97,6 +97,11 @@ INLINE_PARSE_BYTES = 128 * 1024
 #: of a few 1080-beam scans walks about 1 M cells, a 128-beam lidar's sweep at 0.1 m about 23 M: a lidar's map is
 #: not heavy, its sweeps are its robot's stream).
 HEAVY_BATCH_CELLS = 100_000_000
+#: A batch whose rays walk more cells than this is cast in its apply turn before it takes the apply lock (readers wait
+#: for its fusion alone: an Ouster sweep at 0.1 m walks 23 M); a lighter one is cast and fused in one hop to a fusion
+#: thread, as its cast takes a few milliseconds and a second hop, under load, cost the other maps' scans more than it
+#: saved its readers.
+CAST_AHEAD_CELLS = 2_000_000
 
 
 class WritePath:
@@ -496,7 +501,7 @@ class WritePath:
             await entry.line.apply.wait(ticket)
             run = self._workers.run_heavy if work > HEAVY_BATCH_CELLS else self._workers.run
             cast_started = time.perf_counter()
-            prepared = await self._cast_ahead(entry, batch, run)
+            prepared = await self._cast_ahead(entry, batch, run) if work > CAST_AHEAD_CELLS else None
             cast_s = time.perf_counter() - cast_started
             async with entry.apply_lock:
                 if version > max(entry.version, entry.checked) + 1:

@@ -567,6 +567,7 @@ def test_a_read_of_one_map_does_not_wait_behind_the_fusion_of_another(make_clien
 def test_a_read_of_a_map_does_not_wait_while_its_next_batch_is_cast(make_client: Any, kit: Any,
                                                                    monkeypatch: pytest.MonkeyPatch) -> None:
     # a lidar sweep's rays take most of its fusion: they are cast before the map is shut to readers
+    monkeypatch.setattr(writepath, "CAST_AHEAD_CELLS", 0)  # a laser scan as a sweep is: cast ahead
     client = make_client()
     assert client.post("/maps", json=kit.MAP_2D).status_code == 201
     assert client.post("/maps/lab/scans", json={"scans": [kit.laser()]}).status_code == 200
