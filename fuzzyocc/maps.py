@@ -326,15 +326,11 @@ class OccupancyMap:
         Every scan is checked as :meth:`integrate_batch` checks it (``ValueError`` naming ``scans[i]``). The cast
         holds while the map's blocks stay as they are; :meth:`integrate_batch` casts again when they changed.
         """
-        scans = list(scans)
-        for i, scan in enumerate(scans):
-            self._check_scan(scan, f"scans[{i}]")
+        scans = self._checked(scans)
         if not scans or len(self._cast_chunks(scans)) != 1 or scans[0].beam_count > CAST_CHUNK_BEAMS:
             return None
-        rays = [self._rays_of(scan) for scan in scans]
         index, _ = self._cast_blocks()
-        cast = self._cast(scans, rays, enter=False)
-        return PreparedBatch(tuple(scans), index, cast, sum(r.ranges.size for r in rays), sum(r.skipped for r in rays))
+        return PreparedBatch(tuple(scans), index, *self._cast_chunk(scans, enter=False))
 
     def integrate_batch(self, scans: Sequence[Scan], prepared: PreparedBatch | None = None) -> IntegrationStats:
         """Fuse scans in order, all or none.
@@ -344,9 +340,7 @@ class OccupancyMap:
         :meth:`prepare_batch` (``ValueError`` if it is another batch's), used if the map's blocks have not changed
         since; the map is the same either way.
         """
-        scans = list(scans)
-        for i, scan in enumerate(scans):
-            self._check_scan(scan, f"scans[{i}]")
+        scans = self._checked(scans)
         if not scans:
             return IntegrationStats(scans=0, rays=0, cells_updated=0)
         if prepared is not None and (len(prepared.scans) != len(scans)
@@ -366,10 +360,7 @@ class OccupancyMap:
                 self._cast_done()
                 prepared = None
             else:
-                rays = [self._rays_of(scan) for scan in scans[first:last]]
-                cast = self._cast(scans[first:last], rays)
-                beams, dropped = sum(r.ranges.size for r in rays), sum(r.skipped for r in rays)
-                del rays
+                cast, beams, dropped = self._cast_chunk(scans[first:last])
             n_rays, skipped = n_rays + beams, skipped + dropped
             traversed += int(cast.cells_traversed.sum())
             for s in range(last - first):
@@ -543,6 +534,19 @@ class OccupancyMap:
                                  f"{self.spec.ndim}-D map, got {scan.points.shape}")
         else:
             raise ValueError(f"{name} must be a LaserScan or a PointCloud, got {type(scan).__name__}")
+
+    def _checked(self, scans: Sequence[Scan]) -> list[Scan]:
+        """``scans`` as a list, each checked against the map (``ValueError`` naming ``scans[i]``)."""
+        scans = list(scans)
+        for i, scan in enumerate(scans):
+            self._check_scan(scan, f"scans[{i}]")
+        return scans
+
+    def _cast_chunk(self, scans: list[Scan], enter: bool = True) -> tuple[CastResult, int, int]:
+        """The cast of a chunk of scans (``enter`` as :meth:`_cast`'s), with its beams and the readings skipped; their
+        rays are gone before the chunk is fused."""
+        rays = [self._rays_of(scan) for scan in scans]
+        return self._cast(scans, rays, enter=enter), sum(r.ranges.size for r in rays), sum(r.skipped for r in rays)
 
     def _cast(self, scans: list[Scan], rays: list[Rays], reuse: bool = True, enter: bool = True) -> CastResult:
         """The cast of ``scans`` (their ``rays``); ``reuse``: into arrays a cast gave back (``raycast.give_back``),

@@ -687,8 +687,7 @@ def cast_into(
     new = _new_blocks(rcoords, rslot, rslot.shape[0])
     index_at = (index.n, index.dropped)
     if enter:
-        index.reserve(new.shape[0])
-        index.n = _enter(new, index.keys, index.slots, index.coords, index.n)
+        _enter_all(index, new)
     else:
         _slot_new(rcoords, rslot, new, index.n)  # the slots ``_enter`` will give them
     out = (_CAST_CELLS.take(lambda _: True) if reuse else None) or (np.empty(0, np.int64), np.empty(0, np.float32))
@@ -716,8 +715,13 @@ def enter_new_blocks(index: BlockIndex, cast: CastResult) -> None:
     if not fits(index, cast):
         raise ValueError(f"the index holds {index.n} blocks ({index.dropped} dropped), the cast was made on "
                          f"{cast.index_at[0]} ({cast.index_at[1]}): cast again")
-    index.reserve(cast.new_blocks.shape[0])
-    index.n = _enter(cast.new_blocks, index.keys, index.slots, index.coords, index.n)
+    _enter_all(index, cast.new_blocks)
+
+
+def _enter_all(index: BlockIndex, blocks: np.ndarray) -> None:
+    """Enter ``blocks`` (absent, in the order of :func:`_new_blocks`) at the index's next slots."""
+    index.reserve(blocks.shape[0])
+    index.n = _enter(blocks, index.keys, index.slots, index.coords, index.n)
 
 
 def flat_ids(keys: np.ndarray, index: BlockIndex, shift: tuple[int, int, int], shape: tuple[int, ...]) -> np.ndarray:

@@ -39,7 +39,8 @@ def encode(arrays: Mapping[str, np.ndarray], threads: int = 1) -> bytes:
     header = json.dumps({"arrays": [[name, value.dtype.str, list(value.shape)] for name, value in held.items()]})
     # the frame states its size: decode checks it against the header's before it inflates anything
     # zstd's threads=0 compresses in the calling thread; n >= 1 hands the work to n of its own
-    compressor = zstandard.ZstdCompressor(level=LEVEL, threads=threads if threads > 1 else 0).compressobj(size=sum(v.nbytes for v in held.values()))
+    compressor = zstandard.ZstdCompressor(level=LEVEL, threads=threads if threads > 1 else 0).compressobj(
+        size=sum(v.nbytes for v in held.values()))
     frame = [compressor.compress(memoryview(value).cast("B")) for value in held.values() if value.size]
     frame.append(compressor.flush())
     return b"".join([_MAGIC, _HEADER_LENGTH.pack(len(header)), header.encode(), *frame])
