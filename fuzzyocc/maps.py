@@ -332,6 +332,25 @@ class OccupancyMap:
         index, _ = self._cast_blocks()
         return PreparedBatch(tuple(scans), index, *self._cast_chunk(scans, enter=False))
 
+    def chunked(self, scans: Sequence[Scan]) -> list[list[Scan]]:
+        """``scans`` checked as :meth:`integrate_batch` checks them (``ValueError`` naming ``scans[i]``) and split
+        as it casts them: the runs, each fused as a batch of its own in turn, make the map the whole batch makes."""
+        scans = self._checked(scans)
+        return [scans[first:last] for first, last in self._cast_chunks(scans)] if scans else []
+
+    def enter_prepared(self, prepared: PreparedBatch) -> PreparedBatch | None:
+        """Enter the blocks ``prepared``'s cast reached into the map now, ahead of its fusion; what
+        :meth:`integrate_batch` of its scans then takes. From here to the end of that fusion the map's blocks stay
+        as they are (unless the map forgets, ``forget_beyond``): another batch can be cast beside it
+        (:class:`~fuzzyocc.castahead.CastAhead`). None, and nothing entered, if the blocks changed since the cast."""
+        index, _ = self._cast_blocks()
+        if prepared.index is not index or not fits(index, prepared.cast):
+            return None
+        enter_new_blocks(index, prepared.cast)
+        self._cast_done()
+        return dataclasses.replace(prepared, cast=dataclasses.replace(prepared.cast, new_blocks=None,
+                                                                       index_at=(index.n, index.dropped)))
+
     def integrate_batch(self, scans: Sequence[Scan], prepared: PreparedBatch | None = None) -> IntegrationStats:
         """Fuse scans in order, all or none.
 

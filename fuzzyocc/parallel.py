@@ -71,6 +71,12 @@ def run(fn: Callable[[T], R], parts: Iterable[T]) -> list[R]:
     return [first, *(f.result() for f in others)]
 
 
+def beside(name: str) -> ThreadPoolExecutor:
+    """One thread of its own at the calling thread's priority, for work that runs beside the caller's and may split
+    itself (:func:`run`): not one of the pool's, whose parts would then wait behind it. The caller shuts it down."""
+    return ThreadPoolExecutor(max_workers=1, thread_name_prefix=name, initializer=_set_nice, initargs=(_nice(),))
+
+
 def _nice() -> int | None:
     """The calling thread's nice value (Linux: a thread's own), None where there is none to read."""
     try:

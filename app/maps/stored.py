@@ -8,7 +8,7 @@ stored is what runs.
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass, field
 from typing import Any, cast
 
@@ -21,6 +21,7 @@ from app.scans import Scan
 from app.schemas import engine_choice
 from app.storage import StoredMap
 from fuzzyocc import BayesMap, FuzzyMap, GridSpec, LatticeSpec, IntegrationStats, SensorModel, cast_work
+from fuzzyocc.castahead import CastAhead
 from fuzzyocc.maps import PRIOR_UNSEEN, PreparedBatch
 
 LOG = logging.getLogger("fuzzyrisk.maps")
@@ -110,13 +111,49 @@ class Replayed:
 def replay(built: OccupancyMap, stored: StoredMap, *, after: int, up_to: int | None = None,
            progress: Callable[[int], None] | None = None) -> Replayed:
     """Fuse ``stored``'s batches above version ``after`` (and at most ``up_to``) into ``built``, in order, each at the
-    poses a correction gave it (``stored.poses``); ``progress`` as ``restore``'s."""
+    poses a correction gave it (``stored.poses``); ``progress`` as ``restore``'s. A batch of scans followed by
+    another is fused while the next one is cast (``CastAhead``: the same map, sooner)."""
     replayed = Replayed()
+    batches = _decoded(stored, after, up_to)
+    current = next(batches, None)
+    with CastAhead(built) as ahead:
+        while current is not None:
+            following = next(batches, None)
+            version, size, batch = current
+            try:
+                if isinstance(batch, list):
+                    stats = ahead.integrate(batch, following[2] if following and isinstance(following[2], list)
+                                            else None)
+                else:
+                    stats = integrate(built, batch)
+            except ValueError:
+                # cannot happen for a batch that was acknowledged (it was applied before the 200)
+                LOG.exception("map %s: batch %d cannot be replayed; skipped", stored.name, version)
+                replayed.log.append((version, size, 0))
+                current = following
+                continue
+            # scans: the cells their cast walked, as the fusion counts them (``cast_work`` made and walked every
+            # scan's rays a second time, 3-6 % of a replay, for a figure a rebuild then discards)
+            walked = stats.cells_traversed if isinstance(batch, list) else batch_work(built.spec, batch)
+            replayed.log.append((version, size, walked))
+            replayed.version = version
+            if isinstance(batch, list) and batch:  # a prior or an edit fuses no scan
+                replayed.last_scan = batch[-1]
+            replayed.updated = stored.stamps.get(version, stored.updated)
+            if progress is not None:
+                progress(len(batch) if isinstance(batch, list) else 0)
+            current = following
+    return replayed
+
+
+def _decoded(stored: StoredMap, after: int, up_to: int | None) -> Iterator[tuple[int, int, Batch]]:
+    """``stored``'s batches above ``after`` (at most ``up_to``) decoded, at their corrected poses: (version, its
+    stored bytes, the batch)."""
     for version, payload in stored.batches:
         if version <= after:
             continue
         if up_to is not None and version > up_to:
-            break
+            return
         try:
             if version in stored.poses:  # moved by a correction: replayed at its new poses
                 payload = logcodec.with_poses(payload, stored.poses[version])
@@ -125,21 +162,4 @@ def replay(built: OccupancyMap, stored: StoredMap, *, after: int, up_to: int | N
             # an acknowledged batch: never dropped silently; the service refuses to start and says where
             raise RuntimeError(f"map {stored.name!r}: stored batch {version} is corrupt ({exc}); the database "
                                f"needs repair (restore a backup, or delete that row to drop the batch)") from exc
-        try:
-            stats = integrate(built, batch)
-        except ValueError:
-            # cannot happen for a batch that was acknowledged (it was applied before the 200)
-            LOG.exception("map %s: batch %d cannot be replayed; skipped", stored.name, version)
-            replayed.log.append((version, len(payload), 0))
-            continue
-        # scans: the cells their cast walked, as the fusion counts them (``cast_work`` made and walked every scan's
-        # rays a second time, 3-6 % of a replay, for a figure a rebuild then discards)
-        walked = stats.cells_traversed if isinstance(batch, list) else batch_work(built.spec, batch)
-        replayed.log.append((version, len(payload), walked))
-        replayed.version = version
-        if isinstance(batch, list) and batch:  # a prior or an edit fuses no scan
-            replayed.last_scan = batch[-1]
-        replayed.updated = stored.stamps.get(version, stored.updated)
-        if progress is not None:
-            progress(len(batch) if isinstance(batch, list) else 0)
-    return replayed
+        yield version, len(payload), batch
