@@ -496,12 +496,14 @@ class BlockGrid:
             raise ValueError("arrays['block_slab'] must number the slabs 0..n-1 once each (-1 for a uniform block)")
         if ndim == 2 and np.any(coords[:, 2] != 0):
             raise ValueError("arrays['block_coords'] of a 2-D grid must have z 0")
-        if np.unique(coords, axis=0).shape[0] != n:
-            raise ValueError("arrays['block_coords'] must not hold a block twice")
         grid.index.reserve(n)
         grid.index.coords[:n] = coords
         grid.index.n = n
         grid.index.keys, grid.index.slots = rebuild(grid.index.coords, n, grid.index.slots.shape[0])
+        # a block held twice is found at its first slot only (a hash lookup a block: np.unique over the rows, a sort
+        # holding the GIL, took 0.12 s of a 2 s rebuild's switch)
+        if not np.array_equal(grid.index.find(coords), np.arange(n)):
+            raise ValueError("arrays['block_coords'] must not hold a block twice")
         grid.adopt()
         grid._ref[:n], grid._urow[:n], grid._obs[:n] = slab, rows, observed
         grid._grow_pool(slabs.shape[0])

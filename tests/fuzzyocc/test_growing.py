@@ -104,6 +104,10 @@ def test_restored_growing_map_is_the_same_map_and_fuses_the_same(orebro: list) -
     arrays["block_coords"] = arrays["block_coords"][:-1]
     with pytest.raises(ValueError, match="block"):
         FuzzyMap.from_arrays(LatticeSpec(2, 0.05), SENSOR, arrays)
+    arrays = m.to_arrays()
+    arrays["block_coords"][-1] = arrays["block_coords"][0]  # a block held twice: its cells would be two
+    with pytest.raises(ValueError, match="a block twice"):
+        FuzzyMap.from_arrays(LatticeSpec(2, 0.05), SENSOR, arrays)
 
 
 @pytest.mark.parametrize("growing", [True, False], ids=["growing", "fixed"])
