@@ -6,6 +6,7 @@ import io
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Any
 
 import numpy as np
@@ -14,6 +15,7 @@ from fastapi.testclient import TestClient
 
 from app.config import Settings
 from app.api.factory import create_app
+from app.service import mapservice
 
 MAP_2D: dict[str, Any] = {
     "name": "lab", "dimensions": 2, "resolution": 0.1, "origin": [-5.0, -5.0], "size": [10.0, 10.0],
@@ -64,9 +66,18 @@ def make_settings(tmp_path: Path) -> Callable[..., Settings]:
     return make
 
 
+#: What a started service asks of the collector, for the apps of ``make_client``: nothing. Once ready, a service
+#: collects the whole process and freezes what is left (``MapService``); in this process that is the whole test
+#: session, walked again at every app's start (0.1 s or more, hundreds of times). The service's own process does it
+#: once; ``test_process_setup``'s test of it starts its app without this fixture, as do the real server processes.
+_NO_PROCESS_COLLECTION = SimpleNamespace(collect=lambda *args: 0, freeze=lambda: None, unfreeze=lambda: None)
+
+
 @pytest.fixture
-def make_client(make_settings: Callable[..., Settings]) -> Iterator[Callable[..., TestClient]]:
+def make_client(make_settings: Callable[..., Settings],
+                monkeypatch: pytest.MonkeyPatch) -> Iterator[Callable[..., TestClient]]:
     """Start apps (lifespan included) on the test's data directory; all are stopped at the end."""
+    monkeypatch.setattr(mapservice, "gc", _NO_PROCESS_COLLECTION)
     clients: list[TestClient] = []
 
     def make(**overrides: Any) -> TestClient:
