@@ -66,18 +66,21 @@ def make_settings(tmp_path: Path) -> Callable[..., Settings]:
     return make
 
 
-#: What a started service asks of the collector, for the apps of ``make_client``: nothing. Once ready, a service
-#: collects the whole process and freezes what is left (``MapService``); in this process that is the whole test
-#: session, walked again at every app's start (0.1 s or more, hundreds of times). The service's own process does it
-#: once; ``test_process_setup``'s test of it starts its app without this fixture, as do the real server processes.
+#: What a service started in this process asks of the collector: nothing. Once ready, a service collects the whole
+#: process and freezes what is left (``MapService``); here that is the whole test session, walked again at every
+#: app's start (0.1 s or more, hundreds of times). A service's own process does it once: the real server processes
+#: of the e2e tests do, and ``test_process_setup``'s test of it puts the real ``gc`` back.
 _NO_PROCESS_COLLECTION = SimpleNamespace(collect=lambda *args: 0, freeze=lambda: None, unfreeze=lambda: None)
 
 
-@pytest.fixture
-def make_client(make_settings: Callable[..., Settings],
-                monkeypatch: pytest.MonkeyPatch) -> Iterator[Callable[..., TestClient]]:
-    """Start apps (lifespan included) on the test's data directory; all are stopped at the end."""
+@pytest.fixture(autouse=True)
+def _services_leave_the_collector_alone(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setattr(mapservice, "gc", _NO_PROCESS_COLLECTION)
+
+
+@pytest.fixture
+def make_client(make_settings: Callable[..., Settings]) -> Iterator[Callable[..., TestClient]]:
+    """Start apps (lifespan included) on the test's data directory; all are stopped at the end."""
     clients: list[TestClient] = []
 
     def make(**overrides: Any) -> TestClient:
