@@ -6,6 +6,7 @@ import io
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Any
 
 import numpy as np
@@ -14,6 +15,7 @@ from fastapi.testclient import TestClient
 
 from app.config import Settings
 from app.api.factory import create_app
+from app.service import mapservice
 
 MAP_2D: dict[str, Any] = {
     "name": "lab", "dimensions": 2, "resolution": 0.1, "origin": [-5.0, -5.0], "size": [10.0, 10.0],
@@ -62,6 +64,18 @@ def make_settings(tmp_path: Path) -> Callable[..., Settings]:
         return Settings(**values)
 
     return make
+
+
+#: What a service started in this process asks of the collector: nothing. Once ready, a service collects the whole
+#: process and freezes what is left (``MapService``); here that is the whole test session, walked again at every
+#: app's start (0.1 s or more, hundreds of times). A service's own process does it once: the real server processes
+#: of the e2e tests do, and ``test_process_setup``'s test of it puts the real ``gc`` back.
+_NO_PROCESS_COLLECTION = SimpleNamespace(collect=lambda *args: 0, freeze=lambda: None, unfreeze=lambda: None)
+
+
+@pytest.fixture(autouse=True)
+def _services_leave_the_collector_alone(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(mapservice, "gc", _NO_PROCESS_COLLECTION)
 
 
 @pytest.fixture

@@ -319,7 +319,9 @@ def test_scans_are_posted_in_batches_and_fuse_as_the_same_scans_posted_directly(
     with httpx.Client(base_url=live.url, timeout=30) as http:
         for name in ("lab", "direct"):
             assert http.post("/maps", json={**MAP, "name": name}).status_code == 201
-        bridge = bridges(live.url, batch_size=10, max_delay_s=5.0)
+        # every scan is queued before the worker starts: two full batches leave at once, the last 5 scans after
+        # max_delay_s (the default 0.5 s; the batches are the same at any delay)
+        bridge = bridges(live.url, batch_size=10, max_delay_s=0.5)
         for i, (x, y, yaw) in enumerate(POSES):
             bridge.on_scan(laser_msg(stamp_s=0.1 * i), lambda frame, stamp, p=(x, y, yaw): tf_msg(*p))
         assert bridge.pending == 25  # not started yet: nothing sent

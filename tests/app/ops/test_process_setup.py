@@ -230,11 +230,14 @@ def test_ready_answers_503_then_200_once_the_kernels_are_compiled(make_client: C
 
 
 def test_once_ready_a_full_garbage_collection_skips_what_lives_as_long_as_the_process(
-    make_settings: Callable[..., Settings],
+    make_settings: Callable[..., Settings], monkeypatch: pytest.MonkeyPatch,
 ) -> None:
     # a full collection walked every module, kernel and map of the process (about 100 ms on 175,000
     # objects, holding the GIL): every client's requests waited, at the collector's rhythm
     from app.api.factory import create_app
+    from app.service import mapservice
+
+    monkeypatch.setattr(mapservice, "gc", gc)  # the collector itself, as in the service's own process
 
     with TestClient(create_app(make_settings())) as client:
         _wait_ready(client)
