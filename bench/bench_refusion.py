@@ -24,9 +24,9 @@ log's corrected poses and hits (``bench maps``' box). For each log (``--logs``, 
    status's ``eta_s``) and its scans/s by ``elapsed_s`` beside ``FuzzyMap.integrate_batch`` of the same
    scans in this process, each rebuild followed by one, by the wall clock and by CPU (the server process's
    CPU seconds from the PUT to done against ours; target >= 0.9x), each side the median of ``REPEATS``
-   runs (the same corrected path PUT again rebuilds the whole history again), and its speed as a multiple of the log's duration (its
-   last stamp less its first; target >= 100x where the stamps are real: a log whose stamps do not
-   increase is numbered at 5 Hz, and its row says so and is not judged).
+   runs (the same corrected path PUT again rebuilds the whole history again), and its speed as a multiple
+   of the log's duration (its last stamp less its first; target >= 100x where the stamps are real: a log
+   whose stamps do not increase is numbered at 5 Hz, and its row says so and is not judged).
 
 Then, on the log with the most scans: an innocent client (``bench._abuse_clients.Innocent``, its own
 process) posts a binary 1080-beam scan every 0.1 s to a map of its own and reads its ``risk.npy``

@@ -10,6 +10,7 @@ scans on a large map) is cast on one thread, so without this one core idles whil
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import fields
 from concurrent.futures import Future, ThreadPoolExecutor
 from types import TracebackType
 
@@ -29,7 +30,7 @@ class CastAhead:
     def __init__(self, model: OccupancyMap) -> None:
         self._model = model
         self._thread: ThreadPoolExecutor | None = None
-        self._ahead: tuple[list[Scan], Future[PreparedBatch | None]] | None = None
+        self._ahead: Future[PreparedBatch | None] | None = None
 
     def __enter__(self) -> CastAhead:
         return self
@@ -49,41 +50,39 @@ class CastAhead:
                 pass  # the next call raises it
         done = [self._fuse(chunk, chunks[c + 1] if c + 1 < len(chunks) else upcoming)
                 for c, chunk in enumerate(chunks)]
-        return IntegrationStats(**{field: sum(getattr(s, field) for s in done) for field in (
-            "scans", "rays", "cells_updated", "cells_traversed", "rays_skipped")})
+        return IntegrationStats(**{f.name: sum(getattr(s, f.name) for s in done) for f in fields(IntegrationStats)})
 
     def _fuse(self, chunk: list[Scan], upcoming: list[Scan] | None) -> IntegrationStats:
         """One chunk fused, ``upcoming`` cast beside it where the map allows it (its blocks stay as they are during
         the fusion: no forgetting; a chunk of one scan cast in parts is cast as it fuses)."""
         model = self._model
         prepared = self._take(chunk)
-        if prepared is None:
-            prepared = model.prepare_batch(chunk)
-        if prepared is not None and upcoming and model.forget_beyond is None:
-            prepared = model.enter_prepared(prepared)
+        if upcoming and model.forget_beyond is None:
+            if prepared is None:
+                prepared = model.prepare_batch(chunk)
+            if prepared is not None:
+                prepared = model.enter_prepared(prepared)
             if prepared is not None:  # the map's blocks now stay as they are until this fusion ends
                 if self._thread is None:
                     self._thread = parallel.beside("cast-ahead")
-                self._ahead = (upcoming, self._thread.submit(model.prepare_batch, upcoming))
+                self._ahead = self._thread.submit(model.prepare_batch, upcoming)
         return model.integrate_batch(chunk, prepared)
 
     def _take(self, chunk: list[Scan]) -> PreparedBatch | None:
         """The cast made ahead, if it was of ``chunk`` and succeeded; waits for it."""
         if self._ahead is None:
             return None
-        (cast_for, future), self._ahead = self._ahead, None
+        future, self._ahead = self._ahead, None
         try:
             prepared = future.result()
         except Exception:  # noqa: BLE001 - the same cast in the caller's thread raises it where it belongs
             return None
-        if len(cast_for) != len(chunk) or any(a is not b for a, b in zip(cast_for, chunk)):
-            return None
-        return prepared
+        return prepared if prepared is not None and prepared.of(chunk) else None
 
     def close(self) -> None:
         """Wait for a cast still running, and end the thread."""
         if self._ahead is not None:
-            self._ahead[1].exception()  # waited for, whatever it raised: its chunk is not fused
+            self._ahead.exception()  # waited for, whatever it raised: its chunk is not fused
             self._ahead = None
         if self._thread is not None:
             self._thread.shutdown(wait=True)

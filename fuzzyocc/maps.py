@@ -191,6 +191,10 @@ class PreparedBatch:
     beams: int
     skipped: int
 
+    def of(self, scans: Sequence[Scan]) -> bool:
+        """Whether this is the cast of ``scans`` (the very scans, in order)."""
+        return len(self.scans) == len(scans) and all(a is b for a, b in zip(self.scans, scans))
+
 
 @dataclass(frozen=True)
 class IntegrationStats:
@@ -362,21 +366,17 @@ class OccupancyMap:
         scans = self._checked(scans)
         if not scans:
             return IntegrationStats(scans=0, rays=0, cells_updated=0)
-        if prepared is not None and (len(prepared.scans) != len(scans)
-                                     or any(a is not b for a, b in zip(prepared.scans, scans))):
+        if prepared is not None and not prepared.of(scans):
             raise ValueError("prepared is the cast of other scans")
-        index, _ = self._cast_blocks()
-        if prepared is not None and (prepared.index is not index or not fits(index, prepared.cast)):
-            prepared = None  # the blocks changed since (another batch, a clear): its slots name others
+        if prepared is not None:  # None if the blocks changed since (another batch, a clear): its slots name others
+            prepared = self.enter_prepared(prepared)
         chunks = self._cast_chunks(scans)
         updated = traversed = n_rays = skipped = 0
         for first, last in chunks:
             if scans[first].beam_count > CAST_CHUNK_BEAMS:  # a chunk of its own (``_cast_chunks``)
                 cast, beams, dropped = self._cast_in_parts(scans[first])
-            elif prepared is not None:  # the batch's one chunk
+            elif prepared is not None:  # the batch's one chunk, its blocks entered
                 cast, beams, dropped = prepared.cast, prepared.beams, prepared.skipped
-                enter_new_blocks(index, cast)
-                self._cast_done()
                 prepared = None
             else:
                 cast, beams, dropped = self._cast_chunk(scans[first:last])
