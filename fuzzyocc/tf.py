@@ -54,13 +54,26 @@ def level_heading(quaternion_xyzw: object) -> tuple[float, float]:
     """(theta, turn) of a level scanner rotated by ``quaternion_xyzw`` (normalised here): the heading of its x axis
     in the parent's xy plane (radians, REP 103, in [-pi, pi]), and +1 (z up) or -1 (z down: it sweeps the other
     way). Roll and pitch within ``LEVEL_TOLERANCE_RAD`` are dropped; beyond it, :class:`NotLevel`."""
-    q = np.array(quaternion_xyzw, dtype=np.float64)
-    qx, qy, qz, qw = q / np.linalg.norm(q)
+    try:
+        thetas, turns = level_headings(np.reshape(np.asarray(quaternion_xyzw, dtype=np.float64), (1, 4)))
+    except NotLevel as exc:
+        raise NotLevel(exc.degrees) from None
+    return float(thetas[0]), float(turns[0])
+
+
+def level_headings(quaternions_xyzw: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`level_heading` of each row of an ``(N, 4)`` array, by the same arithmetic (one pose gets the same bits
+    either way): thetas and turns; :class:`NotLevel` naming the first row tilted off level."""
+    q = np.asarray(quaternions_xyzw, dtype=np.float64).reshape(-1, 4)
+    q = q / np.sqrt(np.sum(q * q, axis=1))[:, None]
+    qx, qy, qz, qw = q.T
     up = 1.0 - 2.0 * (qx * qx + qy * qy)  # z of the scanner's z axis in the parent frame
-    if abs(up) < math.cos(LEVEL_TOLERANCE_RAD):
-        raise NotLevel(math.degrees(math.acos(min(abs(up), 1.0))))
-    theta = math.atan2(2.0 * (qx * qy + qw * qz), 1.0 - 2.0 * (qy * qy + qz * qz))
-    return theta, (1.0 if up > 0.0 else -1.0)
+    tilted = np.flatnonzero(np.abs(up) < math.cos(LEVEL_TOLERANCE_RAD))
+    if tilted.size:
+        i = int(tilted[0])
+        raise NotLevel(math.degrees(math.acos(min(abs(float(up[i])), 1.0))), index=i)
+    theta = np.arctan2(2.0 * (qx * qy + qw * qz), 1.0 - 2.0 * (qy * qy + qz * qz))
+    return theta, np.where(up > 0.0, 1.0, -1.0)
 
 
 def yaw_quaternion(yaw: float) -> tuple[float, float, float, float]:

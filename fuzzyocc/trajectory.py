@@ -28,10 +28,9 @@ from scipy.spatial.transform import Rotation, Slerp
 from fuzzyocc.scans import LaserScan, PointCloud
 from fuzzyocc.tf import (
     UNIT_QUATERNION_TOLERANCE,
-    NotLevel,
     Transform,
     interpolate,
-    level_heading,
+    level_headings,
     nanoseconds_since_first,
     yaw_quaternion,
 )
@@ -229,12 +228,7 @@ def laser_poses(positions: object, quaternions_xyzw: object, near_yaws: object =
     pose tilted off level."""
     positions = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
     quaternions = np.asarray(quaternions_xyzw, dtype=np.float64).reshape(-1, 4)
-    yaws = np.empty(len(quaternions))
-    for i, quaternion in enumerate(quaternions):
-        try:
-            yaws[i], _ = level_heading(quaternion)  # the turn is in the stored beams already
-        except NotLevel as exc:
-            raise NotLevel(exc.degrees, index=i) from None
+    yaws, _ = level_headings(quaternions)  # the turn is in the stored beams already
     near = yaws if near_yaws is None else np.asarray(near_yaws, dtype=np.float64).reshape(-1)
     return np.column_stack([positions[:, 0], positions[:, 1], _exact_yaws(quaternions, yaws, near)])
 

@@ -1,6 +1,6 @@
 """A corrected trajectory applied to a map's history: the new pose of each stored scan it covers, and back.
 
-``plan`` reads the stamps and poses of the history's scans (``logcodec.scan_poses``, beams left undecoded) and gives
+``plan`` reads the stamps and poses of the history's scans (``logcodec.pose_table``, beams left undecoded) and gives
 each scan whose stamp lies in the trajectory's ``[first, last]`` its pose there (``Trajectory.poses_at``, as tf2
 interpolates): a LaserScan or a 2-D cloud as one posted at that pose would be placed
 (``fuzzyocc.trajectory.laser_poses``), a 3-D cloud the whole pose. Scans outside
@@ -16,8 +16,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from app.errors import Invalid
+from app.errors import Invalid, TooLarge
 from app.maps import logcodec
+from app.ros.path_in import corrected_path
 from app.schemas import CorrectedPath
 from app.schemas.common import ns_of_ros_time
 from app.storage import StoredMap
@@ -26,11 +27,6 @@ from fuzzyocc.trajectory import Trajectory, laser_poses
 #: ``Trajectory``'s names of its fields, and where they are in a ``CorrectedPath`` body (errors name the body's).
 _FIELDS = {"stamps_ns[": "poses[{}].header.stamp", "positions[": "poses[{}].pose.position",
            "quaternions[": "poses[{}].pose.orientation"}
-
-
-#: How a stored scan takes a corrected pose: its heading in the plane (a LaserScan, a 2-D cloud: the level rule of
-#: ``laser_poses``), the whole pose (a 3-D cloud stored as taken), or not at all (a cloud stored in the map frame).
-_PLANAR, _FULL, _FIXED = 0, 1, 2
 
 
 class NothingToCorrect(ValueError):
@@ -54,6 +50,16 @@ class Correction:
 
 #: A sensor's fixed pose on a robot: position (metres) and quaternion ``[x, y, z, w]``.
 SensorOffset = tuple[tuple[float, float, float], tuple[float, float, float, float]]
+
+
+def read_trajectory(body: bytes, frame_id: str, offset: SensorOffset | None, max_poses: int) -> Trajectory:
+    """The sensor's trajectory of a ``PUT /maps/{name}/trajectory`` JSON body (``corrected_path``, then
+    ``sensor_trajectory``): run in a parse thread, or for a large body in the parse process. ``TooLarge`` past
+    ``max_poses`` (``FUZZYRISK_MAX_TRAJECTORY_POSES``)."""
+    path = corrected_path(body)
+    if len(path.poses) > max_poses:
+        raise TooLarge(f"poses: {len(path.poses):,} poses, more than FUZZYRISK_MAX_TRAJECTORY_POSES ({max_poses:,})")
+    return sensor_trajectory(path, frame_id, offset)
 
 
 def sensor_trajectory(path: CorrectedPath, frame_id: str, offset: SensorOffset | None) -> Trajectory:
@@ -92,26 +98,20 @@ def plan(history: StoredMap, trajectory: Trajectory, through: int) -> Correction
     ``fuzzyocc.tf.NotLevel`` (a pose in range tilts the scanner off level) and ``logcodec.CorruptBatch``.
     """
     versions: list[int] = []
-    counts: list[int] = []
-    stamps: list[int] = []
-    yaws: list[float] = []
-    kinds: list[int] = []  # _PLANAR, _FULL or _FIXED
-    first = last = None
-    for version, payload in logcodec.moved([b for b in history.batches if b[0] <= through], history.poses):
-        poses = logcodec.scan_poses(payload)
-        if not poses:
-            continue
-        versions.append(version)
-        counts.append(len(poses))
-        for pose in poses:
-            stamp = -1 if pose.stamp_ns is None else pose.stamp_ns
-            stamps.append(stamp)
-            yaws.append(np.nan if pose.yaw is None else pose.yaw)
-            kinds.append(_PLANAR if pose.yaw is not None else _FULL if pose.orientation is not None else _FIXED)
-            if stamp >= 0:
-                first = stamp if first is None else min(first, stamp)
-                last = stamp if last is None else max(last, stamp)
-    at = np.asarray(stamps, dtype=np.int64)
+    tables: list[logcodec.PoseTable] = []
+    for version, payload in history.batches:
+        if version > through:
+            break
+        table = logcodec.pose_table(payload, history.poses.get(version))
+        if len(table):
+            versions.append(version)
+            tables.append(table)
+    if not tables:
+        raise _nothing(trajectory, np.zeros(0, np.int64))
+    at = np.concatenate([t.stamps_ns for t in tables])
+    kind = np.concatenate([t.kinds for t in tables])
+    yaws = np.concatenate([t.poses[:, 2] for t in tables])  # a planar pose's heading
+    counts = [len(t) for t in tables]
     stamped = at >= 0
     inside = np.zeros(at.size, dtype=bool)
     positions = np.full((at.size, 3), np.nan)
@@ -121,20 +121,16 @@ def plan(history: StoredMap, trajectory: Trajectory, through: int) -> Correction
         inside[stamped] = found.inside
         positions[stamped], quaternions[stamped] = found.positions, found.quaternions
     if not inside.any():
-        span = "no stamped scan" if first is None else f"scans stamped {first} to {last} ns"
-        raise NothingToCorrect(
-            f"no stored scan has a stamp in the trajectory's range ({int(trajectory.stamps_ns[0])} to "
-            f"{int(trajectory.stamps_ns[-1])} ns); the map's history holds {span}")
-    kind = np.asarray(kinds, dtype=np.int8)
-    fixed = np.flatnonzero(inside & (kind == _FIXED))
+        raise _nothing(trajectory, at[stamped])
+    fixed = np.flatnonzero(inside & (kind == logcodec.FIXED))
     if fixed.size:
         raise CannotRepose(f"{fixed.size} stored point clouds have stamps in the trajectory's range (the first at "
                            f"{int(at[fixed[0]])} ns) and were stored in the map frame, without the pose they were "
                            "placed at (before clouds were stored as taken): they cannot be re-posed; correct a "
                            "range after them")
     new = np.full((at.size, logcodec.POSE_WIDTH), np.nan)
-    planar, full = inside & (kind == _PLANAR), inside & (kind == _FULL)
-    new[planar, :3] = laser_poses(positions[planar], quaternions[planar], np.asarray(yaws)[planar])
+    planar, full = inside & (kind == logcodec.PLANAR), inside & (kind == logcodec.FULL)
+    new[planar, :3] = laser_poses(positions[planar], quaternions[planar], yaws[planar])
     new[full] = np.column_stack([positions[full], quaternions[full]])  # a 3-D sensor takes the pose as it is
     moves: dict[int, np.ndarray] = {}
     offset = 0
@@ -144,6 +140,12 @@ def plan(history: StoredMap, trajectory: Trajectory, through: int) -> Correction
             moves[version] = rows
         offset += count
     return Correction(through, moves, int(inside.sum()))
+
+
+def _nothing(trajectory: Trajectory, stamps: np.ndarray) -> NothingToCorrect:
+    span = f"scans stamped {int(stamps.min())} to {int(stamps.max())} ns" if stamps.size else "no stamped scan"
+    return NothingToCorrect(f"no stored scan has a stamp in the trajectory's range ({int(trajectory.stamps_ns[0])} to "
+                            f"{int(trajectory.stamps_ns[-1])} ns); the map's history holds {span}")
 
 
 def apply(history: StoredMap, correction: Correction) -> StoredMap:

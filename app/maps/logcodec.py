@@ -182,6 +182,26 @@ def _guarded(read: Callable[[bytes], _T], payload: bytes) -> _T:
         raise CorruptBatch(f"stored batch does not decode: {type(exc).__name__}: {exc}") from exc
 
 
+#: How a stored scan takes a pose (``PoseTable.kinds``): in the plane (a LaserScan, a 2-D cloud: ``(x, y, theta)``),
+#: whole (a 3-D cloud stored as taken: ``(x, y, z, qx, qy, qz, qw)``), or not at all (a cloud stored in the map frame,
+#: before clouds were stored as taken: its sensor origin alone).
+PLANAR, FULL, FIXED = 0, 1, 2
+
+
+@dataclass(frozen=True)
+class PoseTable:
+    """The poses of a batch record's scans, in order, their beams left undecoded: ``stamps_ns`` (int64, -1:
+    unstamped), ``kinds`` (int8: ``PLANAR``, ``FULL``, ``FIXED``) and ``poses``, one :func:`encode_poses` row per scan
+    (a ``FIXED`` scan's row: its origin, 2 or 3 values, then NaN)."""
+
+    stamps_ns: np.ndarray
+    kinds: np.ndarray
+    poses: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.kinds)
+
+
 @dataclass(frozen=True)
 class ScanPose:
     """Where and when a stored scan was taken, without its beams: a LaserScan's (or a 2-D cloud's) ``(x, y)`` and
@@ -194,30 +214,61 @@ class ScanPose:
     orientation: tuple[float, float, float, float] | None = None
 
 
-def _pose(kind: str, scalars: Sequence[float], stamp_ns: int | None) -> ScanPose:
-    if kind == "laser" or (kind == "sensor_cloud" and len(scalars) == 5):
-        return ScanPose((float(scalars[0]), float(scalars[1])), float(scalars[2]), stamp_ns)
-    if kind == "sensor_cloud":
-        x, y, z, qx, qy, qz, qw = (float(v) for v in scalars[:7])
-        return ScanPose((x, y, z), None, stamp_ns, (qx, qy, qz, qw))
-    return ScanPose(tuple(float(v) for v in scalars[:-2]), None, stamp_ns)  # origin, then range_max and sigma
+def pose_table(payload: bytes, moved: bytes | None = None) -> PoseTable:
+    """The poses of a batch record's scans (none for a prior or an edit), at the rows of ``moved`` where a correction
+    gave it some (``StoredMap.poses``: a NaN row, and a ``FIXED`` scan, keep the pose stored), as :func:`with_poses`
+    places them; its beams left undecoded.
 
-
-def scan_poses(payload: bytes) -> list[ScanPose]:
-    """The poses of a batch record's scans in order (none for a prior or an edit), their beams left undecoded.
-
-    Raises :class:`CorruptBatch` as :func:`decode` does.
+    Raises :class:`CorruptBatch` as :func:`decode` does, and when ``moved`` does not hold one row per scan.
     """
-    return _guarded(_poses, payload)
+    table = _guarded(_pose_table, payload)
+    if moved is None:
+        return table
+    rows = decode_poses(moved)
+    if len(rows) != len(table):
+        raise CorruptBatch(f"stored poses hold {len(rows)} rows for a batch of {len(table)} scans")
+    widths = np.where(table.kinds == PLANAR, 3, np.where(table.kinds == FULL, POSE_WIDTH, 0))
+    within = np.arange(POSE_WIDTH) < widths[:, None]
+    taken = (widths > 0) & ~(np.isnan(rows) & within).any(axis=1)
+    poses = table.poses.copy()
+    poses[taken] = np.where(within[taken], rows[taken], np.nan)
+    return PoseTable(table.stamps_ns, table.kinds, poses)
 
 
-def _poses(payload: bytes) -> list[ScanPose]:
+def _pose_table(payload: bytes) -> PoseTable:
     if payload.startswith(_MAGIC):
-        return [_pose(str(item["kind"]), scalars, item.get("stamp_ns")) for item, scalars, _ in _frames(payload)]
-    batch = _decode_any(payload)
-    if not isinstance(batch, list):
-        return []
-    return [_pose(*_parts(scan)[:2], scan.stamp_ns) for scan in batch]
+        scans = [(str(item["kind"]), int(item["scalars"]), at, item.get("stamp_ns")) for item, at, _ in _layout(payload)]
+        scalars = [struct.unpack_from(f"<{count}d", payload, at) for _, count, at, _ in scans]
+        kinds, stamps = [kind for kind, *_ in scans], [stamp for *_, stamp in scans]
+    else:
+        batch = _decode_any(payload)
+        if not isinstance(batch, list):
+            return PoseTable(np.zeros(0, np.int64), np.zeros(0, np.int8), np.zeros((0, POSE_WIDTH)))
+        parts = [_parts(scan) for scan in batch]
+        kinds, scalars, stamps = [kind for kind, *_ in parts], [p[1].tolist() for p in parts], [s.stamp_ns for s in batch]
+    poses = np.full((len(kinds), POSE_WIDTH), np.nan)
+    codes = np.empty(len(kinds), np.int8)
+    for i, (kind, values) in enumerate(zip(kinds, scalars, strict=True)):
+        # a laser's pose, a sensor cloud's ((x, y, yaw) or the whole pose), a cloud's origin: then its other scalars
+        width = 3 if kind == "laser" else len(values) - 2
+        codes[i] = FIXED if kind == "cloud" else PLANAR if width == 3 else FULL
+        poses[i, :width] = values[:width]
+    return PoseTable(np.array([-1 if s is None else s for s in stamps], dtype=np.int64), codes, poses)
+
+
+def scan_poses(payload: bytes, moved: bytes | None = None) -> list[ScanPose]:
+    """:func:`pose_table`'s poses one by one."""
+    table = pose_table(payload, moved)
+    out = []
+    for stamp, kind, row in zip(table.stamps_ns.tolist(), table.kinds.tolist(), table.poses.tolist(), strict=True):
+        at = None if stamp < 0 else stamp
+        if kind == PLANAR:
+            out.append(ScanPose((row[0], row[1]), row[2], at))
+        elif kind == FULL:
+            out.append(ScanPose((row[0], row[1], row[2]), None, at, (row[3], row[4], row[5], row[6])))
+        else:
+            out.append(ScanPose(tuple(v for v in row if not math.isnan(v)), None, at))
+    return out
 
 
 def decode_scans(payload: bytes) -> list[Scan]:

@@ -28,8 +28,8 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from app.config import Settings
-from app.errors import Conflict, Invalid, NotFound, TooLarge, Unavailable
-from app.maps import correction, logcodec, snapshotcodec
+from app.errors import Conflict, Invalid, NotFound, Unavailable
+from app.maps import correction, ingest_process, logcodec, snapshotcodec
 from app.maps.entry import MapEntry, now
 from app.maps.logcodec import Reposed
 from app.maps.registry import MapRegistry
@@ -37,7 +37,6 @@ from app.maps.stored import replay, restore
 from app.maps.writepath import WritePath
 from app.ops.metrics import Metrics
 from app.ops.threads import Workers
-from app.ros.path_in import corrected_path
 from app.schemas import RebuildState, RebuildStatus
 from app.storage import MapGone, Storage, StorageUnavailable, StoredMap, Superseded, Switch
 from app.storage.corrections import DONE, FAILED, PENDING, StoredCorrection
@@ -135,11 +134,11 @@ class Refusions:
         stored scan has a stamp in its range, or a point cloud does.
         """
         entry = await self._writes.current(name)
-        path = await self._workers.run_parser(corrected_path, body)
-        if len(path.poses) > self.settings.max_trajectory_poses:
-            raise TooLarge(f"poses: {len(path.poses):,} poses, more than FUZZYRISK_MAX_TRAJECTORY_POSES "
-                           f"({self.settings.max_trajectory_poses:,})")
-        trajectory = await self._workers.run_parser(correction.sensor_trajectory, path, entry.frame_id, offset)
+        args = (body, entry.frame_id, offset, self.settings.max_trajectory_poses)
+        if ingest_process.wants(body):
+            trajectory = await self._writes.parse_process.run(correction.read_trajectory, *args)
+        else:
+            trajectory = await self._workers.run_parser(correction.read_trajectory, *args)
         through, incarnation = entry.version, entry.incarnation
         history = await self._workers.run_heavy(self.storage.load_history, name, through)
         if history is None or history.incarnation != incarnation:

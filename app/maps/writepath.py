@@ -118,7 +118,8 @@ class WritePath:
         self._notify = notify
         self._committer = GroupCommitter(storage, metrics)
         self._limits = Limits(max_scans=settings.max_scans_per_batch, max_rays=settings.max_rays_per_scan)
-        self._parse_process = ParseProcess()
+        #: large JSON bodies are parsed in it: scan batches here, corrected trajectories by ``Refusions``
+        self.parse_process = ParseProcess()
         #: snapshots taken beside the lines, also of maps no longer held (``stop`` waits for them all)
         self._snapshots: set[asyncio.Task[None]] = set()
 
@@ -148,7 +149,7 @@ class WritePath:
             finally:
                 entry.line.done(ticket)
         self._committer.shutdown()
-        await asyncio.to_thread(self._parse_process.shutdown)
+        await asyncio.to_thread(self.parse_process.shutdown)
 
     async def _copy(self, entry: MapEntry) -> tuple[int, dict[str, np.ndarray]]:
         """The map's version and a copy of its arrays, taken under the apply lock: one version's map."""
@@ -378,7 +379,7 @@ class WritePath:
             if len(body) <= INLINE_PARSE_BYTES:
                 scans, payload, work = self._prepare(entry, body, content_type, query, received_ns)
             elif wants(body, content_type):
-                payload, work = await self._parse_process.prepare(
+                payload, work = await self.parse_process.prepare(
                     body, content_type, query, entry.spec.ndim, self._limits, entry.spec, self._budget(entry),
                     received_ns)
                 scans = await self._workers.run_parser(logcodec.decode_scans, payload)  # 8 x 2 M ranges: 0.2 s

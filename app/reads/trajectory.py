@@ -25,9 +25,7 @@ def scan_poses(log: Sequence[tuple[int, bytes]], max_poses: int,
     poses: list[logcodec.ScanPose] = []
     for version, payload in log:
         try:
-            if moved and version in moved:
-                payload = logcodec.with_poses(payload, moved[version])
-            poses += logcodec.scan_poses(payload)
+            poses += logcodec.scan_poses(payload, None if moved is None else moved.get(version))
         except logcodec.CorruptBatch as exc:
             raise Unavailable(f"the map's stored batch {version} is corrupt ({exc}): its trajectory cannot be "
                               "read") from None

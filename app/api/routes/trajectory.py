@@ -80,7 +80,7 @@ async def put_trajectory(name: MapNamePath, request: Request, service: ServiceDe
     background (``GET /maps/{name}/rebuild`` follows it) and replaces the current map when complete (its version + 1);
     until then reads and plans are served from the current map. A new PUT supersedes a rebuild under way.
     """
-    # the body as a CorrectedPath (its schema below), validated in a parse thread a chunk at a time
+    # the body as a CorrectedPath (its schema below), validated in a parse thread, or the parse process when large
     return RebuildAccepted(rebuild=await service.refusions.correct(name, await request.body(), offset))
 
 

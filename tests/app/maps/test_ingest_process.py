@@ -24,7 +24,7 @@ def _big_batch(kit: Any, scans: int = 60, beams: int = 720) -> dict[str, Any]:
 
 
 def _parse_processes(client: TestClient) -> list[psutil.Process]:
-    executor = client.app.state.service.writes._parse_process._executor  # type: ignore[attr-defined]
+    executor = client.app.state.service.writes.parse_process._executor  # type: ignore[attr-defined]
     return [psutil.Process(p.pid) for p in getattr(executor, "_processes", {}).values()] if executor else []
 
 
@@ -101,6 +101,6 @@ def test_a_dead_parse_process_is_replaced_and_the_last_ends_with_the_service(mak
     (second,) = _parse_processes(client)
     assert second.pid != first.pid and kit.version(client, "lab") == 2
     client.__exit__(None, None, None)
-    late = client.app.state.service.writes._parse_process  # type: ignore[attr-defined]
+    late = client.app.state.service.writes.parse_process  # type: ignore[attr-defined]
     assert late._executor is None and late._closed  # a batch arriving now would start none
     _until_gone(second)

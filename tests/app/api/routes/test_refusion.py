@@ -10,6 +10,7 @@ a fleet: tests/e2e/test_fleet_refusion.py.)
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
 import threading
 import time
@@ -17,11 +18,13 @@ from collections.abc import Callable, Sequence
 from typing import Any
 
 import numpy as np
+import psutil
 import pytest
 from fastapi.testclient import TestClient
 from scipy.spatial.transform import Rotation
 
 from app.cli.import_log import scan_json
+from app.maps.ingest_process import PROCESS_PARSE_BYTES
 from fuzzyocc import LaserScan
 from fuzzyocc.carmen import read_carmen
 from fuzzyocc.tf import yaw_quaternion
@@ -224,7 +227,7 @@ def test_not_a_number_and_too_many_poses_are_refused(make_client: Callable[..., 
     fresh_map(client, "robot", log[:20])
     body = path_of(log[:5])
     body["poses"][2]["pose"]["position"]["x"] = math.nan
-    response = client.put("/maps/robot/trajectory", content=__import__("json").dumps(body),
+    response = client.put("/maps/robot/trajectory", content=json.dumps(body),
                           headers={"Content-Type": "application/json"})
     assert response.status_code == 422 and "poses" in response.text
     response = client.put("/maps/robot/trajectory", json=path_of(log[:20]))
@@ -232,6 +235,44 @@ def test_not_a_number_and_too_many_poses_are_refused(make_client: Callable[..., 
     assert client.get("/maps/robot/rebuild").json()["state"] == "none"
     assert client.put("/maps/nowhere/trajectory", json=path_of(log[:5])).status_code == 404
     assert client.get("/maps/nowhere/rebuild").status_code == 404
+
+
+def _padded(path: dict[str, Any], poses: int) -> dict[str, Any]:
+    """``path`` followed by ``poses`` more, a second apart after its last stamp (no stored scan there): a body past
+    ``PROCESS_PARSE_BYTES``."""
+    last = path["poses"][-1]
+    sec = last["header"]["stamp"]["sec"]
+    extra = [{**last, "header": {**last["header"], "stamp": {"sec": sec + 1 + i, "nanosec": 0}}} for i in range(poses)]
+    return _shifted(path, poses=[*path["poses"], *extra])
+
+
+def test_a_large_corrected_trajectory_is_read_in_the_parse_process_as_a_small_one_is(
+        make_client: Callable[..., TestClient], log: list[LaserScan]) -> None:
+    client = make_client(max_trajectory_poses=2_000)
+    expected = fresh_map(client, "direct", log)
+    fresh_map(client, "robot", drifted(log))
+    version = client.get("/maps/robot").json()["version"]
+    large = _padded(path_of(log), 1_800)
+    assert len(json.dumps(large)) > PROCESS_PARSE_BYTES
+    # refused as in a parse thread, naming the field; nothing changes
+    unordered = _shifted(large, poses=[*large["poses"][:1500], large["poses"][1501], large["poses"][1500],
+                                       *large["poses"][1502:]])
+    response = client.put("/maps/robot/trajectory", json=unordered)
+    assert response.status_code == 422 and "poses[1501].header.stamp" in error_message(response), response.text
+    response = client.put("/maps/robot/trajectory", json=_padded(path_of(log), 2_000))
+    assert response.status_code == 413 and "FUZZYRISK_MAX_TRAJECTORY_POSES" in error_message(response)
+    response = client.put("/maps/robot/trajectory", content=json.dumps(large)[:-2],
+                          headers={"Content-Type": "application/json"})
+    assert response.status_code == 422 and response.json()["code"] == "VALIDATION_ERROR", response.text
+    assert client.get("/maps/robot/rebuild").json()["state"] == "none"
+    assert client.get("/maps/robot").json()["version"] == version
+    # and taken: the same rebuilt map as a path of the scans' poses alone
+    response = client.put("/maps/robot/trajectory", json=large)
+    assert response.status_code == 202, response.text
+    assert rebuilt(client, "robot", response.json()["rebuild"]["id"])["state"] == "done"
+    assert grid_of(client, "robot") == expected
+    executor = client.app.state.service.writes.parse_process._executor  # type: ignore[attr-defined]
+    assert executor is not None and [psutil.Process(p.pid).is_running() for p in executor._processes.values()] == [True]
 
 
 @pytest.fixture
