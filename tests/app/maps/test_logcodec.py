@@ -97,6 +97,25 @@ def test_stamps_round_trip_exactly_with_their_scans_bit_for_bit() -> None:
         logcodec.ScanPose((0.5, 0.25, 1.5), None, 0)]
 
 
+def test_a_records_poses_at_a_stored_correction_are_those_it_replays_at() -> None:
+    payload = logcodec.encode(_stamped_batch())
+    rows = np.full((3, logcodec.POSE_WIDTH), np.nan)
+    rows[1, :3] = (4.0, 5.0, -0.25)  # the unstamped LaserScan moved; the first kept (NaN); the cloud cannot move
+    rows[2, :3] = (9.0, 9.0, 9.0)
+    moved = logcodec.encode_poses(rows)
+    table = logcodec.pose_table(payload, moved)
+    assert table.kinds.tolist() == [logcodec.PLANAR, logcodec.PLANAR, logcodec.FIXED]
+    assert table.stamps_ns.tolist() == [1_796_614_484_690_952_831, -1, 0]
+    # the poses the record replays at (with_poses, then decoded), read without decoding the beams
+    replayed = logcodec.decode_scans(logcodec.with_poses(payload, moved))
+    assert logcodec.scan_poses(payload, moved) == logcodec.scan_poses(logcodec.with_poses(payload, moved))
+    assert [p.position for p in logcodec.scan_poses(payload, moved)] == [
+        replayed[0].pose[:2], replayed[1].pose[:2], replayed[2].origin]
+    assert logcodec.scan_poses(payload, moved)[1] == logcodec.ScanPose((4.0, 5.0), -0.25, None)
+    with pytest.raises(logcodec.CorruptBatch, match="2 rows for a batch of 3 scans"):
+        logcodec.pose_table(payload, logcodec.encode_poses(rows[:2]))
+
+
 def _header_of(payload: bytes) -> tuple[dict[str, Any], int]:
     (length,) = struct.unpack_from("<I", payload, 4)
     return json.loads(payload[8:8 + length]), 8 + length
