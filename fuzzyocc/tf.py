@@ -49,6 +49,9 @@ class NotLevel(ValueError):
         self.degrees = degrees
         self.index = index
 
+    def __reduce__(self) -> tuple[type[NotLevel], tuple[float, int | None]]:
+        return NotLevel, (self.degrees, self.index)  # its message is made of these: a process's refusal unpickles
+
 
 def level_heading(quaternion_xyzw: object) -> tuple[float, float]:
     """(theta, turn) of a level scanner rotated by ``quaternion_xyzw`` (normalised here): the heading of its x axis

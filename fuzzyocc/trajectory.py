@@ -152,6 +152,10 @@ class Trajectory:
     def __len__(self) -> int:
         return int(self.stamps_ns.size)
 
+    def __reduce__(self) -> tuple[type[Trajectory], tuple[np.ndarray, np.ndarray, np.ndarray]]:
+        # built again from its samples where it is unpickled (a process's answer): checked and read-only there too
+        return Trajectory, (self.stamps_ns, self.positions, self.quaternions)
+
     def with_offset(self, position: object, quaternion_xyzw: object) -> Trajectory:
         """The trajectory of a frame fixed to this one: each pose composed with ``T_this_frame`` (``position``,
         metres, and ``quaternion_xyzw``, a unit quaternion), as a static TF ``base_link -> laser`` places the laser

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import pickle
 from pathlib import Path
 
 import numpy as np
@@ -246,3 +247,15 @@ def test_laser_poses_name_the_first_tilted_pose() -> None:
     tilted = Rotation.from_euler("x", math.radians(10.0)).as_quat()
     with pytest.raises(NotLevel, match="pose 1: "):
         laser_poses(np.zeros((2, 3)), [[0.0, 0.0, 0.0, 1.0], tilted])
+
+
+def test_a_trajectory_and_a_tilt_refusal_cross_a_process_as_they_were() -> None:
+    """Both come back from the service's parse process by pickle: the same poses, read-only; the same refusal."""
+    trajectory = Trajectory(np.array([10, 20, 30]), np.arange(9.0).reshape(3, 3), np.stack([_yaw(0.1 * i) for i in range(3)]))
+    back = pickle.loads(pickle.dumps(trajectory))
+    at = np.array([10, 15, 27])
+    np.testing.assert_array_equal(back.poses_at(at).positions, trajectory.poses_at(at).positions)
+    np.testing.assert_array_equal(back.poses_at(at).quaternions, trajectory.poses_at(at).quaternions)
+    assert not back.positions.flags.writeable and not back.stamps_ns.flags.writeable
+    refusal = pickle.loads(pickle.dumps(NotLevel(10.0, index=1)))
+    assert (refusal.degrees, refusal.index, str(refusal)) == (10.0, 1, str(NotLevel(10.0, index=1)))
