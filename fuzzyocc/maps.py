@@ -44,6 +44,7 @@ from fuzzyocc.raycast import (
     CastResult,
     Lattice,
     cast_into,
+    cross_into,
     enter_new_blocks,
     fits,
     flat_ids,
@@ -126,9 +127,7 @@ def allocation_bound(spec: GridSpec | LatticeSpec, scans: Sequence[Scan]) -> int
             rays = scan.to_rays(beams=part)
             n = rays.ranges.size
             if n:
-                cast_into(lattice, index, (0, 0, 0), np.repeat(rays.origin[None], n, axis=0), rays.directions,
-                          rays.ranges, np.full(n, np.nan), np.ones(n), np.array([0, n]), unknown_from=np.inf,
-                          split=False)
+                cross_into(lattice, index, np.repeat(rays.origin[None], n, axis=0), rays.directions, rays.ranges)
     return index.n * side**ndim
 
 

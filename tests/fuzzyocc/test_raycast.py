@@ -6,7 +6,16 @@ import pytest
 from fuzzyocc.config import GridSpec
 from fuzzyocc.keys import flat_to_keys
 from fuzzyocc._block_table import BlockIndex
-from fuzzyocc.raycast import NO_RETURN_DISTANCE, Lattice, cast_into, cast_rays, traversal_cells
+from fuzzyocc import raycast
+from fuzzyocc.raycast import (
+    NO_RETURN_DISTANCE,
+    WINDOW_LIMIT,
+    Lattice,
+    cast_into,
+    cast_rays,
+    cross_into,
+    traversal_cells,
+)
 
 
 def _slab(lo: np.ndarray, hi: np.ndarray, o: np.ndarray, d: np.ndarray) -> tuple[float, float]:
@@ -319,3 +328,32 @@ def test_the_work_estimate_never_overflows_into_a_small_number() -> None:
     assert traversal_cells(spec, np.array([0.05, 0.05]), far) == 20  # inside the box: 9.5 + 9.5 cells, plus the first
     for bad in ([np.inf, 0.05], [np.nan, 0.5], [-np.inf, np.inf]):  # more than any budget, never less
         assert traversal_cells(spec, np.array([0.05, 0.05]), np.array([bad])) >= 2**62
+
+
+def _entered(index: BlockIndex) -> set[tuple[int, ...]]:
+    return {tuple(int(v) for v in row) for row in index.coords[: index.n]}
+
+
+@pytest.mark.parametrize("ndim", [2, 3])
+@pytest.mark.parametrize("bounded", [True, False], ids=["box", "lattice"])
+@pytest.mark.parametrize("window", [WINDOW_LIMIT, 0], ids=["dense", "cast"])
+def test_the_cells_rays_cross_are_the_cells_the_cast_reaches(ndim: int, bounded: bool, window: int,
+                                                             monkeypatch: pytest.MonkeyPatch) -> None:
+    # what a batch's allocation bound counts: the same cells as the fusion's cast walks, each once, over several
+    # calls into one index (the blocks of a batch's scans), rays from inside, outside and across the box alike
+    monkeypatch.setattr(raycast, "WINDOW_LIMIT", window)  # 0: every call too wide for the dense marks, so cast
+    rng = np.random.default_rng(11 + ndim)
+    lattice = Lattice((-1.0,) * ndim, 0.25, (24,) * ndim if bounded else None)
+    crossed, cast = BlockIndex(), BlockIndex()
+    for _ in range(3):
+        n = 300
+        origins = rng.uniform(-3.0, 6.0, (n, ndim))
+        dirs = rng.normal(size=(n, ndim))
+        dirs[rng.random(n) < 0.2, 0] = 0.0  # along a face's plane: ties between the axes
+        dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+        t_end = rng.uniform(0.1, 8.0, n)
+        cross_into(lattice, crossed, origins, dirs, t_end)
+        cast_into(lattice, cast, (0, 0, 0), origins, dirs, t_end, np.full(n, np.nan), np.ones(n), np.array([0, n]),
+                  unknown_from=np.inf, split=False)
+        assert crossed.n == cast.n and _entered(crossed) == _entered(cast)
+    assert cast.n > 100
