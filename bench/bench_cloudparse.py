@@ -1,6 +1,6 @@
-"""A lidar's PointCloud2 read from its CDR body: the parse of one OS-1-128 cloud, in process.
+"""What a lidar's cloud costs before its fusion: its PointCloud2 read from the CDR body, then its admission.
 
-    python3 dev.py bench cloudparse [--repeat N]
+    python3 dev.py bench cloudparse [--repeat N] [--data DIR]
 
 The cloud is what ``ouster_ros`` publishes for an OS-1-128 at 1024 x 10 Hz: 128 rows of 1,024 points,
 ``point_step`` 48 (x y z float32 first, then intensity, t, reflectivity, ring, ambient, range), a
@@ -12,6 +12,12 @@ For each: the CPU time (median of ``--repeat``) of ``app.maps.ingest.parse`` (th
 ``PointCloud``, fuzzyocc's placing of the points included) and of its first half (the body to the
 sensor-frame points, ``messages_in.sensor_scan``), and the most memory either allocated at once
 (tracemalloc). docs/DESIGN.md section 8.4 quotes them.
+
+Then the admission of the three real Ouster frames (``ouster/`` of the data directory, ``range_max`` 30 m, every
+height) into a growing map at 0.1 and 0.2 m: the CPU time (median of ``--repeat``, a frame a call) of
+``fuzzyocc.allocation_bound`` (the cells of every block the rays cross: ``raycast.cross_into``'s marks) against the
+same bound counted by a cast over the lattice of blocks (``cast_into``, what it ran before), which must give the same
+number, and of ``cast_work`` beside them.
 """
 
 from __future__ import annotations
@@ -26,6 +32,12 @@ from typing import Any
 import numpy as np
 
 from app.maps import ingest
+from bench import _data, bench_extent
+from fuzzyocc import LatticeSpec, PointCloud, allocation_bound, cast_work
+from fuzzyocc.blockgrid import BLOCK_SHIFT_3D
+from fuzzyocc._block_table import BlockIndex
+from fuzzyocc.raycast import Lattice, cast_into
+from fuzzyocc.maps import scan_parts
 from app.ros import messages_in
 from app.ros.msgtypes import typestore
 from app.scans import Limits
@@ -90,10 +102,42 @@ def _peak_mb(run: Callable[[], Any]) -> float:
         tracemalloc.stop()
 
 
+def _cast_bound(spec: LatticeSpec, cloud: PointCloud) -> int:
+    """``allocation_bound`` of one cloud on a growing 3-D map as it was counted before: a cast over the lattice of
+    blocks, its evidence, rows and combine made and thrown away."""
+    side = 1 << BLOCK_SHIFT_3D
+    lattice, index = Lattice((0.0,) * 3, spec.resolution * side, None), BlockIndex()
+    for part in scan_parts(cloud):
+        rays = cloud.to_rays(beams=part)
+        n = rays.ranges.size
+        cast_into(lattice, index, (0, 0, 0), np.repeat(rays.origin[None], n, axis=0), rays.directions, rays.ranges,
+                  np.full(n, np.nan), np.ones(n), np.array([0, n]), unknown_from=np.inf, split=False)
+    return index.n * side**3
+
+
+def admission(repeat: int) -> None:
+    """The Ouster frames' allocation bound against the cast's count of it, and their work estimate (module doc)."""
+    clouds = bench_extent.ouster_clouds(_data.needed("ouster"))
+    print(f"\n{'Ouster frames (107 k rays), a frame':36s} {'bound':>9s} {'by a cast':>10s} {'ratio':>7s} "
+          f"{'cast_work':>10s} {'bound, cells':>13s}")
+    for resolution in (0.1, 0.2):
+        spec = LatticeSpec(ndim=3, resolution=resolution)
+        bounds = [allocation_bound(spec, [cloud]) for cloud in clouds]
+        if bounds != [_cast_bound(spec, cloud) for cloud in clouds]:
+            raise SystemExit(f"the bound at {resolution} m differs from the cast's count: {bounds}")
+        ours = statistics.median(_cpu_ms(lambda c=c: allocation_bound(spec, [c]), repeat) for c in clouds)
+        peer = statistics.median(_cpu_ms(lambda c=c: _cast_bound(spec, c), repeat) for c in clouds)
+        work = statistics.median(_cpu_ms(lambda c=c: cast_work(spec, [c]), repeat) for c in clouds)
+        print(f"{f'at {resolution} m':36s} {ours:6.1f} ms {peer:7.1f} ms {peer / ours:6.2f}x {work:7.1f} ms "
+              f"{statistics.median(bounds):13,.0f}")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--repeat", type=int, default=60, help="runs of each (the median is shown)")
+    _data.add_option(parser)
     args = parser.parse_args()
+    _data.use(args)
     media = messages_in.media_type(messages_in.POINT_CLOUD2)
     pose = messages_in.pose_from_query({k: float(v) for k, v in QUERY.items()})
     warm = os1_cloud()
@@ -114,6 +158,7 @@ def main() -> None:
         fused = len(parse()[0].points)
         print(f"{label:36s} {_cpu_ms(to_points, args.repeat):7.2f} ms {_peak_mb(to_points):5.1f} MB "
               f"{_cpu_ms(parse, args.repeat):6.2f} ms {_peak_mb(parse):5.1f} MB {fused:7,d}")
+    admission(max(3, args.repeat // 10))
 
 
 if __name__ == "__main__":
