@@ -19,10 +19,8 @@ import asyncio
 import concurrent.futures
 import logging
 import threading
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from concurrent.futures.process import BrokenProcessPool
-
-from collections.abc import Callable
 from typing import TypeVar
 
 from app.scans import Limits
